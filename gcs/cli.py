@@ -1,0 +1,47 @@
+"""The `fleetmpc` console script: one entry point, one subcommand per job.
+
+Each subcommand lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
+modules are imported only when their subcommand runs, so `fleetmpc --help` stays fast.
+"""
+
+import argparse
+import importlib
+import sys
+
+from onboard.core.errors import FleetMpcError
+
+__all__ = ["main"]
+
+# subcommand -> (module, one-line help)
+_COMMANDS: dict[str, tuple[str, str]] = {
+    "check": ("gcs.check", "feasibility report of a scenario, before anything flies"),
+    "sim": ("gcs.sim", "in-process lockstep simulation of a whole fleet"),
+    "bench": ("gcs.bench", "per-agent step timing against a cvxpy rebuild, and lockstep speed"),
+    "sitl": ("sitl.cli", "one simulated vehicle behind a PX4 or ArduPilot MAVLink interface"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fleetmpc", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_text) in _COMMANDS.items():
+        sub.add_parser(name, help=help_text, description=help_text)
+    # Parse the subcommand name first, then let only that module define its arguments.
+    args_list = sys.argv[1:] if argv is None else argv
+    known, _ = parser.parse_known_args(args_list[:1] or ["--help"])
+    module_name, help_text = _COMMANDS[known.command]
+    module = importlib.import_module(module_name)
+    full = argparse.ArgumentParser(prog=f"fleetmpc {known.command}", description=help_text)
+    module.add_arguments(full)
+    args = full.parse_args(args_list[1:])
+    try:
+        return int(module.run(args) or 0)
+    except FleetMpcError as e:
+        print(f"fleetmpc {known.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

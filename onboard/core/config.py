@@ -1,0 +1,152 @@
+"""Frozen configuration of the onboard controller, validated at construction."""
+
+from dataclasses import dataclass
+
+from onboard.core.errors import ConfigError
+from onboard.core.validate import finite, in_range, positive, vector
+
+__all__ = ["ControllerSettings", "FormationSettings", "LearningSettings"]
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Tube LBMPC settings (paper Sec. V-B, as corrected in DESIGN.md)."""
+
+    period_s: float = 0.2
+    """Control period tau [s]."""
+    horizon: int = 5
+    """Prediction horizon M [steps]."""
+    speed_max_m_s: float = 2.0
+    """Input box U: |forward speed| <= this [m/s]."""
+    yaw_rate_max_rad_s: float = 0.5
+    """Input box U: |yaw rate| <= this [rad/s]."""
+    q_position: float = 4.0
+    """Stage weight on the position error to the slot [1/m^2]."""
+    q_heading: float = 0.2
+    """Stage weight on the heading error to the steady-state heading [1/rad^2]."""
+    q_formation: float = 1.0
+    """Stage weight on each neighbour's relative-position error [1/m^2]."""
+    r_speed: float = 1.0
+    """Input weight on speed away from its steady-state value [s^2/m^2]."""
+    r_yaw_rate: float = 1.0
+    """Input weight on yaw rate away from its steady-state value [s^2/rad^2]."""
+    w_position_m: float = 0.02
+    """Disturbance box W: per-period bound on the position model error [m]."""
+    w_heading_rad: float = 0.005
+    """Disturbance box W: per-period bound on the heading model error [rad]."""
+    d_safe_m: float = 2.0
+    """Hard minimum separation between any two vehicles [m]."""
+    reference_speed_m_s: float = 1.0
+    """Cruise speed at which K and the tube are computed (never 0) [m/s]."""
+    min_linearization_speed_m_s: float = 0.3
+    """Smallest speed a linearization point may have, so the lateral mode stays controllable [m/s]."""
+    plan_extrapolation_s: float = 1.0
+    """How far past its end a neighbour's plan is extrapolated [s]."""
+    plan_stale_s: float = 1.0
+    """Plan age beyond which a neighbour's formation term is dropped [s]."""
+    plan_forget_s: float = 10.0
+    """Plan age beyond which a neighbour is ignored entirely [s]."""
+    solver_eps: float = 1e-6
+    """OSQP eps_abs and eps_rel."""
+    solver_max_iter: int = 4000
+    """OSQP iteration limit per solve."""
+
+    def __post_init__(self) -> None:
+        positive("controller.period_s", self.period_s)
+        if not isinstance(self.horizon, int) or not 1 <= self.horizon <= 100:
+            raise ConfigError("controller.horizon", f"must be an integer in [1, 100], got {self.horizon!r}")
+        for name in (
+            "speed_max_m_s",
+            "yaw_rate_max_rad_s",
+            "q_position",
+            "r_speed",
+            "r_yaw_rate",
+            "reference_speed_m_s",
+            "min_linearization_speed_m_s",
+            "plan_extrapolation_s",
+            "plan_stale_s",
+            "plan_forget_s",
+        ):
+            positive(f"controller.{name}", getattr(self, name))
+        for name in ("q_heading", "q_formation", "w_position_m", "w_heading_rad", "d_safe_m"):
+            positive(f"controller.{name}", getattr(self, name), allow_zero=True)
+        in_range("controller.solver_eps", self.solver_eps, 1e-12, 1e-5)
+        if not isinstance(self.solver_max_iter, int) or self.solver_max_iter < 10:
+            raise ConfigError("controller.solver_max_iter", f"must be an integer >= 10, got {self.solver_max_iter!r}")
+        if self.min_linearization_speed_m_s > self.speed_max_m_s:
+            raise ConfigError("controller.min_linearization_speed_m_s", "must not exceed speed_max_m_s")
+
+    @property
+    def period_ns(self) -> int:
+        return round(self.period_s * 1e9)
+
+
+@dataclass(frozen=True)
+class LearningSettings:
+    """Dual EKF settings (paper Sec. V-A, Wan & Nelson). Parameters beta = (a_V, a_w, d_x, d_y)."""
+
+    enabled: bool = True
+    """Learn beta online; when False, beta stays at its initial value (plain tube MPC)."""
+    beta_initial: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
+    """Initial speed effectiveness, yaw-rate effectiveness, drift North [m/s], drift East [m/s]."""
+    beta_std_initial: tuple[float, float, float, float] = (0.2, 0.2, 0.5, 0.5)
+    """Initial standard deviation of each parameter."""
+    beta_random_walk: tuple[float, float, float, float] = (1e-3, 1e-3, 2e-3, 2e-3)
+    """Random-walk standard deviation of each parameter per second (per sqrt(s))."""
+    beta_min: tuple[float, float, float, float] = (0.5, 0.5, -3.0, -3.0)
+    """Lower bound of each parameter."""
+    beta_max: tuple[float, float, float, float] = (1.5, 1.5, 3.0, 3.0)
+    """Upper bound of each parameter."""
+    process_position_std_m: float = 0.01
+    """State-filter process noise on position per control period [m]."""
+    process_heading_std_rad: float = 0.005
+    """State-filter process noise on heading per control period [rad]."""
+    measurement_position_std_m: float = 0.05
+    """Assumed standard deviation of position measurements [m]."""
+    measurement_heading_std_rad: float = 0.01
+    """Assumed standard deviation of heading measurements [rad]."""
+    innovation_gate: float = 50.0
+    """Normalized innovation (in standard deviations) above which the filter resets."""
+
+    def __post_init__(self) -> None:
+        for name in ("beta_initial", "beta_std_initial", "beta_random_walk", "beta_min", "beta_max"):
+            object.__setattr__(self, name, vector(f"learning.{name}", getattr(self, name), 4))
+        for i in range(4):
+            if not self.beta_min[i] <= self.beta_initial[i] <= self.beta_max[i]:
+                raise ConfigError(f"learning.beta_initial[{i}]", "must lie within beta_min and beta_max")
+            positive(f"learning.beta_std_initial[{i}]", self.beta_std_initial[i])
+            positive(f"learning.beta_random_walk[{i}]", self.beta_random_walk[i], allow_zero=True)
+        if self.beta_min[0] <= 0 or self.beta_min[1] <= 0:
+            raise ConfigError("learning.beta_min", "effectiveness bounds must be > 0")
+        for name in (
+            "process_position_std_m",
+            "process_heading_std_rad",
+            "measurement_position_std_m",
+            "measurement_heading_std_rad",
+            "innovation_gate",
+        ):
+            positive(f"learning.{name}", getattr(self, name))
+
+
+_FRAMES = ("world", "course")
+
+
+@dataclass(frozen=True)
+class FormationSettings:
+    """Formation geometry: slots around a centre that trails the target along its course."""
+
+    slots_m: tuple[tuple[float, float], ...]
+    """Offset of each vehicle's slot from the formation centre (index = vehicle order) [m]."""
+    frame: str = "world"
+    """"world": offsets are (North, East); "course": (forward, right) in the target's course frame."""
+    trail_m: float = 5.0
+    """Distance d_s by which the formation centre trails the target along its course [m]."""
+
+    def __post_init__(self) -> None:
+        if self.frame not in _FRAMES:
+            raise ConfigError("formation.frame", f"must be one of {_FRAMES}, got {self.frame!r}")
+        slots = tuple(vector(f"formation.slots_m[{i}]", s, 2) for i, s in enumerate(self.slots_m))
+        if not slots:
+            raise ConfigError("formation.slots_m", "needs at least one slot")
+        object.__setattr__(self, "slots_m", slots)
+        finite("formation.trail_m", self.trail_m)

@@ -1,0 +1,255 @@
+"""The scenario file (TOML): one description of a fleet, read by every process.
+
+A scenario states the vehicles (initial state, slot, truth parameters), the target, the formation,
+the controller and learning settings, the site, the network ports, the duration and the seed.
+Loading validates every field; errors name the field, e.g. `vehicles[2].truth.speed_effectiveness`.
+"""
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
+from onboard.core.errors import ConfigError
+from onboard.core.validate import finite, in_range, positive, vector
+from sitl.plant import TruthParams, Wind
+from sitl.target import TargetScript
+
+__all__ = ["Network", "Scenario", "Site", "VehicleSpec", "load_scenario", "parse_scenario"]
+
+
+@dataclass(frozen=True)
+class Site:
+    """Where the fleet flies: the local NED origin and the flight altitude."""
+
+    home_lat_deg: float = 47.397742
+    """Latitude of the local origin [deg]."""
+    home_lon_deg: float = 8.545594
+    """Longitude of the local origin [deg]."""
+    home_alt_m: float = 488.0
+    """Altitude above mean sea level of the local origin [m]."""
+    altitude_m: float = 10.0
+    """Flight altitude above home after takeoff [m]."""
+
+    def __post_init__(self) -> None:
+        in_range("site.home_lat_deg", self.home_lat_deg, -90.0, 90.0)
+        in_range("site.home_lon_deg", self.home_lon_deg, -180.0, 180.0)
+        finite("site.home_alt_m", self.home_alt_m)
+        positive("site.altitude_m", self.altitude_m)
+
+
+@dataclass(frozen=True)
+class Network:
+    """Loopback ports of a fleet; vehicle i uses the base ports plus (i - 1)."""
+
+    host: str = "127.0.0.1"
+    """Address every process binds to or sends to."""
+    offboard_base_port: int = 14540
+    """PX4 offboard-API UDP port of vehicle 1 (vehicle i: + i - 1)."""
+    gcs_port: int = 14550
+    """UDP port every vehicle streams to for ground stations."""
+    ardupilot_tcp_base_port: int = 5760
+    """ArduPilot SITL TCP port of vehicle 1 (vehicle i: + 10 * (i - 1))."""
+    zenoh_port: int = 7447
+    """TCP port of the Zenoh router or first peer."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.host, str) or not self.host:
+            raise ConfigError("network.host", f"must be a host name or address, got {self.host!r}")
+        for name in ("offboard_base_port", "gcs_port", "ardupilot_tcp_base_port", "zenoh_port"):
+            port = getattr(self, name)
+            if not isinstance(port, int) or not 1 <= port <= 65535:
+                raise ConfigError(f"network.{name}", f"must be a port number, got {port!r}")
+
+
+@dataclass(frozen=True)
+class VehicleSpec:
+    """One vehicle of the fleet."""
+
+    id: int
+    """MAVLink system id (1..250), unique in the fleet."""
+    initial: tuple[float, float, float]
+    """Initial x North [m], y East [m], yaw [rad]."""
+    slot_m: tuple[float, float]
+    """Offset of this vehicle's slot from the formation centre [m] (frame: formation.frame)."""
+    truth: TruthParams
+    """The simulated vehicle's true parameters."""
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A whole fleet, as described by one TOML file."""
+
+    name: str
+    description: str
+    seed: int
+    duration_s: float
+    plant_steps_per_period: int
+    controller: ControllerSettings
+    learning: LearningSettings
+    formation: FormationSettings
+    target: TargetScript
+    vehicles: tuple[VehicleSpec, ...]
+    site: Site
+    network: Network
+    source: str = ""
+
+    @property
+    def vehicle_ids(self) -> tuple[int, ...]:
+        return tuple(v.id for v in self.vehicles)
+
+    def vehicle(self, vehicle_id: int) -> VehicleSpec:
+        for v in self.vehicles:
+            if v.id == vehicle_id:
+                return v
+        raise ConfigError("vehicle", f"no vehicle with id {vehicle_id} in scenario {self.name!r} (ids: {self.vehicle_ids})")
+
+    def index_of(self, vehicle_id: int) -> int:
+        return self.vehicle_ids.index(self.vehicle(vehicle_id).id)
+
+    @property
+    def tick_ns(self) -> int:
+        return self.controller.period_ns // self.plant_steps_per_period
+
+    def with_overrides(self, **changes: Any) -> "Scenario":
+        return dataclasses.replace(self, **changes)
+
+
+def _build(cls: type, table: Any, prefix: str, **extra: Any) -> Any:
+    """Construct dataclass `cls` from a TOML table, naming unknown or malformed keys."""
+    if not isinstance(table, dict):
+        raise ConfigError(prefix, f"must be a table, got {table!r}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - names)
+    if unknown:
+        raise ConfigError(f"{prefix}.{unknown[0]}", f"unknown key (known: {', '.join(sorted(names))})")
+    kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
+    kwargs.update(extra)
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:
+        field = e.field if e.field.startswith(prefix) else f"{prefix}.{e.field.split('.')[-1]}"
+        raise ConfigError(field, str(e).split(": ", 1)[1]) from None
+    except TypeError as e:
+        raise ConfigError(prefix, str(e)) from None
+
+
+def _truth(table: dict[str, Any], prefix: str, controller: ControllerSettings) -> TruthParams:
+    table = dict(table)
+    wind = _build(Wind, table.pop("wind", {}), f"{prefix}.wind")
+    table.setdefault("speed_limit_m_s", controller.speed_max_m_s)
+    table.setdefault("yaw_rate_limit_rad_s", controller.yaw_rate_max_rad_s)
+    return _build(TruthParams, table, prefix, wind=wind)
+
+
+_TOP_KEYS = {
+    "name",
+    "description",
+    "seed",
+    "duration_s",
+    "plant_steps_per_period",
+    "controller",
+    "learning",
+    "formation",
+    "target",
+    "truth",
+    "vehicles",
+    "site",
+    "network",
+}
+
+
+def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario:
+    """Validate a parsed TOML document and return the Scenario it describes."""
+    unknown = sorted(set(doc) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(unknown[0], f"unknown top-level key (known: {', '.join(sorted(_TOP_KEYS))})")
+    name = doc.get("name")
+    if not isinstance(name, str) or not name:
+        raise ConfigError("name", f"must be a non-empty string, got {name!r}")
+    seed = doc.get("seed", 0)
+    if not isinstance(seed, int) or seed < 0:
+        raise ConfigError("seed", f"must be a non-negative integer, got {seed!r}")
+    duration_s = positive("duration_s", doc.get("duration_s", 30.0))
+    steps = doc.get("plant_steps_per_period", 10)
+    if not isinstance(steps, int) or not 1 <= steps <= 1000:
+        raise ConfigError("plant_steps_per_period", f"must be an integer in [1, 1000], got {steps!r}")
+    controller = _build(ControllerSettings, doc.get("controller", {}), "controller")
+    if controller.period_ns % steps:
+        raise ConfigError("plant_steps_per_period", f"must divide the control period ({controller.period_ns} ns) exactly")
+    learning = _build(LearningSettings, doc.get("learning", {}), "learning")
+    target = _build(TargetScript, doc.get("target", {}), "target")
+    truth_default = doc.get("truth", {})
+    if not isinstance(truth_default, dict):
+        raise ConfigError("truth", "must be a table")
+    raw_vehicles = doc.get("vehicles")
+    if not isinstance(raw_vehicles, list) or not raw_vehicles:
+        raise ConfigError("vehicles", "must be a non-empty array of tables ([[vehicles]])")
+    vehicles = []
+    for i, raw in enumerate(raw_vehicles):
+        prefix = f"vehicles[{i}]"
+        if not isinstance(raw, dict):
+            raise ConfigError(prefix, "must be a table")
+        extra = sorted(set(raw) - {"id", "initial", "slot_m", "truth"})
+        if extra:
+            raise ConfigError(f"{prefix}.{extra[0]}", "unknown key (known: id, initial, slot_m, truth)")
+        vid = raw.get("id", i + 1)
+        if not isinstance(vid, int) or not 1 <= vid <= 250:
+            raise ConfigError(f"{prefix}.id", f"must be an integer in [1, 250], got {vid!r}")
+        initial = vector(f"{prefix}.initial", raw.get("initial", [0.0, 0.0, 0.0]), 3)
+        slot = vector(f"{prefix}.slot_m", raw.get("slot_m", [0.0, 0.0]), 2)
+        truth_table = {**truth_default, **raw.get("truth", {})}
+        if "wind" in truth_default and "wind" in raw.get("truth", {}):
+            truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
+        vehicles.append(VehicleSpec(vid, initial, slot, _truth(truth_table, f"{prefix}.truth", controller)))
+    ids = [v.id for v in vehicles]
+    if len(set(ids)) != len(ids):
+        raise ConfigError("vehicles", f"ids must be unique, got {ids}")
+    formation_table = dict(doc.get("formation", {}))
+    if "slots_m" in formation_table:
+        raise ConfigError("formation.slots_m", "give each vehicle's slot as vehicles[i].slot_m")
+    formation = _build(FormationSettings, formation_table, "formation", slots_m=tuple(v.slot_m for v in vehicles))
+    for a in range(len(vehicles)):
+        for b in range(a + 1, len(vehicles)):
+            pa, pb = vehicles[a].initial, vehicles[b].initial
+            gap = math.hypot(pa[0] - pb[0], pa[1] - pb[1])
+            if gap < controller.d_safe_m:
+                raise ConfigError(
+                    f"vehicles[{b}].initial",
+                    f"starts {gap:.2f} m from vehicle {vehicles[a].id}, closer than d_safe_m = {controller.d_safe_m}",
+                )
+            sa, sb = formation.slots_m[a], formation.slots_m[b]
+            if math.hypot(sa[0] - sb[0], sa[1] - sb[1]) < controller.d_safe_m:
+                raise ConfigError(f"vehicles[{b}].slot_m", f"slot is closer than d_safe_m to vehicle {vehicles[a].id}'s")
+    site = _build(Site, doc.get("site", {}), "site")
+    network = _build(Network, doc.get("network", {}), "network")
+    return Scenario(
+        name=name,
+        description=str(doc.get("description", "")),
+        seed=seed,
+        duration_s=duration_s,
+        plant_steps_per_period=steps,
+        controller=controller,
+        learning=learning,
+        formation=formation,
+        target=target,
+        vehicles=tuple(vehicles),
+        site=site,
+        network=network,
+        source=source,
+    )
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario TOML file."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("scenario", f"no such file: {p}")
+    try:
+        doc = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError("scenario", f"{p} is not valid TOML: {e}") from None
+    return parse_scenario(doc, source=str(p))

@@ -1,0 +1,95 @@
+"""Scripted aerial target: a point moving on a line, a circle or through waypoints.
+
+Positions are pure functions of time, so every process that flies or watches the target agrees.
+"""
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.core.errors import ConfigError
+from onboard.core.validate import finite, positive, vector
+
+__all__ = ["TargetScript"]
+
+_KINDS = ("line", "circle", "waypoints")
+
+
+@dataclass(frozen=True)
+class TargetScript:
+    """How the target moves and how it is observed."""
+
+    kind: str = "line"
+    """One of "line", "circle", "waypoints"."""
+    start_m: tuple[float, float] = (0.0, 0.0)
+    """line: position at t = 0 (North, East) [m]."""
+    velocity_m_s: tuple[float, float] = (1.0, 0.0)
+    """line: constant velocity (North, East) [m/s]."""
+    center_m: tuple[float, float] = (0.0, 0.0)
+    """circle: centre (North, East) [m]."""
+    radius_m: float = 20.0
+    """circle: radius [m]."""
+    speed_m_s: float = 1.0
+    """circle and waypoints: speed along the path [m/s]."""
+    start_angle_rad: float = 0.0
+    """circle: polar angle of the start point about the centre (0 = North of it) [rad]."""
+    clockwise: bool = True
+    """circle: direction seen from above with North up (clockwise = turning right in NED)."""
+    waypoints_m: tuple[tuple[float, float], ...] = field(default_factory=tuple)
+    """waypoints: points visited in order at speed_m_s, then held at the last one [m]."""
+    observation_noise_m: float = 0.0
+    """Standard deviation of the noise on published target positions [m] (truncated at 3 sigma)."""
+    observation_rate_hz: float = 5.0
+    """Rate at which the target's position is published [Hz]."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in _KINDS:
+            raise ConfigError("target.kind", f"must be one of {_KINDS}, got {self.kind!r}")
+        object.__setattr__(self, "start_m", vector("target.start_m", self.start_m, 2))
+        object.__setattr__(self, "velocity_m_s", vector("target.velocity_m_s", self.velocity_m_s, 2))
+        object.__setattr__(self, "center_m", vector("target.center_m", self.center_m, 2))
+        positive("target.radius_m", self.radius_m)
+        positive("target.speed_m_s", self.speed_m_s, allow_zero=True)
+        finite("target.start_angle_rad", self.start_angle_rad)
+        wps = tuple(
+            vector(f"target.waypoints_m[{i}]", w, 2) for i, w in enumerate(self.waypoints_m)
+        )
+        if self.kind == "waypoints" and len(wps) < 2:
+            raise ConfigError("target.waypoints_m", "needs at least 2 waypoints")
+        object.__setattr__(self, "waypoints_m", wps)
+        positive("target.observation_noise_m", self.observation_noise_m, allow_zero=True)
+        positive("target.observation_rate_hz", self.observation_rate_hz)
+
+    def state_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """True position and velocity (North, East) at time t_s [m], [m/s]."""
+        if self.kind == "line":
+            v = np.array(self.velocity_m_s)
+            return np.array(self.start_m) + v * t_s, v
+        if self.kind == "circle":
+            sign = 1.0 if self.clockwise else -1.0
+            w = sign * self.speed_m_s / self.radius_m
+            a = self.start_angle_rad + w * t_s
+            c = np.array(self.center_m)
+            pos = c + self.radius_m * np.array([math.cos(a), math.sin(a)])
+            vel = self.radius_m * w * np.array([-math.sin(a), math.cos(a)])
+            return pos, vel
+        return self._waypoint_state(t_s)
+
+    def _waypoint_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        pts = np.array(self.waypoints_m)
+        travelled = self.speed_m_s * max(t_s, 0.0)
+        for a, b in zip(pts[:-1], pts[1:], strict=True):
+            seg = float(np.linalg.norm(b - a))
+            if seg == 0.0:
+                continue
+            if travelled <= seg:
+                u = (b - a) / seg
+                return a + u * travelled, u * self.speed_m_s
+            travelled -= seg
+        return pts[-1].copy(), np.zeros(2)
+
+    def observe(self, t_s: float, rng: np.random.Generator) -> np.ndarray:
+        """A noisy observation of the target's position at t_s [m]."""
+        pos, _ = self.state_at(t_s)
+        return pos + self.observation_noise_m * np.clip(rng.standard_normal(2), -3.0, 3.0)
