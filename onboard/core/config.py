@@ -46,6 +46,8 @@ class ControllerSettings:
     """Plan age beyond which a neighbour's formation term is dropped [s]."""
     plan_forget_s: float = 10.0
     """Plan age beyond which a neighbour is ignored entirely [s]."""
+    target_accel_std_m_s2: float = 0.02
+    """White-acceleration noise of the target's constant-velocity filter [m/s^2]."""
     solver_eps: float = 1e-6
     """OSQP eps_abs and eps_rel."""
     solver_max_iter: int = 4000
@@ -66,6 +68,7 @@ class ControllerSettings:
             "plan_extrapolation_s",
             "plan_stale_s",
             "plan_forget_s",
+            "target_accel_std_m_s2",
         ):
             positive(f"controller.{name}", getattr(self, name))
         for name in ("q_heading", "q_formation", "w_position_m", "w_heading_rad", "d_safe_m"):
@@ -97,10 +100,15 @@ class LearningSettings:
     """Lower bound of each parameter."""
     beta_max: tuple[float, float, float, float] = (1.5, 1.5, 3.0, 3.0)
     """Upper bound of each parameter."""
-    process_position_std_m: float = 0.01
-    """State-filter process noise on position per control period [m]."""
-    process_heading_std_rad: float = 0.005
-    """State-filter process noise on heading per control period [rad]."""
+    process_position_std_m: float = 0.005
+    """State-filter process noise on position per control period, learned model [m]."""
+    process_heading_std_rad: float = 0.003
+    """State-filter process noise on heading per control period, learned model [rad]."""
+    fixed_model_position_std_m: float = 0.05
+    """State-filter process noise on position when learning is off [m]: a fixed nominal model is
+    trusted less, so the no-learning baseline's error is the controller's, not estimator lag."""
+    fixed_model_heading_std_rad: float = 0.01
+    """State-filter process noise on heading when learning is off [rad]."""
     measurement_position_std_m: float = 0.05
     """Assumed standard deviation of position measurements [m]."""
     measurement_heading_std_rad: float = 0.01
@@ -121,6 +129,8 @@ class LearningSettings:
         for name in (
             "process_position_std_m",
             "process_heading_std_rad",
+            "fixed_model_position_std_m",
+            "fixed_model_heading_std_rad",
             "measurement_position_std_m",
             "measurement_heading_std_rad",
             "innovation_gate",

@@ -1,0 +1,48 @@
+"""A flight record: what a run logged every control period, in arrays (the input of metrics and figures)."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["FlightRecord"]
+
+
+@dataclass(frozen=True, eq=False)
+class FlightRecord:
+    """Per-period samples of a fleet run. K samples, N vehicles."""
+
+    scenario: str
+    vehicle_ids: tuple[int, ...]
+    t_s: np.ndarray
+    """Sample times (K,) [s]."""
+    truth: np.ndarray
+    """True vehicle states (K, N, 3): x North [m], y East [m], yaw [rad]."""
+    target: np.ndarray
+    """True target position (K, 2) [m]."""
+    target_velocity: np.ndarray
+    """True target velocity (K, 2) [m/s]."""
+    slots: np.ndarray
+    """Slots computed from the true target (K, N, 2) [m]."""
+    command: np.ndarray
+    """Applied commands (K, N, 2): speed [m/s], yaw rate [rad/s]."""
+    c: np.ndarray
+    """First decision variable c_0 of each vehicle's QP (K, N, 2)."""
+    beta: np.ndarray
+    """Learned (a_V, a_w, d_x, d_y) (K, N, 4)."""
+    beta_truth: np.ndarray
+    """True (a_V, a_w, wind North, wind East) (K, N, 4)."""
+    qp_ok: np.ndarray
+    """QP success flag (K, N)."""
+    step_time_ms: np.ndarray
+    """Per-agent control step wall time (K, N) [ms]; nan where not measured."""
+    desired_distance_m: np.ndarray
+    """Desired distance between slots (N, N) [m]."""
+    trail_m: float
+    """Desired target-to-centre distance d_s [m]."""
+    slot_offsets_world: np.ndarray
+    """Slot offset of each vehicle from the centre in the world frame (K, N, 2) [m]."""
+    min_separation_m: float
+    """Smallest distance between any two vehicles over the whole run, at plant rate [m]."""
+    speed_max_m_s: float
+    yaw_rate_max_rad_s: float
+    d_safe_m: float

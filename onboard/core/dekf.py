@@ -1,0 +1,235 @@
+"""Dual Extended Kalman Filter (Wan & Nelson) learning the oracle parameters beta.
+
+Two EKFs run side by side (paper Sec. V-A, Eqs. 7-10, with DESIGN.md's corrections: Eq. 7b reads
+P_p^-(t) = P_p(t-1) + R_p and Eq. 8a propagates from z^(t-1)):
+    parameter prediction   beta^- = beta(t-1),            P_p^- = P_p(t-1) + Q_p
+    state prediction       z^-    = f(z^(t-1), u, beta^-), P_s^- = J_s P_s J_s' + Q_s
+    state correction       z^     = z^- + K_s (y - z^-)
+    parameter correction   beta   = beta^- + K_p (y - z^-), H_p = df/dbeta at (z^(t-1), u, beta^-),
+                           with innovation covariance H_p P_p^- H_p' + P_s^- + R
+(the parameter filter's measurement noise is the state prediction's uncertainty plus the sensor's).
+The measurement is the full state (H_s = I): position and heading from telemetry.
+
+Safeguards: beta is clipped to its bounds and the parameter covariance is capped at its initial
+value, so beta stays bounded and does not wander when excitation vanishes (a parameter whose
+Jacobian column is zero, e.g. a_V at V = 0, is not updated); a non-finite result or an innovation
+beyond the gate resets the state to the measurement (beta is kept if finite) and is counted.
+
+`DualEkf` is built on filterpy's ExtendedKalmanFilter; `dekf_step` is the same algorithm as a plain
+function on a `DekfState`, and the tests check that the two agree.
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from onboard.core.config import LearningSettings
+from onboard.core.unicycle import step, step_jacobians, wrap_angle
+
+__all__ = ["DekfState", "DualEkf", "dekf_step", "initial_dekf_state"]
+
+
+def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    r = a - b
+    r[2] = (r[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return r
+
+
+def _identity_jacobian(_x: np.ndarray) -> np.ndarray:
+    return np.eye(3)
+
+
+def _identity(x: np.ndarray) -> np.ndarray:
+    return x
+
+
+@dataclass(frozen=True)
+class _Noise:
+    Q_s: np.ndarray
+    R_s: np.ndarray
+    Q_p: np.ndarray
+    P_p_cap: np.ndarray
+    beta_min: np.ndarray
+    beta_max: np.ndarray
+    gate: float
+    learn: bool
+
+    @classmethod
+    def from_settings(cls, s: LearningSettings, tau: float) -> "_Noise":
+        pos, head = (
+            (s.process_position_std_m, s.process_heading_std_rad)
+            if s.enabled
+            else (s.fixed_model_position_std_m, s.fixed_model_heading_std_rad)
+        )
+        return cls(
+            Q_s=np.diag([pos**2] * 2 + [head**2]),
+            R_s=np.diag([s.measurement_position_std_m**2] * 2 + [s.measurement_heading_std_rad**2]),
+            Q_p=np.diag(np.square(s.beta_random_walk) * tau),
+            P_p_cap=np.square(np.array(s.beta_std_initial)),
+            beta_min=np.array(s.beta_min),
+            beta_max=np.array(s.beta_max),
+            gate=s.innovation_gate,
+            learn=s.enabled,
+        )
+
+
+def _bound(beta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray, np.ndarray]:
+    beta = np.minimum(np.maximum(beta, noise.beta_min), noise.beta_max)
+    d = P_p.diagonal()
+    if (d > noise.P_p_cap).any():
+        scale = np.sqrt(np.minimum(1.0, noise.P_p_cap / np.maximum(d, 1e-300)))
+        P_p = P_p * np.outer(scale, scale)
+    return beta, 0.5 * (P_p + P_p.T)
+
+
+@dataclass(frozen=True, eq=False)
+class DekfState:
+    """State of the dual filter: z (3,), P_s (3, 3), beta (4,), P_p (4, 4), resets (count)."""
+
+    z: np.ndarray
+    P_s: np.ndarray
+    beta: np.ndarray
+    P_p: np.ndarray
+    resets: int = 0
+
+
+def initial_dekf_state(y: np.ndarray, settings: LearningSettings) -> DekfState:
+    """Dual-filter state initialized at the first measurement y = (x, y, yaw)."""
+    R = np.diag([settings.measurement_position_std_m**2] * 2 + [settings.measurement_heading_std_rad**2])
+    return DekfState(
+        z=np.array(y, dtype=float),
+        P_s=R.copy(),
+        beta=np.array(settings.beta_initial, dtype=float),
+        P_p=np.diag(np.square(settings.beta_std_initial)),
+    )
+
+
+def dekf_step(
+    state: DekfState, y: np.ndarray, u: np.ndarray, *, settings: LearningSettings, tau: float
+) -> DekfState:
+    """One DEKF period as a plain function: input u applied over the last tau, measurement y now."""
+    n = _Noise.from_settings(settings, tau)
+    beta_m = state.beta
+    P_p_m = state.P_p + n.Q_p if n.learn else state.P_p
+    J_s, _, H_p = step_jacobians(state.z, u, beta_m, tau)
+    z_m = step(state.z, u, beta_m, tau)
+    P_s_m = J_s @ state.P_s @ J_s.T + n.Q_s
+    innov = _residual(np.asarray(y, float), z_m)
+    S = P_s_m + n.R_s
+    K_s = P_s_m @ np.linalg.inv(S)
+    z = z_m + K_s @ innov
+    I_K = np.eye(3) - K_s
+    P_s = I_K @ P_s_m @ I_K.T + K_s @ n.R_s @ K_s.T
+    beta, P_p = beta_m, P_p_m
+    if n.learn:
+        R_p = P_s_m + n.R_s
+        S_p = H_p @ P_p_m @ H_p.T + R_p
+        K_p = P_p_m @ H_p.T @ np.linalg.inv(S_p)
+        beta = beta_m + K_p @ innov
+        I_Kp = np.eye(4) - K_p @ H_p
+        P_p = I_Kp @ P_p_m @ I_Kp.T + K_p @ R_p @ K_p.T
+        beta, P_p = _bound(beta, P_p, n)
+    z[2] = wrap_angle(z[2])
+    nis = float(innov @ np.linalg.solve(S, innov))
+    if not (np.all(np.isfinite(z)) and np.all(np.isfinite(P_s)) and nis <= n.gate**2):
+        fresh = initial_dekf_state(y, settings)
+        keep = np.all(np.isfinite(beta)) and np.all(np.isfinite(P_p))
+        return DekfState(
+            fresh.z,
+            fresh.P_s,
+            beta if keep else fresh.beta,
+            P_p if keep else fresh.P_p,
+            state.resets + 1,
+        )
+    return DekfState(z, P_s, beta, P_p, state.resets)
+
+
+class DualEkf:
+    """The DEKF as two filterpy ExtendedKalmanFilters (state and parameters)."""
+
+    def __init__(self, settings: LearningSettings, *, tau: float) -> None:
+        self.settings = settings
+        self.tau = tau
+        self._noise = _Noise.from_settings(settings, tau)
+        self.resets = 0
+        self.state_filter = ExtendedKalmanFilter(dim_x=3, dim_z=3)
+        self.param_filter = ExtendedKalmanFilter(dim_x=4, dim_z=3)
+        self.state_filter.Q = self._noise.Q_s
+        self.state_filter.R = self._noise.R_s
+        self.param_filter.F = np.eye(4)
+        self.param_filter.Q = self._noise.Q_p
+        self._initialized = False
+
+    @property
+    def initialized(self) -> bool:
+        return self._initialized
+
+    def reset(self, y: np.ndarray, *, keep_beta: bool = True) -> None:
+        """Restart the state filter at measurement y; keep the learned beta unless told not to."""
+        s = initial_dekf_state(y, self.settings)
+        self.state_filter.x = s.z
+        self.state_filter.P = s.P_s
+        if not keep_beta or not self._initialized:
+            self.param_filter.x = s.beta
+            self.param_filter.P = s.P_p
+        self._initialized = True
+
+    @property
+    def z(self) -> np.ndarray:
+        """Current state estimate (x, y, yaw)."""
+        return self.state_filter.x
+
+    @property
+    def beta(self) -> np.ndarray:
+        """Current parameter estimate (a_V, a_w, d_x, d_y)."""
+        return self.param_filter.x
+
+    def as_state(self) -> DekfState:
+        return DekfState(
+            self.z.copy(), self.state_filter.P.copy(), self.beta.copy(), self.param_filter.P.copy(), self.resets
+        )
+
+    def step(self, y: np.ndarray, u: np.ndarray) -> None:
+        """Advance one period: input u was applied over the last tau; y is the new measurement."""
+        y = np.asarray(y, dtype=float)
+        if not self._initialized:
+            self.reset(y)
+            return
+        sf, pf, n, tau = self.state_filter, self.param_filter, self._noise, self.tau
+        if n.learn:
+            pf.predict()  # beta^- = beta, P_p^- = P_p + Q_p  (F = I)
+        beta_m = pf.x
+        z_prev = sf.x
+        J_s, _, H_p = step_jacobians(z_prev, u, beta_m, tau)
+        z_m = step(z_prev, u, beta_m, tau)
+        sf.x = z_m
+        sf.P = J_s @ sf.P @ J_s.T + n.Q_s
+        P_s_m = sf.P
+        sf.update(y, _identity_jacobian, _identity, residual=_residual)
+        if n.learn:
+            pf.update(
+                y,
+                lambda _b: H_p,
+                lambda _b: z_m,
+                R=P_s_m + n.R_s,
+                residual=_residual,
+            )
+            pf.x, pf.P = _bound(pf.x, pf.P, n)
+        sf.x[2] = (sf.x[2] + math.pi) % (2.0 * math.pi) - math.pi
+        nis = float(sf.y @ sf.SI @ sf.y)  # innovation and its inverse covariance, from the update
+        if not (np.all(np.isfinite(sf.x)) and np.all(np.isfinite(sf.P)) and nis <= n.gate**2):
+            self.resets += 1
+            finite_beta = np.all(np.isfinite(pf.x)) and np.all(np.isfinite(pf.P))
+            self.reset(y, keep_beta=bool(finite_beta))
+            if not finite_beta:
+                s = initial_dekf_state(y, self.settings)
+                pf.x, pf.P = s.beta, s.P_p
+
+    def propagate(self, u: np.ndarray) -> None:
+        """Predict one period without a measurement (telemetry missed this period)."""
+        sf = self.state_filter
+        J_s, _, _ = step_jacobians(sf.x, u, self.beta, self.tau)
+        sf.x = step(sf.x, u, self.beta, self.tau)
+        sf.P = J_s @ sf.P @ J_s.T + self._noise.Q_s

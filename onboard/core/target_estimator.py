@@ -1,0 +1,68 @@
+"""Constant-velocity Kalman filter on noisy target observations, predicting over the horizon.
+
+State (x, y, vx, vy) in the world frame [m, m/s]; white-acceleration process noise.
+"""
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+__all__ = ["TargetEstimator"]
+
+
+class TargetEstimator:
+    """Tracks the target from position observations; time is integer nanoseconds."""
+
+    def __init__(self, *, observation_std_m: float, accel_std_m_s2: float = 0.3) -> None:
+        self._kf = KalmanFilter(dim_x=4, dim_z=2)
+        self._kf.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+        self._kf.R = np.eye(2) * max(observation_std_m, 1e-3) ** 2
+        self._q = accel_std_m_s2**2
+        self._stamp_ns: int | None = None
+        self.observations = 0
+
+    @property
+    def ready(self) -> bool:
+        """True once at least one observation has been fused."""
+        return self._stamp_ns is not None
+
+    def _predict_to(self, stamp_ns: int) -> None:
+        if self._stamp_ns is None or stamp_ns <= self._stamp_ns:
+            return
+        dt = (stamp_ns - self._stamp_ns) * 1e-9
+        F = np.eye(4)
+        F[0, 2] = F[1, 3] = dt
+        q = self._q
+        Q1 = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]]) * q
+        Q = np.zeros((4, 4))
+        Q[np.ix_([0, 2], [0, 2])] = Q1
+        Q[np.ix_([1, 3], [1, 3])] = Q1
+        self._kf.predict(F=F, Q=Q)
+        self._stamp_ns = stamp_ns
+
+    def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
+        """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
+        p = np.asarray(position_m, dtype=float)
+        if p.shape != (2,) or not np.all(np.isfinite(p)):
+            return False
+        if self._stamp_ns is None:
+            self._kf.x = np.array([p[0], p[1], 0.0, 0.0])
+            self._kf.P = np.diag([self._kf.R[0, 0], self._kf.R[1, 1], 4.0, 4.0])
+            self._stamp_ns = stamp_ns
+            self.observations = 1
+            return True
+        if stamp_ns < self._stamp_ns:
+            return False
+        self._predict_to(stamp_ns)
+        self._kf.update(p)
+        self.observations += 1
+        return True
+
+    def predict(self, stamp_ns: int, period_ns: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted positions (count, 2) at stamp_ns + k period_ns, and the velocity (2,)."""
+        if self._stamp_ns is None:
+            raise RuntimeError("no target observation yet")
+        x = self._kf.x
+        dt0 = (stamp_ns - self._stamp_ns) * 1e-9
+        t = dt0 + period_ns * 1e-9 * np.arange(count)
+        pos = x[:2][None, :] + t[:, None] * x[2:][None, :]
+        return pos, x[2:].copy()

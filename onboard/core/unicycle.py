@@ -1,0 +1,127 @@
+"""The controller's unicycle model: nominal, learned (with the oracle), and their Jacobians.
+
+State z = (x, y, theta): x North [m], y East [m], theta yaw [rad]. Input u = (V, omega):
+forward speed [m/s], yaw rate [rad/s]. Continuous dynamics (paper Eq. 2):
+    xdot = V cos(theta), ydot = V sin(theta), thetadot = omega.
+Continuous Jacobians (DESIGN.md; the paper's Eq. 14 misplaces -sin(theta) in B):
+    A_c = [[0, 0, -V sin th], [0, 0, V cos th], [0, 0, 0]],  B_c = [[cos th, 0], [sin th, 0], [0, 1]].
+
+Discretization at period tau uses the midpoint heading phi = theta + tau*omega/2, exact on straight
+lines and second-order accurate in turns:
+    x+ = x + tau V cos(phi),  y+ = y + tau V sin(phi),  theta+ = theta + tau omega.
+
+The learned model adds the oracle O(z, u; beta) = F(beta) z + H(beta) u + d(beta) of paper Eq. 5 in
+its nonlinear form, with beta = (a_V, a_w, d_x, d_y): speed effectiveness, yaw-rate effectiveness and
+a drift (wind) in the world frame [m/s]:
+    x+ = x + tau (a_V V cos(phi~) + d_x),  y+ = y + tau (a_V V sin(phi~) + d_y),
+    theta+ = theta + tau a_w omega,  phi~ = theta + tau a_w omega / 2.
+The nominal model is the learned model at beta = NOMINAL_BETA.
+"""
+
+import math
+
+import numpy as np
+
+__all__ = [
+    "NOMINAL_BETA",
+    "continuous_jacobians",
+    "linearize",
+    "oracle",
+    "rollout",
+    "step",
+    "step_jacobians",
+    "wrap_angle",
+]
+
+NOMINAL_BETA = np.array([1.0, 1.0, 0.0, 0.0])
+"""beta of the nominal model: unit effectiveness, no drift."""
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def continuous_jacobians(z: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A_c = df/dz (3x3) and B_c = df/du (3x2) of the continuous unicycle at (z, u)."""
+    th, v = z[2], u[0]
+    s, c = np.sin(th), np.cos(th)
+    A = np.array([[0.0, 0.0, -v * s], [0.0, 0.0, v * c], [0.0, 0.0, 0.0]])
+    B = np.array([[c, 0.0], [s, 0.0], [0.0, 1.0]])
+    return A, B
+
+
+def step(z: np.ndarray, u: np.ndarray, beta: np.ndarray, tau: float) -> np.ndarray:
+    """One discrete step of the learned model; beta = NOMINAL_BETA gives the nominal model.
+
+    Broadcasts over leading axes: z (..., 3), u (..., 2), returns (..., 3).
+    """
+    a_v, a_w, d_x, d_y = (float(b) for b in beta)
+    if np.ndim(z) == 1 and np.ndim(u) == 1:
+        v, w, th = float(u[0]), float(u[1]), float(z[2])
+        phi = th + 0.5 * tau * a_w * w
+        return np.array(
+            [
+                z[0] + tau * (a_v * v * math.cos(phi) + d_x),
+                z[1] + tau * (a_v * v * math.sin(phi) + d_y),
+                th + tau * a_w * w,
+            ]
+        )
+    v, w = u[..., 0], u[..., 1]
+    phi = z[..., 2] + 0.5 * tau * a_w * w
+    out = np.empty(np.broadcast_shapes(np.shape(z), np.shape(v) + (3,)))
+    out[..., 0] = z[..., 0] + tau * (a_v * v * np.cos(phi) + d_x)
+    out[..., 1] = z[..., 1] + tau * (a_v * v * np.sin(phi) + d_y)
+    out[..., 2] = z[..., 2] + tau * a_w * w
+    return out
+
+
+def oracle(z: np.ndarray, u: np.ndarray, beta: np.ndarray, tau: float) -> np.ndarray:
+    """O(z, u; beta): what the learned model adds to the nominal one over one step (paper Eq. 6)."""
+    return step(z, u, beta, tau) - step(z, u, NOMINAL_BETA, tau)
+
+
+def step_jacobians(
+    z: np.ndarray, u: np.ndarray, beta: np.ndarray, tau: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Jacobians of `step` w.r.t. z (..., 3, 3), u (..., 3, 2) and beta (..., 3, 4)."""
+    a_v, a_w = float(beta[0]), float(beta[1])
+    v, w = np.asarray(u)[..., 0], np.asarray(u)[..., 1]
+    phi = np.asarray(z)[..., 2] + 0.5 * tau * a_w * w
+    s, c = np.sin(phi), np.cos(phi)
+    lead = np.shape(v)
+    dx_dth, dy_dth = -tau * a_v * v * s, tau * a_v * v * c
+    A = np.zeros(lead + (3, 3))
+    A[..., 0, 0] = A[..., 1, 1] = A[..., 2, 2] = 1.0
+    A[..., 0, 2], A[..., 1, 2] = dx_dth, dy_dth
+    half = 0.5 * tau * a_w
+    B = np.zeros(lead + (3, 2))
+    B[..., 0, 0], B[..., 1, 0] = tau * a_v * c, tau * a_v * s
+    B[..., 0, 1], B[..., 1, 1], B[..., 2, 1] = dx_dth * half, dy_dth * half, tau * a_w
+    half_w = 0.5 * tau * w
+    G = np.zeros(lead + (3, 4))
+    G[..., 0, 0], G[..., 1, 0] = tau * v * c, tau * v * s
+    G[..., 0, 1], G[..., 1, 1], G[..., 2, 1] = dx_dth * half_w, dy_dth * half_w, tau * w
+    G[..., 0, 2] = G[..., 1, 3] = tau
+    return A, B, G
+
+
+def linearize(
+    z: np.ndarray, u: np.ndarray, beta: np.ndarray, tau: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Affine model z+ ~= A z + B u + e around the points (z_j, u_j) of a trajectory.
+
+    z (M, 3), u (M, 2) -> A (M, 3, 3), B (M, 3, 2), e (M, 3).
+    """
+    A, B, _ = step_jacobians(z, u, beta, tau)
+    e = step(z, u, beta, tau) - np.einsum("mij,mj->mi", A, z) - np.einsum("mij,mj->mi", B, u)
+    return A, B, e
+
+
+def rollout(z0: np.ndarray, inputs: np.ndarray, beta: np.ndarray, tau: float) -> np.ndarray:
+    """States (M + 1, 3) of the nonlinear model from z0 under inputs (M, 2)."""
+    out = np.empty((inputs.shape[0] + 1, 3))
+    out[0] = z0
+    for j, u in enumerate(inputs):
+        out[j + 1] = step(out[j], u, beta, tau)
+    return out
