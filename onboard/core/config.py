@@ -113,17 +113,21 @@ class LearningSettings:
     """Assumed standard deviation of position measurements [m]."""
     measurement_heading_std_rad: float = 0.01
     """Assumed standard deviation of heading measurements [rad]."""
+    excitation_min: tuple[float, float, float, float] = (0.05, 0.01, 0.0, 0.0)
+    """Smallest |dstate/dbeta_i| / tau that lets beta_i update (a Schmidt "consider" update holds
+    the others): with |V| below 0.05 m/s a_V is not learned, with |omega| below 0.01 rad/s a_w."""
     innovation_gate: float = 50.0
     """Normalized innovation (in standard deviations) above which the filter resets."""
 
     def __post_init__(self) -> None:
-        for name in ("beta_initial", "beta_std_initial", "beta_random_walk", "beta_min", "beta_max"):
+        for name in ("beta_initial", "beta_std_initial", "beta_random_walk", "beta_min", "beta_max", "excitation_min"):
             object.__setattr__(self, name, vector(f"learning.{name}", getattr(self, name), 4))
         for i in range(4):
             if not self.beta_min[i] <= self.beta_initial[i] <= self.beta_max[i]:
                 raise ConfigError(f"learning.beta_initial[{i}]", "must lie within beta_min and beta_max")
             positive(f"learning.beta_std_initial[{i}]", self.beta_std_initial[i])
             positive(f"learning.beta_random_walk[{i}]", self.beta_random_walk[i], allow_zero=True)
+            positive(f"learning.excitation_min[{i}]", self.excitation_min[i], allow_zero=True)
         if self.beta_min[0] <= 0 or self.beta_min[1] <= 0:
             raise ConfigError("learning.beta_min", "effectiveness bounds must be > 0")
         for name in (

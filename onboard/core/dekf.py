@@ -10,6 +10,11 @@ P_p^-(t) = P_p(t-1) + R_p and Eq. 8a propagates from z^(t-1)):
 (the parameter filter's measurement noise is the state prediction's uncertainty plus the sensor's).
 The measurement is the full state (H_s = I): position and heading from telemetry.
 
+Excitation: a parameter whose Jacobian column is (nearly) zero gets no information from this
+measurement, yet a plain update would still move it through its correlation with the others; such
+parameters get a zero gain row (a Schmidt "consider" update, Joseph form keeps P consistent), so
+a_V stays put while hovering and a_w while flying straight.
+
 Safeguards: beta is clipped to its bounds and the parameter covariance is capped at its initial
 value, so beta stays bounded and does not wander when excitation vanishes (a parameter whose
 Jacobian column is zero, e.g. a_V at V = 0, is not updated); a non-finite result or an innovation
@@ -55,6 +60,7 @@ class _Noise:
     beta_max: np.ndarray
     gate: float
     learn: bool
+    excitation: np.ndarray
 
     @classmethod
     def from_settings(cls, s: LearningSettings, tau: float) -> "_Noise":
@@ -72,6 +78,7 @@ class _Noise:
             beta_max=np.array(s.beta_max),
             gate=s.innovation_gate,
             learn=s.enabled,
+            excitation=np.array(s.excitation_min) * tau,
         )
 
 
@@ -82,6 +89,21 @@ def _bound(beta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray
         scale = np.sqrt(np.minimum(1.0, noise.P_p_cap / np.maximum(d, 1e-300)))
         P_p = P_p * np.outer(scale, scale)
     return beta, 0.5 * (P_p + P_p.T)
+
+
+def _unexcited(H_p: np.ndarray, noise: _Noise) -> np.ndarray:
+    """Mask of parameters whose Jacobian column is too small to learn from."""
+    return np.sqrt((H_p * H_p).sum(axis=0)) < noise.excitation
+
+
+def _consider_update(
+    beta_m: np.ndarray, P_m: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray, innov: np.ndarray, hold: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update with the gain rows of the held parameters zeroed (Joseph form)."""
+    K = K.copy()
+    K[hold] = 0.0
+    I_K = np.eye(len(beta_m)) - K @ H
+    return beta_m + K @ innov, I_K @ P_m @ I_K.T + K @ R @ K.T
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,9 +149,7 @@ def dekf_step(
         R_p = P_s_m + n.R_s
         S_p = H_p @ P_p_m @ H_p.T + R_p
         K_p = P_p_m @ H_p.T @ np.linalg.inv(S_p)
-        beta = beta_m + K_p @ innov
-        I_Kp = np.eye(4) - K_p @ H_p
-        P_p = I_Kp @ P_p_m @ I_Kp.T + K_p @ R_p @ K_p.T
+        beta, P_p = _consider_update(beta_m, P_p_m, K_p, H_p, R_p, innov, _unexcited(H_p, n))
         beta, P_p = _bound(beta, P_p, n)
     z[2] = wrap_angle(z[2])
     nis = float(innov @ np.linalg.solve(S, innov))
@@ -209,13 +229,12 @@ class DualEkf:
         P_s_m = sf.P
         sf.update(y, _identity_jacobian, _identity, residual=_residual)
         if n.learn:
-            pf.update(
-                y,
-                lambda _b: H_p,
-                lambda _b: z_m,
-                R=P_s_m + n.R_s,
-                residual=_residual,
-            )
+            beta_prior, P_p_prior = pf.x.copy(), pf.P.copy()
+            R_p = P_s_m + n.R_s
+            pf.update(y, lambda _b: H_p, lambda _b: z_m, R=R_p, residual=_residual)
+            hold = _unexcited(H_p, n)
+            if hold.any():
+                pf.x, pf.P = _consider_update(beta_prior, P_p_prior, pf.K, H_p, R_p, pf.y, hold)
             pf.x, pf.P = _bound(pf.x, pf.P, n)
         sf.x[2] = (sf.x[2] + math.pi) % (2.0 * math.pi) - math.pi
         nis = float(sf.y @ sf.SI @ sf.y)  # innovation and its inverse covariance, from the update

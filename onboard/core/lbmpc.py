@@ -119,6 +119,11 @@ class TubeLbmpc:
                 "reduce the disturbance box W or the horizon, or raise the input bounds",
             )
         self.tube_radius_m = position_tube_radius(self.A0, self.B0, self.K0, w_bar, M)
+        self._bound = self.u_max[None, :] - self.tightening
+        self._r = np.array([s.r_speed, s.r_yaw_rate])
+        self._E = np.zeros((M, 2, 2 * M))
+        for j in range(M):
+            self._E[j, :, 2 * j : 2 * j + 2] = np.eye(2)
         self._setup_solver()
         self._last_c: np.ndarray | None = None
 
@@ -182,7 +187,11 @@ class TubeLbmpc:
 
     # -- one period -----------------------------------------------------------------------------
     def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
-        """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs."""
+        """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs.
+
+        Runs one recursion on the stacked state X_j = [zbar_j; ztil_j] (6 x (2M + 1)), whose last
+        column is the constant part: X_{j+1} = (Ablk + Bblk [K_j 0]) X_j + Bblk (E_j c + u_s,j) + e.
+        """
         M, n, tau = self.M, 2 * self.M, self.tau
         A, B, e = linearize(d.lin_states[:M], d.lin_inputs, NOMINAL_BETA, tau)
         At, Bt, et = linearize(d.lin_states[:M], d.lin_inputs, d.beta, tau)
@@ -192,22 +201,25 @@ class TubeLbmpc:
         K[:, :, 0] = self.K0[None, :, 0] * c[:, None] - self.K0[None, :, 1] * s_[:, None]
         K[:, :, 1] = self.K0[None, :, 0] * s_[:, None] + self.K0[None, :, 1] * c[:, None]
         K[:, :, 2] = self.K0[None, :, 2]
-        Sz = np.zeros((M + 1, 3, n))
-        St = np.zeros((M + 1, 3, n))
-        Hu = np.zeros((M, 2, n))
-        sz = np.empty((M + 1, 3))
-        st = np.empty((M + 1, 3))
-        sz[0] = st[0] = d.z0
+        Bb = np.concatenate([B, Bt], axis=1)  # (M, 6, 2)
+        Ab = np.zeros((M, 6, 6))
+        Ab[:, :3, :3] = A
+        Ab[:, 3:, 3:] = At
+        Phi = Ab.copy()
+        Phi[:, :, :3] += Bb @ K
+        X = np.zeros((M + 1, 6, n + 1))
+        X[0, :3, n] = X[0, 3:, n] = d.z0  # constant column: the rollout of u_s (zref, c = 0)
+        const = (Bb @ d.u_s[:, :, None])[:, :, 0]
+        const[:, :3] += e
+        const[:, 3:] += et
         for j in range(M):
-            w = 2 * j + 2
-            Hu[j, :, :w] = K[j] @ Sz[j, :, :w]
-            Hu[j, 0, 2 * j] += 1.0
-            Hu[j, 1, 2 * j + 1] += 1.0
-            Sz[j + 1, :, :w] = A[j] @ Sz[j, :, :w] + B[j] @ Hu[j, :, :w]
-            St[j + 1, :, :w] = At[j] @ St[j, :, :w] + Bt[j] @ Hu[j, :, :w]
-            sz[j + 1] = A[j] @ sz[j] + B[j] @ d.u_s[j] + e[j]
-            st[j + 1] = At[j] @ st[j] + Bt[j] @ d.u_s[j] + et[j]
-        return Sz, sz, St, st, Hu
+            w = 2 * j
+            Xn = X[j + 1]
+            Xn[:, : w + 2] = Phi[j] @ X[j, :, : w + 2]
+            Xn[:, w : w + 2] += Bb[j]
+            Xn[:, n] = Ab[j] @ X[j, :, n] + const[j]
+        Hu = K @ X[:M, :3, :n] + self._E  # (M, 2, n); the constant part of u_j is u_s,j
+        return X[:, :3, :n], X[:, :3, n], X[:, 3:, :n], X[:, 3:, n], Hu
 
     def solve(self, d: QpData) -> QpSolution:
         """Build this period's QP values, solve it, and check the answer."""
@@ -222,40 +234,35 @@ class TubeLbmpc:
         G = St[1:M]
         Pt = d.terminal_scale * self.terminal_weight(float(d.targets[-1, 2]))
         GM = St[M]
-        r = np.array([self.settings.r_speed, self.settings.r_yaw_rate])
+        GW = G * Wd[:, :, None]
         H = (
-            np.einsum("jin,ji,jim->nm", G, Wd, G)
+            np.einsum("jin,jim->nm", GW, G)
             + GM.T @ Pt @ GM
-            + np.einsum("jin,i,jim->nm", Hu, r, Hu)
+            + np.einsum("jin,jim->nm", Hu * self._r[None, :, None], Hu)
         )
         H = H + H.T  # = 2 * (symmetric H)
-        q = 2.0 * (np.einsum("jin,ji,ji->n", G, Wd, res[: M - 1]) + GM.T @ (Pt @ res[-1]))
+        q = 2.0 * (np.einsum("jin,ji->n", GW, res[: M - 1]) + GM.T @ (Pt @ res[-1]))
         # Input constraints: u_j = Hu_j c + u_s,j within the tightened box.
         A = self._A_dense
         A[: 2 * M] = Hu.reshape(2 * M, n)
-        bound = self.u_max[None, :] - self.tightening
-        self._l[: 2 * M] = (-bound - d.u_s).ravel()
-        self._u[: 2 * M] = (bound - d.u_s).ravel()
-        # Separation constraints.
-        rows = 2 * M
-        for k in range(self.n_neighbours):
-            for j in range(1, M + 1):
-                i = rows + k * M + j - 1
-                margin = d.neighbour_margins[k, j - 1] if k < len(d.neighbour_margins) else np.inf
-                if not np.isfinite(margin):
-                    A[i] = 0.0
-                    self._l[i] = -np.inf
-                    continue
-                p_k = d.neighbour_positions[k, j - 1]
-                away = d.lin_states[j, :2] - p_k
-                dist = float(np.hypot(away[0], away[1]))
-                if dist < 1e-6:
-                    away, dist = d.z0[:2] - p_k, float(np.hypot(*(d.z0[:2] - p_k)))
-                if dist < 1e-6:
-                    away, dist = np.array([1.0, 0.0]), 1.0
-                nrm = away / dist
-                A[i] = nrm @ Sz[j, :2]
-                self._l[i] = margin - nrm @ (sz[j, :2] - p_k)
+        self._l[: 2 * M] = (-self._bound - d.u_s).ravel()
+        self._u[: 2 * M] = (self._bound - d.u_s).ravel()
+        # Separation constraints, one row per neighbour k and step j = 1..M.
+        N = self.n_neighbours
+        if N:
+            p_k = d.neighbour_positions  # (N, M, 2)
+            away = d.lin_states[None, 1:, :2] - p_k
+            dist = np.hypot(away[..., 0], away[..., 1])
+            fallback_dir = d.z0[None, None, :2] - p_k
+            close = dist < 1e-6
+            away = np.where(close[..., None], fallback_dir, away)
+            dist = np.where(close, np.hypot(away[..., 0], away[..., 1]), dist)
+            nrm = away / np.maximum(dist, 1e-9)[..., None]
+            active = np.isfinite(d.neighbour_margins)
+            rows = np.einsum("kji,jin->kjn", nrm, Sz[1:, :2]) * active[..., None]
+            A[2 * M :] = rows.reshape(N * M, n)
+            lower = d.neighbour_margins - np.einsum("kji,kji->kj", nrm, sz[None, 1:, :2] - p_k)
+            self._l[2 * M :] = np.where(active, lower, -np.inf).ravel()
         solver = self._solver
         solver.update(
             Px=H[self._p_rows, self._p_cols],

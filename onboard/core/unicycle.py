@@ -111,10 +111,26 @@ def linearize(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Affine model z+ ~= A z + B u + e around the points (z_j, u_j) of a trajectory.
 
-    z (M, 3), u (M, 2) -> A (M, 3, 3), B (M, 3, 2), e (M, 3).
+    z (M, 3), u (M, 2) -> A (M, 3, 3), B (M, 3, 2), e (M, 3). The affine term has a closed form:
+    the speed terms cancel, leaving e = (tau d_x - dx/dth phi, tau d_y - dy/dth phi, 0).
     """
-    A, B, _ = step_jacobians(z, u, beta, tau)
-    e = step(z, u, beta, tau) - np.einsum("mij,mj->mi", A, z) - np.einsum("mij,mj->mi", B, u)
+    a_v, a_w, d_x, d_y = (float(b) for b in beta)
+    v, w = u[:, 0], u[:, 1]
+    phi = z[:, 2] + 0.5 * tau * a_w * w
+    s, c = np.sin(phi), np.cos(phi)
+    m = v.shape[0]
+    tv = tau * a_v
+    dx_dth, dy_dth = -tv * v * s, tv * v * c
+    A = np.zeros((m, 3, 3))
+    A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
+    A[:, 0, 2], A[:, 1, 2] = dx_dth, dy_dth
+    half = 0.5 * tau * a_w
+    B = np.zeros((m, 3, 2))
+    B[:, 0, 0], B[:, 1, 0] = tv * c, tv * s
+    B[:, 0, 1], B[:, 1, 1], B[:, 2, 1] = dx_dth * half, dy_dth * half, tau * a_w
+    e = np.zeros((m, 3))
+    e[:, 0] = tau * d_x - dx_dth * phi
+    e[:, 1] = tau * d_y - dy_dth * phi
     return A, B, e
 
 
