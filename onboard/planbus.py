@@ -1,0 +1,498 @@
+"""PlanBus: how a vehicle exchanges assumed trajectories, status and target observations.
+
+One small interface, chosen by URL with `open_plan_bus`:
+
+- ``mem://NAME``: `InMemoryPlanBus` on the `MemoryHub` called NAME of a `MemoryHubs` registry the
+  runner owns; synchronous and deterministic (lockstep simulation, tests);
+- ``zenoh`` / ``zenoh://HOST:PORT?...`` (or a `ZenohOptions`): `ZenohPlanBus`, see
+  `protocol.zenoh_config` for the URL form.
+
+Receive-side rules, the same for every implementation: a payload on an unknown key, or that does
+not decode, or whose sender differs from the id in its key, is rejected and counted by reason; a
+message from this bus's own vehicle id is ignored; a message whose sequence number is not newer
+than the latest accepted one of the same sender and kind is dropped and counted as a duplicate
+(same seq) or out of order (older seq), unless its timestamp is newer, which means the sender
+restarted (accepted and counted). Nothing raises into the caller's loop; transport callbacks may
+run on other threads, so the receive state is guarded by a lock. Staleness is the caller's call:
+`latest_plans(now_ns, max_age_ns)` returns what is fresh enough and nothing else.
+"""
+
+import numbers
+import threading
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Self
+
+from onboard.core.errors import ConfigError, FleetMpcError
+from onboard.core.plan import Plan
+from protocol.keys import (
+    KeyFormatError,
+    all_plans_key,
+    all_statuses_key,
+    parse_key,
+    plan_key,
+    status_key,
+    target_observation_key,
+    validate_fleet,
+)
+from protocol.messages import (
+    MAX_SENDER_ID,
+    MIN_SENDER_ID,
+    DecodeError,
+    Message,
+    MessageKind,
+    PlanMessage,
+    PlanStatus,
+    RejectReason,
+    StatusMessage,
+    TargetObservation,
+    VehicleStatus,
+    decode,
+    encode,
+)
+
+if TYPE_CHECKING:
+    from protocol.zenoh_config import ZenohOptions
+
+__all__ = [
+    "BusCounters",
+    "InMemoryPlanBus",
+    "MemoryHub",
+    "MemoryHubs",
+    "PlanBus",
+    "PlanBusClosedError",
+    "PlanBusError",
+    "open_plan_bus",
+]
+
+_U32 = 2**32
+
+
+class PlanBusError(FleetMpcError):
+    """A plan bus could not be opened or used."""
+
+
+class PlanBusClosedError(PlanBusError):
+    """Publishing on a bus that has been closed."""
+
+
+@dataclass(frozen=True)
+class BusCounters:
+    """A snapshot of a bus's counters.
+
+    received == accepted + duplicates + out_of_order + own_ignored + rejected_total.
+    """
+
+    published: int = 0
+    """Messages handed to the transport."""
+    publish_errors: int = 0
+    """Messages the transport refused to send."""
+    received: int = 0
+    """Payloads that arrived from other endpoints."""
+    accepted: int = 0
+    """Messages stored as the latest of their sender and kind."""
+    duplicates: int = 0
+    """Dropped: same sequence number as the latest accepted of that sender and kind."""
+    out_of_order: int = 0
+    """Dropped: older sequence number (and timestamp) than the latest accepted."""
+    sender_restarts: int = 0
+    """Accepted although their seq was not newer, because their timestamp was (sender restart)."""
+    own_ignored: int = 0
+    """Valid messages carrying this bus's own vehicle id (another process using the same id)."""
+    rejected: Mapping[RejectReason, int] = field(default_factory=lambda: MappingProxyType({}))
+    """Rejected payloads by reason."""
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+
+def _check_vehicle_id(vehicle_id: int | None) -> int | None:
+    if vehicle_id is None:
+        return None
+    if (
+        isinstance(vehicle_id, bool)
+        or not isinstance(vehicle_id, int)
+        or not MIN_SENDER_ID <= vehicle_id <= MAX_SENDER_ID
+    ):
+        raise ConfigError(
+            "vehicle_id", f"must be None or an integer in [1, 250], got {vehicle_id!r}"
+        )
+    return vehicle_id
+
+
+def _check_ns(name: str, value: int, *, minimum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ConfigError(name, f"must be an integer number of nanoseconds, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ConfigError(name, f"must be >= {minimum}, got {value}")
+    return int(value)
+
+
+class _Inbox:
+    """Thread-safe receive side: validation, duplicate rules, latest message per sender."""
+
+    def __init__(self, *, fleet: str, vehicle_id: int | None) -> None:
+        self._fleet = fleet
+        self._own = vehicle_id
+        self._lock = threading.Lock()
+        self._latest: dict[tuple[MessageKind, int], Message] = {}
+        self._rejected: dict[RejectReason, int] = {}
+        self._received = self._accepted = self._duplicates = 0
+        self._out_of_order = self._restarts = self._own_ignored = 0
+
+    def receive(self, key: str, payload: bytes) -> None:
+        """Handle one payload that arrived on `key`; never raises."""
+        try:
+            reason, message = self._check(key, payload)
+        except Exception:  # a bug in the checks must not kill a transport thread
+            reason, message = RejectReason.INTERNAL, None
+        with self._lock:
+            self._received += 1
+            if reason is not None:
+                self._rejected[reason] = self._rejected.get(reason, 0) + 1
+            elif message.sender_id == self._own:
+                self._own_ignored += 1
+            else:
+                self._store(message)
+
+    def _check(self, key: str, payload: bytes) -> tuple[RejectReason | None, Message | None]:
+        try:
+            parsed = parse_key(key)
+        except KeyFormatError:
+            return RejectReason.KEY, None
+        if parsed.fleet != self._fleet:
+            return RejectReason.KEY, None
+        try:
+            message = decode(payload, expect=parsed.kind)
+        except DecodeError as e:
+            return e.reason, None
+        if parsed.vehicle_id is not None and message.sender_id != parsed.vehicle_id:
+            return RejectReason.KEY_MISMATCH, None
+        return None, message
+
+    def _store(self, message: Message) -> None:
+        """Apply the sequence rules; called with the lock held."""
+        slot = (message.kind, message.sender_id)
+        latest = self._latest.get(slot)
+        if latest is None or message.seq > latest.seq:
+            pass
+        elif message.stamp_ns > latest.stamp_ns:
+            self._restarts += 1
+        elif message.seq == latest.seq:
+            self._duplicates += 1
+            return
+        else:
+            self._out_of_order += 1
+            return
+        self._latest[slot] = message
+        self._accepted += 1
+
+    def latest(self, kind: MessageKind, now_ns: int, max_age_ns: int) -> dict[int, Message]:
+        """Latest accepted message of `kind` per sender with |now - stamp| <= max_age."""
+        now_ns = _check_ns("now_ns", now_ns)
+        max_age_ns = _check_ns("max_age_ns", max_age_ns, minimum=0)
+        with self._lock:
+            items = sorted((s, m) for (k, s), m in self._latest.items() if k == kind)
+        return {s: m for s, m in items if abs(now_ns - m.stamp_ns) <= max_age_ns}
+
+    def snapshot(self, *, published: int, publish_errors: int) -> BusCounters:
+        with self._lock:
+            return BusCounters(
+                published=published,
+                publish_errors=publish_errors,
+                received=self._received,
+                accepted=self._accepted,
+                duplicates=self._duplicates,
+                out_of_order=self._out_of_order,
+                sender_restarts=self._restarts,
+                own_ignored=self._own_ignored,
+                rejected=MappingProxyType(dict(sorted(self._rejected.items()))),
+            )
+
+
+class PlanBus(ABC):
+    """Publish this vehicle's plan, status and target observations; read the neighbours' latest.
+
+    `vehicle_id` None makes a listen-only bus (e.g. a ground station) that cannot publish.
+    A bus is a context manager; `close` is idempotent; what was received stays readable.
+    """
+
+    def __init__(self, *, fleet: str, vehicle_id: int | None) -> None:
+        self._fleet = validate_fleet(fleet)
+        self._vehicle_id = _check_vehicle_id(vehicle_id)
+        self._inbox = _Inbox(fleet=self._fleet, vehicle_id=self._vehicle_id)
+        self._send_lock = threading.Lock()
+        self._seq = dict.fromkeys(MessageKind, 0)
+        self._keys: dict[MessageKind, str] = {}
+        if self._vehicle_id is not None:
+            self._keys = {
+                MessageKind.PLAN: plan_key(self._fleet, self._vehicle_id),
+                MessageKind.STATUS: status_key(self._fleet, self._vehicle_id),
+                MessageKind.TARGET_OBSERVATION: target_observation_key(self._fleet),
+            }
+        self._published = 0
+        self._publish_errors = 0
+        self._closed = False
+
+    # Transport, provided by implementations.
+    @abstractmethod
+    def _send(self, key: str, payload: bytes) -> bool:
+        """Send `payload` on `key`; False if the transport refused (never raises)."""
+
+    @abstractmethod
+    def _shutdown(self) -> None:
+        """Release the transport; called once."""
+
+    def _deliver(self, key: str, payload: bytes) -> None:
+        """Hand a payload that arrived on `key` to the receive rules (any thread)."""
+        self._inbox.receive(key, payload)
+
+    def _subscriptions(self) -> tuple[str, ...]:
+        f = self._fleet
+        return (all_plans_key(f), all_statuses_key(f), target_observation_key(f))
+
+    @property
+    def fleet(self) -> str:
+        return self._fleet
+
+    @property
+    def vehicle_id(self) -> int | None:
+        return self._vehicle_id
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _publish(self, kind: MessageKind, make: Callable[[int], Message]) -> None:
+        if self._vehicle_id is None:
+            raise ConfigError("vehicle_id", "a listen-only bus (vehicle_id None) cannot publish")
+        with self._send_lock:
+            if self._closed:
+                raise PlanBusClosedError(f"bus of vehicle {self._vehicle_id} is closed")
+            payload = encode(make(self._seq[kind]))
+            self._seq[kind] = (self._seq[kind] + 1) % _U32
+            if self._send(self._keys[kind], payload):
+                self._published += 1
+            else:
+                self._publish_errors += 1
+
+    def publish_plan(self, plan: Plan, status: PlanStatus | None = None) -> None:
+        """Broadcast this vehicle's assumed trajectory (ConfigError if it is invalid)."""
+        if self._vehicle_id is not None and plan.vehicle_id != self._vehicle_id:
+            raise ConfigError(
+                "plan.vehicle_id", f"is {plan.vehicle_id}, this bus is vehicle {self._vehicle_id}"
+            )
+        status = PlanStatus() if status is None else status
+
+        def make(seq: int) -> Message:
+            return PlanMessage(seq=seq, plan=plan, status=status)
+
+        self._publish(MessageKind.PLAN, make)
+
+    def publish_status(self, status: VehicleStatus, *, stamp_ns: int) -> None:
+        """Broadcast this vehicle's status at simulated time `stamp_ns`."""
+
+        def make(seq: int) -> Message:
+            return StatusMessage(
+                sender_id=self._vehicle_id, seq=seq, stamp_ns=stamp_ns, status=status
+            )
+
+        self._publish(MessageKind.STATUS, make)
+
+    def publish_target(
+        self,
+        *,
+        stamp_ns: int,
+        north_m: float,
+        east_m: float,
+        noise_std_m: float = 0.0,
+        velocity_m_s: tuple[float, float] | None = None,
+    ) -> None:
+        """Broadcast an observation of the target, sent as this bus's vehicle id."""
+
+        def make(seq: int) -> Message:
+            return TargetObservation(
+                sender_id=self._vehicle_id,
+                seq=seq,
+                stamp_ns=stamp_ns,
+                north_m=north_m,
+                east_m=east_m,
+                noise_std_m=noise_std_m,
+                velocity_m_s=velocity_m_s,
+            )
+
+        self._publish(MessageKind.TARGET_OBSERVATION, make)
+
+    def latest_plan_messages(self, now_ns: int, max_age_ns: int) -> dict[int, PlanMessage]:
+        """Latest accepted plan message per neighbour, if |now_ns - stamp| <= max_age_ns."""
+        return self._inbox.latest(MessageKind.PLAN, now_ns, max_age_ns)
+
+    def latest_plans(self, now_ns: int, max_age_ns: int) -> dict[int, Plan]:
+        """Latest accepted plan per neighbour id whose age is at most `max_age_ns`.
+
+        Age is `now_ns - plan.stamp_ns` in simulated time; a plan stamped more than
+        `max_age_ns` in the future is left out as well. Plans' arrays are read-only.
+        """
+        return {i: m.plan for i, m in self.latest_plan_messages(now_ns, max_age_ns).items()}
+
+    def latest_statuses(self, now_ns: int, max_age_ns: int) -> dict[int, StatusMessage]:
+        """Latest accepted status per vehicle id, with the same age rule as `latest_plans`."""
+        return self._inbox.latest(MessageKind.STATUS, now_ns, max_age_ns)
+
+    def latest_target(self, now_ns: int, max_age_ns: int) -> TargetObservation | None:
+        """The newest target observation (any sender) within `max_age_ns`, or None."""
+        fresh = self._inbox.latest(MessageKind.TARGET_OBSERVATION, now_ns, max_age_ns)
+        return max(fresh.values(), key=lambda m: (m.stamp_ns, -m.sender_id), default=None)
+
+    def counters(self) -> BusCounters:
+        """A snapshot of the counters."""
+        with self._send_lock:
+            published, errors = self._published, self._publish_errors
+        return self._inbox.snapshot(published=published, publish_errors=errors)
+
+    def close(self) -> None:
+        """Release the transport; idempotent. Received messages stay readable."""
+        with self._send_lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._shutdown()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def _matches(pattern: str, key: str) -> bool:
+    """Key-expression match for patterns whose only wildcard is a whole-chunk ``*``."""
+    p, k = pattern.split("/"), key.split("/")
+    return len(p) == len(k) and all(a == "*" and b or a == b for a, b in zip(p, k, strict=True))
+
+
+class MemoryHub:
+    """An in-process broadcast medium that several InMemoryPlanBus attach to.
+
+    `put` delivers synchronously to every other attached bus whose subscriptions match, in
+    attach order. With `deliver_immediately=False` payloads queue until `flush`, so a lockstep
+    runner can let every agent of a tick see the same neighbour plans whatever their order.
+    """
+
+    def __init__(self, name: str = "default", *, deliver_immediately: bool = True) -> None:
+        self.name = validate_fleet(name, field="hub name")
+        self.deliver_immediately = deliver_immediately
+        self._lock = threading.RLock()
+        self._subscribers: list[tuple[tuple[str, ...], object, Callable[[str, bytes], None]]] = []
+        self._queue: list[tuple[str, bytes, object]] = []
+
+    def attach(
+        self, patterns: tuple[str, ...], owner: object, callback: Callable[[str, bytes], None]
+    ) -> None:
+        """Deliver payloads on keys matching `patterns` to `callback`, except `owner`'s own."""
+        with self._lock:
+            self._subscribers.append((tuple(patterns), owner, callback))
+
+    def detach(self, owner: object) -> None:
+        with self._lock:
+            self._subscribers = [s for s in self._subscribers if s[1] is not owner]
+
+    def put(self, key: str, payload: bytes, *, origin: object = None) -> None:
+        """Publish raw bytes on `key`; origin None (an outside sender) reaches every bus."""
+        with self._lock:
+            if not self.deliver_immediately:
+                self._queue.append((key, bytes(payload), origin))
+                return
+        self._dispatch(key, bytes(payload), origin)
+
+    def flush(self) -> int:
+        """Deliver every queued payload in publication order; return how many."""
+        with self._lock:
+            queue, self._queue = self._queue, []
+        for key, payload, origin in queue:
+            self._dispatch(key, payload, origin)
+        return len(queue)
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._queue)
+
+    def _dispatch(self, key: str, payload: bytes, origin: object) -> None:
+        with self._lock:
+            targets = [
+                cb
+                for patterns, owner, cb in self._subscribers
+                if owner is not origin and any(_matches(p, key) for p in patterns)
+            ]
+        for callback in targets:
+            callback(key, payload)
+
+
+class MemoryHubs:
+    """The runner's registry of named hubs, resolved by ``mem://NAME`` URLs."""
+
+    def __init__(self, *, deliver_immediately: bool = True) -> None:
+        self._deliver_immediately = deliver_immediately
+        self._hubs: dict[str, MemoryHub] = {}
+        self._lock = threading.Lock()
+
+    def hub(self, name: str) -> MemoryHub:
+        """The hub called `name`, created on first use."""
+        with self._lock:
+            if name not in self._hubs:
+                self._hubs[name] = MemoryHub(name, deliver_immediately=self._deliver_immediately)
+            return self._hubs[name]
+
+
+class InMemoryPlanBus(PlanBus):
+    """A PlanBus on a MemoryHub: no threads, no sockets, deterministic."""
+
+    def __init__(self, hub: MemoryHub, *, fleet: str, vehicle_id: int | None) -> None:
+        super().__init__(fleet=fleet, vehicle_id=vehicle_id)
+        self._hub = hub
+        hub.attach(self._subscriptions(), self, self._deliver)
+
+    def _send(self, key: str, payload: bytes) -> bool:
+        self._hub.put(key, payload, origin=self)
+        return True
+
+    def _shutdown(self) -> None:
+        self._hub.detach(self)
+
+
+def open_plan_bus(
+    url_or_options: "str | ZenohOptions",
+    *,
+    fleet: str,
+    vehicle_id: int | None,
+    hubs: MemoryHubs | None = None,
+) -> PlanBus:
+    """Open the PlanBus a URL names: ``mem://NAME`` (needs `hubs`), ``zenoh[://...]``.
+
+    A `protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL.
+    """
+    if isinstance(url_or_options, str) and url_or_options.startswith("mem://"):
+        if hubs is None:
+            raise ConfigError("hubs", "a mem:// plan bus needs the runner's MemoryHubs")
+        name = url_or_options.removeprefix("mem://")
+        validate_fleet(name, field="plan_bus_url")
+        return InMemoryPlanBus(hubs.hub(name), fleet=fleet, vehicle_id=vehicle_id)
+    from onboard.zenoh_planbus import ZenohPlanBus
+    from protocol.zenoh_config import ZenohOptions
+
+    if isinstance(url_or_options, ZenohOptions):
+        options = url_or_options
+    elif isinstance(url_or_options, str) and (
+        url_or_options == "zenoh" or url_or_options.startswith("zenoh://")
+    ):
+        options = ZenohOptions.from_url(url_or_options)
+    else:
+        raise ConfigError(
+            "plan_bus_url",
+            f"unknown plan bus {url_or_options!r} (known: mem://NAME, zenoh, zenoh://HOST:PORT)",
+        )
+    return ZenohPlanBus(options, fleet=fleet, vehicle_id=vehicle_id)

@@ -1,0 +1,181 @@
+"""How fleetmpc processes join a Zenoh network: explicit endpoints, never scouting.
+
+Every configuration built here turns multicast scouting and gossip off, also on top of a user's
+config file: a session talks only to the endpoints it is given. The default is a peer that
+connects to ``tcp/127.0.0.1:7447`` (a router, or the first peer, on the scenario's
+``network.zenoh_port``). Peers do not relay for each other without gossip, so either every
+process connects to one router (`protocol.zenoh_router`, `mode="client"`), or the peers form an
+explicit full mesh (`ZenohOptions.peer_mesh`).
+
+URL form, parsed by `ZenohOptions.from_url`::
+
+    zenoh                                    peer connecting to tcp/127.0.0.1:7447
+    zenoh://HOST:PORT[,HOST:PORT...]         connect to these TCP endpoints
+        ?mode=peer|client                    session mode (default peer)
+        &listen=HOST:PORT                    listen here (repeatable; peers only)
+        &connect=PROTO/HOST:PORT             one more connect endpoint (repeatable)
+        &config=PATH                         base config file (JSON5), see `config_file`
+
+Examples: ``zenoh://127.0.0.1:7447?mode=client`` (client of a router),
+``zenoh://127.0.0.1:7447?listen=127.0.0.1:7448`` (a peer of a mesh).
+"""
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import parse_qsl, urlsplit
+
+import zenoh
+
+from onboard.core.errors import ConfigError
+
+__all__ = [
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "ZenohOptions",
+    "disable_scouting",
+    "endpoint",
+]
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 7447
+_ENDPOINT_RE = re.compile(r"(tcp|udp|tls|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):([0-9]{1,5})")
+_MODES = ("peer", "client")
+
+
+def endpoint(host: str, port: int, *, proto: str = "tcp") -> str:
+    """A Zenoh endpoint string, e.g. ``tcp/127.0.0.1:7447``; raises ConfigError if malformed."""
+    text = f"{proto}/{host}:{port}"
+    _check_endpoint("endpoint", text)
+    return text
+
+
+def _check_endpoint(field: str, text: object) -> str:
+    match = _ENDPOINT_RE.fullmatch(text) if isinstance(text, str) else None
+    if match is None or int(match.group(3)) > 65535:
+        raise ConfigError(field, f"must look like tcp/127.0.0.1:7447, got {text!r}")
+    return text
+
+
+def _json_list(items: tuple[str, ...]) -> str:
+    return "[" + ", ".join(f'"{x}"' for x in items) + "]"
+
+
+def disable_scouting(conf: zenoh.Config) -> zenoh.Config:
+    """Turn multicast scouting and gossip off in `conf` (in place) and return it."""
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return conf
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """How a session joins the network."""
+
+    mode: str | None = None
+    """"peer" or "client"; None means "peer", or the config file's mode if one is given."""
+    connect: tuple[str, ...] = ()
+    """Endpoints to connect to, e.g. ("tcp/127.0.0.1:7447",)."""
+    listen: tuple[str, ...] = ()
+    """Endpoints to listen on (peers only), e.g. ("tcp/127.0.0.1:7448",)."""
+    config_file: str | None = None
+    """A Zenoh JSON5 config file used as the base; mode and endpoints given here override it,
+    and scouting is turned off regardless."""
+
+    def __post_init__(self) -> None:
+        if self.mode is not None and self.mode not in _MODES:
+            raise ConfigError("zenoh.mode", f"must be one of {_MODES}, got {self.mode!r}")
+        for name in ("connect", "listen"):
+            value = getattr(self, name)
+            if isinstance(value, str):
+                raise ConfigError(f"zenoh.{name}", "must be a list of endpoints, not a string")
+            items = tuple(value)
+            for i, text in enumerate(items):
+                _check_endpoint(f"zenoh.{name}[{i}]", text)
+            object.__setattr__(self, name, items)
+        if self.mode == "client" and self.listen:
+            raise ConfigError("zenoh.listen", "a client does not listen; use mode peer")
+        if self.config_file is None and not (self.connect or self.listen):
+            raise ConfigError("zenoh.connect", "give at least one connect or listen endpoint")
+        if self.config_file is None and self.mode == "client" and not self.connect:
+            raise ConfigError("zenoh.connect", "a client needs the endpoint of a router")
+        if self.config_file is not None and not Path(self.config_file).is_file():
+            raise ConfigError("zenoh.config_file", f"no such file: {self.config_file}")
+
+    def to_config(self) -> zenoh.Config:
+        """The zenoh.Config these options describe (scouting off)."""
+        if self.config_file is not None:
+            try:
+                conf = zenoh.Config.from_file(self.config_file)
+            except zenoh.ZError as e:
+                raise ConfigError("zenoh.config_file", f"{self.config_file}: {e}") from None
+            if self.mode is not None:
+                conf.insert_json5("mode", f'"{self.mode}"')
+            if self.connect:
+                conf.insert_json5("connect/endpoints", _json_list(self.connect))
+            if self.listen:
+                conf.insert_json5("listen/endpoints", _json_list(self.listen))
+            return disable_scouting(conf)
+        conf = zenoh.Config()
+        conf.insert_json5("mode", f'"{self.mode or "peer"}"')
+        conf.insert_json5("connect/endpoints", _json_list(self.connect))
+        # Explicitly empty: zenoh's peer default listens on tcp/[::]:0, every interface.
+        conf.insert_json5("listen/endpoints", _json_list(self.listen))
+        return disable_scouting(conf)
+
+    @classmethod
+    def from_url(cls, url: str) -> "ZenohOptions":
+        """Parse the ``zenoh[://...]`` URL form described in the module docstring."""
+        if url == "zenoh":
+            return cls(connect=(endpoint(DEFAULT_HOST, DEFAULT_PORT),))
+        parts = urlsplit(url)
+        if parts.scheme != "zenoh" or parts.path not in ("", "/") or parts.fragment:
+            raise ConfigError("zenoh_url", f"must look like zenoh://HOST:PORT?..., got {url!r}")
+        connect = [
+            _host_port("zenoh_url", item, proto_optional=False)
+            for item in parts.netloc.split(",")
+            if item
+        ]
+        listen: list[str] = []
+        mode = config_file = None
+        for key, value in parse_qsl(parts.query, keep_blank_values=True):
+            if key == "mode":
+                mode = value
+            elif key == "listen":
+                listen.append(_host_port("zenoh_url.listen", value))
+            elif key == "connect":
+                connect.append(_host_port("zenoh_url.connect", value))
+            elif key == "config":
+                config_file = value
+            else:
+                raise ConfigError(
+                    f"zenoh_url.{key}", "unknown option (known: mode, listen, connect, config)"
+                )
+        return cls(mode=mode, connect=tuple(connect), listen=tuple(listen), config_file=config_file)
+
+    @classmethod
+    def peer_mesh(
+        cls, *, index: int, size: int, base_port: int, host: str = DEFAULT_HOST
+    ) -> "ZenohOptions":
+        """Member `index` of a full peer mesh of `size` members on consecutive ports.
+
+        Member k listens on base_port + k and connects to every member j < k (the session
+        retries until they are up), so every pair is linked without gossip.
+        """
+        if not isinstance(size, int) or size < 1:
+            raise ConfigError("size", f"must be an integer >= 1, got {size!r}")
+        if not isinstance(index, int) or not 0 <= index < size:
+            raise ConfigError("index", f"must be an integer in [0, {size - 1}], got {index!r}")
+        if not isinstance(base_port, int) or not 1 <= base_port <= 65535 - size:
+            raise ConfigError("base_port", f"must leave room for {size} ports, got {base_port!r}")
+        return cls(
+            mode="peer",
+            connect=tuple(endpoint(host, base_port + j) for j in range(index)),
+            listen=(endpoint(host, base_port + index),),
+        )
+
+
+def _host_port(field: str, text: str, *, proto_optional: bool = True) -> str:
+    if proto_optional and "/" in text:
+        return _check_endpoint(field, text)
+    return _check_endpoint(field, f"tcp/{text}")

@@ -1,0 +1,115 @@
+"""Zenoh options: URL parsing, explicit endpoints, scouting always off."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from onboard.core.errors import ConfigError
+from protocol.zenoh_config import ZenohOptions, endpoint
+
+
+def conf_json(options: ZenohOptions, key: str) -> object:
+    return json.loads(options.to_config().get_json(key))
+
+
+def test_default_url_is_a_loopback_peer_of_port_7447() -> None:
+    options = ZenohOptions.from_url("zenoh")
+    assert options == ZenohOptions(connect=("tcp/127.0.0.1:7447",))
+    assert conf_json(options, "mode") == "peer"
+    assert conf_json(options, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert conf_json(options, "listen/endpoints") == []  # not zenoh's tcp/[::]:0
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        ZenohOptions(connect=("tcp/127.0.0.1:7447",)),
+        ZenohOptions(mode="client", connect=("tcp/127.0.0.1:7447",)),
+        ZenohOptions.peer_mesh(index=2, size=3, base_port=7450),
+    ],
+)
+def test_scouting_is_always_off(options: ZenohOptions) -> None:
+    assert conf_json(options, "scouting/multicast/enabled") is False
+    assert conf_json(options, "scouting/gossip/enabled") is False
+
+
+def test_url_with_options() -> None:
+    url = "zenoh://127.0.0.1:7447,localhost:7448?listen=127.0.0.1:7449&connect=udp/127.0.0.1:7450"
+    options = ZenohOptions.from_url(url)
+    assert options.mode is None
+    assert options.connect == ("tcp/127.0.0.1:7447", "tcp/localhost:7448", "udp/127.0.0.1:7450")
+    assert options.listen == ("tcp/127.0.0.1:7449",)
+    client = ZenohOptions.from_url("zenoh://[::1]:7447?mode=client")
+    assert client.mode == "client" and client.connect == ("tcp/[::1]:7447",)
+    assert conf_json(client, "mode") == "client"
+
+
+@pytest.mark.parametrize(
+    ("url", "field"),
+    [
+        ("zenoh://127.0.0.1:7447?colour=red", "zenoh_url.colour"),
+        ("zenoh://127.0.0.1:7447?mode=router", "zenoh.mode"),
+        ("zenoh://127.0.0.1?mode=peer", "zenoh_url"),
+        ("zenoh://127.0.0.1:99999", "zenoh_url"),
+        ("zenoh://127.0.0.1:7447?listen=nowhere", "zenoh_url.listen"),
+        ("zenoh://127.0.0.1:7447?mode=client&listen=127.0.0.1:7448", "zenoh.listen"),
+        ("zenoh://", "zenoh.connect"),
+        ("zenoh:/path", "zenoh_url"),
+        ("zenoh://127.0.0.1:7447?config=/no/such/file.json5", "zenoh.config_file"),
+    ],
+)
+def test_bad_urls_name_the_field(url: str, field: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        ZenohOptions.from_url(url)
+    assert info.value.field == field
+
+
+def test_peer_mesh_links_every_pair_once() -> None:
+    members = [ZenohOptions.peer_mesh(index=k, size=3, base_port=9000) for k in range(3)]
+    assert [m.listen for m in members] == [(f"tcp/127.0.0.1:{9000 + k}",) for k in range(3)]
+    assert [m.connect for m in members] == [
+        (),
+        ("tcp/127.0.0.1:9000",),
+        ("tcp/127.0.0.1:9000", "tcp/127.0.0.1:9001"),
+    ]
+    with pytest.raises(ConfigError) as info:
+        ZenohOptions.peer_mesh(index=3, size=3, base_port=9000)
+    assert info.value.field == "index"
+
+
+def test_config_file_is_the_base_but_scouting_stays_off(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        '{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] },'
+        " scouting: { multicast: { enabled: true }, gossip: { enabled: true } } }"
+    )
+    options = ZenohOptions(config_file=str(path))
+    assert conf_json(options, "mode") == "client"
+    assert conf_json(options, "connect/endpoints") == ["tcp/127.0.0.1:7999"]
+    assert conf_json(options, "scouting/multicast/enabled") is False
+    assert conf_json(options, "scouting/gossip/enabled") is False
+    override = ZenohOptions.from_url(f"zenoh://127.0.0.1:7447?mode=peer&config={path}")
+    assert conf_json(override, "mode") == "peer"
+    assert conf_json(override, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+
+
+def test_malformed_config_file_is_a_config_error(tmp_path: Path) -> None:
+    path = tmp_path / "broken.json5"
+    path.write_text("{ mode: ")
+    with pytest.raises(ConfigError) as info:
+        ZenohOptions(config_file=str(path)).to_config()
+    assert info.value.field == "zenoh.config_file"
+
+
+@pytest.mark.parametrize("endpoints", ["tcp/127.0.0.1:7447", ("127.0.0.1:7447",), ("tcp/a b:1",)])
+def test_malformed_endpoints_are_refused(endpoints: object) -> None:
+    with pytest.raises(ConfigError) as info:
+        ZenohOptions(connect=endpoints)  # type: ignore[arg-type]
+    assert info.value.field.startswith("zenoh.connect")
+
+
+def test_endpoint_helper() -> None:
+    assert endpoint("127.0.0.1", 7447) == "tcp/127.0.0.1:7447"
+    with pytest.raises(ConfigError):
+        endpoint("127.0.0.1", 70000)
