@@ -24,7 +24,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fleetmpc", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (module, help_text) in _COMMANDS.items():
+    for name, (_module, help_text) in _COMMANDS.items():
         sub.add_parser(name, help=help_text, description=help_text)
     # Parse the subcommand name first, then let only that module define its arguments.
     args_list = sys.argv[1:] if argv is None else argv

@@ -20,7 +20,16 @@ FIGURE_FILES = (
     "fig4_centre_distance.png",
     "fig5_beta.png",
 )
-_COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
+_COLOURS = (
+    "tab:red",
+    "tab:blue",
+    "tab:green",
+    "tab:orange",
+    "tab:purple",
+    "tab:brown",
+    "tab:pink",
+    "tab:olive",
+)
 
 
 def _colour(i: int) -> str:
@@ -86,7 +95,12 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
     paths.append(_save(fig, out / FIGURE_FILES[3]))
 
     # Learned parameters against truth.
-    names = ("speed effectiveness a_V", "yaw-rate effectiveness a_w", "drift North [m/s]", "drift East [m/s]")
+    names = (
+        "speed effectiveness a_V",
+        "yaw-rate effectiveness a_w",
+        "drift North [m/s]",
+        "drift East [m/s]",
+    )
     fig, axes = plt.subplots(2, 2, figsize=(9, 6), sharex=True)
     for p, ax in enumerate(axes.ravel()):
         for i, vid in enumerate(ids):

@@ -53,13 +53,28 @@ def run_lockstep(
     root = np.random.default_rng(seed)
     rngs = root.spawn(len(sc.vehicles) + 1)
     target_rng = rngs[-1]
-    plants = [TruthPlant(v.truth, x_m=v.initial[0], y_m=v.initial[1], yaw_rad=v.initial[2]) for v in sc.vehicles]
+    plants = [
+        TruthPlant(v.truth, x_m=v.initial[0], y_m=v.initial[1], yaw_rad=v.initial[2])
+        for v in sc.vehicles
+    ]
     agents = build_agents(sc, learning=learning)
     truth_formation = Formation(sc.formation)
     n = len(plants)
     obs_period_ns = round(1e9 / sc.target.observation_rate_hz)
     next_obs_ns = 0
-    keys = ("truth", "target", "target_velocity", "slots", "offsets", "command", "c", "beta", "beta_truth", "qp_ok", "step_ms")
+    keys = (
+        "truth",
+        "target",
+        "target_velocity",
+        "slots",
+        "offsets",
+        "command",
+        "c",
+        "beta",
+        "beta_truth",
+        "qp_ok",
+        "step_ms",
+    )
     log: dict[str, list] = {k: [] for k in keys}
     plans: dict[int, object] = {}
     min_sep = np.inf
@@ -97,7 +112,11 @@ def run_lockstep(
         log["beta_truth"].append(
             np.array(
                 [
-                    [p.params.speed_effectiveness, p.params.yaw_rate_effectiveness, *p.params.wind.at(t_s)]
+                    [
+                        p.params.speed_effectiveness,
+                        p.params.yaw_rate_effectiveness,
+                        *p.params.wind.at(t_s),
+                    ]
                     for p in plants
                 ]
             )

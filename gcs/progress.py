@@ -28,7 +28,9 @@ class ProgressBar:
         filled = int(frac * self.width)
         bar = "#" * filled + "." * (self.width - filled)
         elapsed = time.monotonic() - self._start
-        line = f"{self.label} [{bar}] {pct:3d}%  {done:6.1f}/{total:.1f} s sim, {elapsed:5.1f} s wall"
+        line = (
+            f"{self.label} [{bar}] {pct:3d}%  {done:6.1f}/{total:.1f} s sim, {elapsed:5.1f} s wall"
+        )
         if self._tty:
             self.stream.write("\r" + line + ("\n" if pct == 100 else ""))
         else:

@@ -1,4 +1,6 @@
-"""A flight record: what a run logged every control period, in arrays (the input of metrics and figures)."""
+"""A flight record: what a run logged every control period, as arrays.
+
+The input of the metrics and the figures."""
 
 from dataclasses import dataclass
 

@@ -1,4 +1,6 @@
-"""`fleetmpc sim SCENARIO`: the whole fleet in one process, in lockstep, deterministic for a seed."""
+"""`fleetmpc sim SCENARIO`: the whole fleet in one process, in lockstep.
+
+Deterministic for a seed."""
 
 import argparse
 import json
@@ -17,9 +19,15 @@ __all__ = ["add_arguments", "format_summary", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="scenario TOML file")
-    parser.add_argument("--no-learning", action="store_true", help="freeze beta at nominal (plain tube MPC)")
-    parser.add_argument("--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)")
-    parser.add_argument("--seed", type=int, metavar="N", help="random seed (default: the scenario's)")
+    parser.add_argument(
+        "--no-learning", action="store_true", help="freeze beta at nominal (plain tube MPC)"
+    )
+    parser.add_argument(
+        "--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)"
+    )
+    parser.add_argument(
+        "--seed", type=int, metavar="N", help="random seed (default: the scenario's)"
+    )
     parser.add_argument("--metrics", metavar="FILE", help="write the metrics as JSON")
     parser.add_argument("--plots", metavar="DIR", help="write the paper's figures as PNG")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -50,7 +58,8 @@ def format_summary(metrics: dict) -> str:
         rows.append(
             (
                 f"beta error UAV {b['vehicle']}",
-                f"a_V {100 * b['speed_effectiveness']:.1f} %, a_w {100 * b['yaw_rate_effectiveness']:.1f} %, "
+                f"a_V {100 * b['speed_effectiveness']:.1f} %, "
+                f"a_w {100 * b['yaw_rate_effectiveness']:.1f} %, "
                 f"drift {b['drift_m_s']:.3f} m/s",
             )
         )
@@ -69,7 +78,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"  - {p}")
     duration = sc.duration_s if args.duration is None else args.duration
     bar = None if args.quiet else ProgressBar(f"sim {sc.name}")
-    rec = run_lockstep(sc, learning=not args.no_learning, duration_s=duration, seed=args.seed, progress=bar)
+    rec = run_lockstep(
+        sc, learning=not args.no_learning, duration_s=duration, seed=args.seed, progress=bar
+    )
     metrics = {
         "scenario": sc.name,
         "learning": not args.no_learning and sc.learning.enabled,

@@ -105,7 +105,10 @@ class Scenario:
         for v in self.vehicles:
             if v.id == vehicle_id:
                 return v
-        raise ConfigError("vehicle", f"no vehicle with id {vehicle_id} in scenario {self.name!r} (ids: {self.vehicle_ids})")
+        raise ConfigError(
+            "vehicle",
+            f"no vehicle with id {vehicle_id} in scenario {self.name!r} (ids: {self.vehicle_ids})",
+        )
 
     def index_of(self, vehicle_id: int) -> int:
         return self.vehicle_ids.index(self.vehicle(vehicle_id).id)
@@ -125,7 +128,9 @@ def _build(cls: type, table: Any, prefix: str, **extra: Any) -> Any:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - names)
     if unknown:
-        raise ConfigError(f"{prefix}.{unknown[0]}", f"unknown key (known: {', '.join(sorted(names))})")
+        raise ConfigError(
+            f"{prefix}.{unknown[0]}", f"unknown key (known: {', '.join(sorted(names))})"
+        )
     kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
     kwargs.update(extra)
     try:
@@ -166,7 +171,9 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
     """Validate a parsed TOML document and return the Scenario it describes."""
     unknown = sorted(set(doc) - _TOP_KEYS)
     if unknown:
-        raise ConfigError(unknown[0], f"unknown top-level key (known: {', '.join(sorted(_TOP_KEYS))})")
+        raise ConfigError(
+            unknown[0], f"unknown top-level key (known: {', '.join(sorted(_TOP_KEYS))})"
+        )
     name = doc.get("name")
     if not isinstance(name, str) or not name:
         raise ConfigError("name", f"must be a non-empty string, got {name!r}")
@@ -176,10 +183,15 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
     duration_s = positive("duration_s", doc.get("duration_s", 30.0))
     steps = doc.get("plant_steps_per_period", 10)
     if not isinstance(steps, int) or not 1 <= steps <= 1000:
-        raise ConfigError("plant_steps_per_period", f"must be an integer in [1, 1000], got {steps!r}")
+        raise ConfigError(
+            "plant_steps_per_period", f"must be an integer in [1, 1000], got {steps!r}"
+        )
     controller = _build(ControllerSettings, doc.get("controller", {}), "controller")
     if controller.period_ns % steps:
-        raise ConfigError("plant_steps_per_period", f"must divide the control period ({controller.period_ns} ns) exactly")
+        raise ConfigError(
+            "plant_steps_per_period",
+            f"must divide the control period ({controller.period_ns} ns) exactly",
+        )
     learning = _build(LearningSettings, doc.get("learning", {}), "learning")
     target = _build(TargetScript, doc.get("target", {}), "target")
     truth_default = doc.get("truth", {})
@@ -195,7 +207,9 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
             raise ConfigError(prefix, "must be a table")
         extra = sorted(set(raw) - {"id", "initial", "slot_m", "truth"})
         if extra:
-            raise ConfigError(f"{prefix}.{extra[0]}", "unknown key (known: id, initial, slot_m, truth)")
+            raise ConfigError(
+                f"{prefix}.{extra[0]}", "unknown key (known: id, initial, slot_m, truth)"
+            )
         vid = raw.get("id", i + 1)
         if not isinstance(vid, int) or not 1 <= vid <= 250:
             raise ConfigError(f"{prefix}.id", f"must be an integer in [1, 250], got {vid!r}")
@@ -204,14 +218,18 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
         truth_table = {**truth_default, **raw.get("truth", {})}
         if "wind" in truth_default and "wind" in raw.get("truth", {}):
             truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
-        vehicles.append(VehicleSpec(vid, initial, slot, _truth(truth_table, f"{prefix}.truth", controller)))
+        vehicles.append(
+            VehicleSpec(vid, initial, slot, _truth(truth_table, f"{prefix}.truth", controller))
+        )
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ConfigError("vehicles", f"ids must be unique, got {ids}")
     formation_table = dict(doc.get("formation", {}))
     if "slots_m" in formation_table:
         raise ConfigError("formation.slots_m", "give each vehicle's slot as vehicles[i].slot_m")
-    formation = _build(FormationSettings, formation_table, "formation", slots_m=tuple(v.slot_m for v in vehicles))
+    formation = _build(
+        FormationSettings, formation_table, "formation", slots_m=tuple(v.slot_m for v in vehicles)
+    )
     for a in range(len(vehicles)):
         for b in range(a + 1, len(vehicles)):
             pa, pb = vehicles[a].initial, vehicles[b].initial
@@ -219,11 +237,15 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
             if gap < controller.d_safe_m:
                 raise ConfigError(
                     f"vehicles[{b}].initial",
-                    f"starts {gap:.2f} m from vehicle {vehicles[a].id}, closer than d_safe_m = {controller.d_safe_m}",
+                    f"starts {gap:.2f} m from vehicle {vehicles[a].id}, "
+                    f"closer than d_safe_m = {controller.d_safe_m}",
                 )
             sa, sb = formation.slots_m[a], formation.slots_m[b]
             if math.hypot(sa[0] - sb[0], sa[1] - sb[1]) < controller.d_safe_m:
-                raise ConfigError(f"vehicles[{b}].slot_m", f"slot is closer than d_safe_m to vehicle {vehicles[a].id}'s")
+                raise ConfigError(
+                    f"vehicles[{b}].slot_m",
+                    f"slot is closer than d_safe_m to vehicle {vehicles[a].id}'s",
+                )
     site = _build(Site, doc.get("site", {}), "site")
     network = _build(Network, doc.get("network", {}), "network")
     return Scenario(

@@ -34,7 +34,9 @@ class Wind:
         object.__setattr__(self, "mean_m_s", vector("wind.mean_m_s", self.mean_m_s, 2))
         positive("wind.gust_amplitude_m_s", self.gust_amplitude_m_s, allow_zero=True)
         positive("wind.gust_period_s", self.gust_period_s)
-        object.__setattr__(self, "gust_phase_rad", vector("wind.gust_phase_rad", self.gust_phase_rad, 2))
+        object.__setattr__(
+            self, "gust_phase_rad", vector("wind.gust_phase_rad", self.gust_phase_rad, 2)
+        )
 
     def at(self, t_s: float) -> tuple[float, float]:
         """Wind (North, East) [m/s] at time t_s."""

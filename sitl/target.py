@@ -47,7 +47,9 @@ class TargetScript:
         if self.kind not in _KINDS:
             raise ConfigError("target.kind", f"must be one of {_KINDS}, got {self.kind!r}")
         object.__setattr__(self, "start_m", vector("target.start_m", self.start_m, 2))
-        object.__setattr__(self, "velocity_m_s", vector("target.velocity_m_s", self.velocity_m_s, 2))
+        object.__setattr__(
+            self, "velocity_m_s", vector("target.velocity_m_s", self.velocity_m_s, 2)
+        )
         object.__setattr__(self, "center_m", vector("target.center_m", self.center_m, 2))
         positive("target.radius_m", self.radius_m)
         positive("target.speed_m_s", self.speed_m_s, allow_zero=True)

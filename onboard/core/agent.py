@@ -21,7 +21,7 @@ from onboard.core.formation import Formation
 from onboard.core.lbmpc import QpData, TubeLbmpc
 from onboard.core.plan import Plan
 from onboard.core.target_estimator import TargetEstimator
-from onboard.core.unicycle import rollout, step, wrap_angle
+from onboard.core.unicycle import rollout, unwrap, wrap_angle
 
 __all__ = ["Agent", "AgentInput", "AgentOutput"]
 
@@ -99,7 +99,8 @@ class Agent:
         self.learning = learning
         self.dekf = DualEkf(learning, tau=controller.period_s)
         self.target = TargetEstimator(
-            observation_std_m=target_observation_std_m, accel_std_m_s2=controller.target_accel_std_m_s2
+            observation_std_m=target_observation_std_m,
+            accel_std_m_s2=controller.target_accel_std_m_s2,
         )
         self.formation = Formation(formation)
         self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
@@ -110,8 +111,10 @@ class Agent:
         self.steps = 0
 
     # -- pieces of a period ---------------------------------------------------------------------
-    def _steady_inputs(self, slots: np.ndarray, beta: np.ndarray, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-        """u_s (M, 2) and steady headings (M + 1,) that keep the learned model on `slots` (M + 2, 2)."""
+    def _steady_inputs(
+        self, slots: np.ndarray, beta: np.ndarray, yaw: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """u_s (M, 2) and steady headings (M + 1,) keeping the learned model on slots (M + 2, 2)."""
         tau = self.settings.period_s
         a_v, a_w, d = beta[0], beta[1], beta[2:]
         g = (slots[1:] - slots[:-1]) / tau - d[None, :]
@@ -120,35 +123,48 @@ class Agent:
         still = speed < 1e-3
         if still.any():
             heading[still] = yaw
-        heading = np.unwrap(heading)
+        heading = unwrap(heading)
         u_s = np.empty((self.settings.horizon, 2))
         u_s[:, 0] = speed[:-1] / a_v
         u_s[:, 1] = np.diff(heading) / (tau * a_w)
         return u_s, heading
 
-    def _pursuit_inputs(self, z0: np.ndarray, slots: np.ndarray, slot_vel: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    def _pursuit_inputs(
+        self, z0: np.ndarray, slots: np.ndarray, slot_vel: np.ndarray, beta: np.ndarray
+    ) -> np.ndarray:
         """Inputs of a simple pursuit of the slot, to seed the linearization from far away."""
         s, tau = self.settings, self.settings.period_s
-        z = z0.copy()
-        out = np.empty((s.horizon, 2))
-        for j in range(s.horizon):
-            want = slot_vel + 0.5 * (slots[j + 1] - z[:2])
-            g = want - beta[2:]
-            heading_err = math.remainder(math.atan2(g[1], g[0]) - z[2], 2 * math.pi)
-            v = math.hypot(g[0], g[1]) / beta[0] * max(math.cos(heading_err), 0.0)
-            w = heading_err / (tau * beta[1])
-            out[j] = (min(v, s.speed_max_m_s), min(max(w, -s.yaw_rate_max_rad_s), s.yaw_rate_max_rad_s))
-            z = step(z, out[j], beta, tau)
-        return out
+        a_v, a_w, d_x, d_y = (float(b) for b in beta)
+        x, y, th = (float(v) for v in z0)
+        vx, vy = float(slot_vel[0]), float(slot_vel[1])
+        v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
+        out = []
+        for sx, sy in slots[1 : s.horizon + 1].tolist():
+            gx, gy = vx + 0.5 * (sx - x) - d_x, vy + 0.5 * (sy - y) - d_y
+            err = math.remainder(math.atan2(gy, gx) - th, 2 * math.pi)
+            v = min(math.hypot(gx, gy) / a_v * max(math.cos(err), 0.0), v_max)
+            w = min(max(err / (tau * a_w), -w_max), w_max)
+            out.append((v, w))
+            phi = th + 0.5 * tau * a_w * w
+            x += tau * (a_v * v * math.cos(phi) + d_x)
+            y += tau * (a_v * v * math.sin(phi) + d_y)
+            th += tau * a_w * w
+        return np.array(out)
 
-    def _seed(self, z0: np.ndarray, candidates: list[np.ndarray], beta: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _seed(
+        self, z0: np.ndarray, candidates: list[np.ndarray], beta: np.ndarray, goal: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The candidate input sequence whose learned rollout ends closest to the goal."""
         s = self.settings
         best, best_cost = None, np.inf
         for u in candidates:
             u = np.clip(u, -self.u_max, self.u_max)
             v = u[:, 0]
-            u[:, 0] = np.where(v < 0, np.minimum(v, -s.min_linearization_speed_m_s), np.maximum(v, s.min_linearization_speed_m_s))
+            u[:, 0] = np.where(
+                v < 0,
+                np.minimum(v, -s.min_linearization_speed_m_s),
+                np.maximum(v, s.min_linearization_speed_m_s),
+            )
             z = rollout(z0, u, beta, s.period_s)
             cost = float(np.sum((z[1:, :2] - goal) ** 2))
             if cost < best_cost:
@@ -156,13 +172,32 @@ class Agent:
         assert best is not None
         return best
 
+    @staticmethod
+    def _safe_stop(
+        z0: np.ndarray, u: np.ndarray, nb_pos: np.ndarray, nb_margin: np.ndarray
+    ) -> np.ndarray:
+        """Fallback safety: no forward speed toward a neighbour already inside its margin."""
+        heading = np.array([math.cos(z0[2]), math.sin(z0[2])])
+        for k in range(nb_pos.shape[0]):
+            if not math.isfinite(nb_margin[k, 0]):
+                continue
+            towards = nb_pos[k, 0] - z0[:2]
+            dist = math.hypot(towards[0], towards[1])
+            if dist < nb_margin[k, 0] and u[0] * (heading @ towards) > 0:
+                return np.array([0.0, u[1]])
+        return u
+
     # -- the period -----------------------------------------------------------------------------
     def step(self, inp: AgentInput) -> AgentOutput:
         """Run one control period."""
         s = self.settings
         M, tau = s.horizon, s.period_s
         self.steps += 1
-        applied = self._last_command if inp.applied_input is None else np.asarray(inp.applied_input, float)
+        applied = (
+            self._last_command
+            if inp.applied_input is None
+            else np.asarray(inp.applied_input, float)
+        )
         if inp.measurement is not None and np.all(np.isfinite(inp.measurement)):
             self.dekf.step(np.asarray(inp.measurement, float), applied)
         elif self.dekf.initialized:
@@ -176,7 +211,11 @@ class Agent:
             if k in self.neighbour_ids
         }
         if not self.dekf.initialized or not self.target.ready:
-            return self._hold(inp, "waiting for telemetry" if not self.dekf.initialized else "waiting for target", ages)
+            return self._hold(
+                inp,
+                "waiting for telemetry" if not self.dekf.initialized else "waiting for target",
+                ages,
+            )
         z0 = self.dekf.z.copy()
         beta = self.dekf.beta.copy()
         # Target and slots over j = 0..M+1.
@@ -195,7 +234,9 @@ class Agent:
             if plan is None or ages[nid] > s.plan_forget_s or ages[nid] < -s.period_s:
                 continue
             age = max(ages[nid], 0.0)
-            nb_pos[k] = plan.positions_at(inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s)
+            nb_pos[k] = plan.positions_at(
+                inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
+            )
             nb_margin[k] = s.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:] + s.speed_max_m_s * age
             if age <= s.plan_stale_s:
                 kidx = self.fleet_ids.index(nid)
@@ -203,13 +244,18 @@ class Agent:
                 n_terms += 1
         weight = s.q_position + n_terms * s.q_formation
         targets = np.empty((M, 3))
-        targets[:, :2] = (s.q_position * mine[1 : M + 1] + s.q_formation * (n_terms * mine[1 : M + 1] + pull)) / weight
+        targets[:, :2] = (
+            s.q_position * mine[1 : M + 1] + s.q_formation * (n_terms * mine[1 : M + 1] + pull)
+        ) / weight
         # Linearization trajectory.
-        candidates = [u_s.copy(), self._pursuit_inputs(z0, mine, (mine[-1] - mine[0]) / ((M + 1) * tau), beta)]
+        candidates = [
+            u_s.copy(),
+            self._pursuit_inputs(z0, mine, (mine[-1] - mine[0]) / ((M + 1) * tau), beta),
+        ]
         if self._last_plan is not None:
             candidates.append(np.vstack([self._last_plan.inputs[1:], self._last_plan.inputs[-1:]]))
         lin_states, lin_inputs = self._seed(z0, candidates, beta, targets[:, :2])
-        lin_states[:, 2] = np.unwrap(lin_states[:, 2])
+        lin_states[:, 2] = unwrap(lin_states[:, 2])
         targets[:, 2] = _unwrap_near(heading_s[1 : M + 1], lin_states[1:, 2])
         n_full = len(self.neighbour_ids)
         data = QpData(
@@ -231,9 +277,13 @@ class Agent:
         else:
             self.fallbacks += 1
             ref = np.array([mine[0, 0], mine[0, 1], heading_s[0]])
-            u = self.mpc.fallback_input(z0, ref, u_s[0])
+            u = self._safe_stop(z0, self.mpc.fallback_input(z0, ref, u_s[0]), nb_pos, nb_margin)
             inputs = np.repeat(u[None, :], M, axis=0)
-            states, c, status = rollout(z0, inputs, beta, tau), np.zeros((M, 2)), f"fallback: {sol.status}"
+            states, c, status = (
+                rollout(z0, inputs, beta, tau),
+                np.zeros((M, 2)),
+                f"fallback: {sol.status}",
+            )
         states = states.copy()
         states[:, 2] = wrap_angle(states[:, 2])
         plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, states, inputs)
@@ -257,7 +307,13 @@ class Agent:
         s = self.settings
         z = self.dekf.z.copy() if self.dekf.initialized else np.full(3, np.nan)
         self._last_command = np.zeros(2)
-        plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, np.repeat(z[None, :], s.horizon + 1, 0), np.zeros((s.horizon, 2)))
+        plan = Plan(
+            self.vehicle_id,
+            inp.stamp_ns,
+            s.period_ns,
+            np.repeat(z[None, :], s.horizon + 1, 0),
+            np.zeros((s.horizon, 2)),
+        )
         self._last_plan = None
         return AgentOutput(
             command=np.zeros(2),
@@ -266,7 +322,9 @@ class Agent:
             qp_ok=False,
             status=why,
             state_estimate=z,
-            beta=self.dekf.beta.copy() if self.dekf.initialized else np.array(self.learning.beta_initial),
+            beta=self.dekf.beta.copy()
+            if self.dekf.initialized
+            else np.array(self.learning.beta_initial),
             slot_m=np.full(2, np.nan),
             neighbour_ages_s=ages,
             formation_terms=0,

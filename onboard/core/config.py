@@ -39,7 +39,7 @@ class ControllerSettings:
     reference_speed_m_s: float = 1.0
     """Cruise speed at which K and the tube are computed (never 0) [m/s]."""
     min_linearization_speed_m_s: float = 0.3
-    """Smallest speed a linearization point may have, so the lateral mode stays controllable [m/s]."""
+    """Smallest speed of a linearization point, so the lateral mode stays controllable [m/s]."""
     plan_extrapolation_s: float = 1.0
     """How far past its end a neighbour's plan is extrapolated [s]."""
     plan_stale_s: float = 1.0
@@ -56,7 +56,9 @@ class ControllerSettings:
     def __post_init__(self) -> None:
         positive("controller.period_s", self.period_s)
         if not isinstance(self.horizon, int) or not 1 <= self.horizon <= 100:
-            raise ConfigError("controller.horizon", f"must be an integer in [1, 100], got {self.horizon!r}")
+            raise ConfigError(
+                "controller.horizon", f"must be an integer in [1, 100], got {self.horizon!r}"
+            )
         for name in (
             "speed_max_m_s",
             "yaw_rate_max_rad_s",
@@ -75,9 +77,14 @@ class ControllerSettings:
             positive(f"controller.{name}", getattr(self, name), allow_zero=True)
         in_range("controller.solver_eps", self.solver_eps, 1e-12, 1e-5)
         if not isinstance(self.solver_max_iter, int) or self.solver_max_iter < 10:
-            raise ConfigError("controller.solver_max_iter", f"must be an integer >= 10, got {self.solver_max_iter!r}")
+            raise ConfigError(
+                "controller.solver_max_iter",
+                f"must be an integer >= 10, got {self.solver_max_iter!r}",
+            )
         if self.min_linearization_speed_m_s > self.speed_max_m_s:
-            raise ConfigError("controller.min_linearization_speed_m_s", "must not exceed speed_max_m_s")
+            raise ConfigError(
+                "controller.min_linearization_speed_m_s", "must not exceed speed_max_m_s"
+            )
 
     @property
     def period_ns(self) -> int:
@@ -120,11 +127,20 @@ class LearningSettings:
     """Normalized innovation (in standard deviations) above which the filter resets."""
 
     def __post_init__(self) -> None:
-        for name in ("beta_initial", "beta_std_initial", "beta_random_walk", "beta_min", "beta_max", "excitation_min"):
+        for name in (
+            "beta_initial",
+            "beta_std_initial",
+            "beta_random_walk",
+            "beta_min",
+            "beta_max",
+            "excitation_min",
+        ):
             object.__setattr__(self, name, vector(f"learning.{name}", getattr(self, name), 4))
         for i in range(4):
             if not self.beta_min[i] <= self.beta_initial[i] <= self.beta_max[i]:
-                raise ConfigError(f"learning.beta_initial[{i}]", "must lie within beta_min and beta_max")
+                raise ConfigError(
+                    f"learning.beta_initial[{i}]", "must lie within beta_min and beta_max"
+                )
             positive(f"learning.beta_std_initial[{i}]", self.beta_std_initial[i])
             positive(f"learning.beta_random_walk[{i}]", self.beta_random_walk[i], allow_zero=True)
             positive(f"learning.excitation_min[{i}]", self.excitation_min[i], allow_zero=True)
@@ -152,7 +168,8 @@ class FormationSettings:
     slots_m: tuple[tuple[float, float], ...]
     """Offset of each vehicle's slot from the formation centre (index = vehicle order) [m]."""
     frame: str = "world"
-    """"world": offsets are (North, East); "course": (forward, right) in the target's course frame."""
+    """"world": offsets are (North, East); "course": (forward, right) in the target's course
+    frame."""
     trail_m: float = 5.0
     """Distance d_s by which the formation centre trails the target along its course [m]."""
 

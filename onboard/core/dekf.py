@@ -97,7 +97,13 @@ def _unexcited(H_p: np.ndarray, noise: _Noise) -> np.ndarray:
 
 
 def _consider_update(
-    beta_m: np.ndarray, P_m: np.ndarray, K: np.ndarray, H: np.ndarray, R: np.ndarray, innov: np.ndarray, hold: np.ndarray
+    beta_m: np.ndarray,
+    P_m: np.ndarray,
+    K: np.ndarray,
+    H: np.ndarray,
+    R: np.ndarray,
+    innov: np.ndarray,
+    hold: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with the gain rows of the held parameters zeroed (Joseph form)."""
     K = K.copy()
@@ -119,7 +125,9 @@ class DekfState:
 
 def initial_dekf_state(y: np.ndarray, settings: LearningSettings) -> DekfState:
     """Dual-filter state initialized at the first measurement y = (x, y, yaw)."""
-    R = np.diag([settings.measurement_position_std_m**2] * 2 + [settings.measurement_heading_std_rad**2])
+    R = np.diag(
+        [settings.measurement_position_std_m**2] * 2 + [settings.measurement_heading_std_rad**2]
+    )
     return DekfState(
         z=np.array(y, dtype=float),
         P_s=R.copy(),
@@ -208,7 +216,11 @@ class DualEkf:
 
     def as_state(self) -> DekfState:
         return DekfState(
-            self.z.copy(), self.state_filter.P.copy(), self.beta.copy(), self.param_filter.P.copy(), self.resets
+            self.z.copy(),
+            self.state_filter.P.copy(),
+            self.beta.copy(),
+            self.param_filter.P.copy(),
+            self.resets,
         )
 
     def step(self, y: np.ndarray, u: np.ndarray) -> None:

@@ -185,6 +185,19 @@ class TubeLbmpc:
         u = np.where(np.isfinite(u), u, 0.0)
         return np.clip(u, -self.u_max, self.u_max)
 
+    def _failed(
+        self, M: int, status: str, sz: np.ndarray, st: np.ndarray, d: QpData
+    ) -> "QpSolution":
+        return QpSolution(
+            ok=False,
+            status=status,
+            c=np.zeros((M, 2)),
+            inputs=np.array(d.u_s, dtype=float),
+            nominal=sz,
+            learned=st,
+            iterations=0,
+        )
+
     # -- one period -----------------------------------------------------------------------------
     def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
         """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs.
@@ -263,14 +276,19 @@ class TubeLbmpc:
             A[2 * M :] = rows.reshape(N * M, n)
             lower = d.neighbour_margins - np.einsum("kji,kji->kj", nrm, sz[None, 1:, :2] - p_k)
             self._l[2 * M :] = np.where(active, lower, -np.inf).ravel()
+        Px, Ax = H[self._p_rows, self._p_cols], A[self._a_rows, self._a_cols]
+        if not (
+            np.isfinite(Px).all()
+            and np.isfinite(Ax).all()
+            and np.isfinite(q).all()
+            and not np.isnan(self._l).any()
+            and not np.isnan(self._u).any()
+        ):
+            # Never hand the solver non-finite data: it would poison its factorization.
+            self._last_c = None
+            return self._failed(M, "non-finite problem data", sz, st, d)
         solver = self._solver
-        solver.update(
-            Px=H[self._p_rows, self._p_cols],
-            Ax=A[self._a_rows, self._a_cols],
-            q=q,
-            l=self._l,
-            u=self._u,
-        )
+        solver.update(Px=Px, Ax=Ax, q=q, l=self._l, u=self._u)
         if self._last_c is not None:
             solver.warm_start(x=np.concatenate([self._last_c[2:], np.zeros(2)]))
         result = solver.solve(raise_error=False)

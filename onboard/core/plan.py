@@ -36,17 +36,14 @@ class Plan:
         Interpolates linearly inside the plan and extrapolates at the last planned velocity
         beyond its end, for at most `max_extrapolation_s` past the last state (held after that).
         """
-        period_s = self.period_ns * 1e-9
-        t_s = (stamp_ns - self.stamp_ns) * 1e-9 + period_s * np.arange(count)
+        k = (stamp_ns - self.stamp_ns) / self.period_ns + np.arange(count)  # in periods
+        M = self.horizon
         pos = self.states[:, :2]
-        end_s = period_s * self.horizon
-        vel = (pos[-1] - pos[-2]) / period_s if self.horizon >= 1 else np.zeros(2)
-        inside = np.clip(t_s, 0.0, end_s)
-        out = np.column_stack(
-            [
-                np.interp(inside, period_s * np.arange(self.horizon + 1), pos[:, 0]),
-                np.interp(inside, period_s * np.arange(self.horizon + 1), pos[:, 1]),
-            ]
-        )
-        beyond = np.clip(t_s - end_s, 0.0, max_extrapolation_s)
-        return out + beyond[:, None] * vel[None, :]
+        inside = np.clip(k, 0.0, float(M))
+        i = np.minimum(inside.astype(int), M - 1)
+        frac = (inside - i)[:, None]
+        out = pos[i] * (1.0 - frac) + pos[i + 1] * frac
+        period_s = self.period_ns * 1e-9
+        beyond_s = np.clip(k - M, 0.0, max_extrapolation_s / period_s) * period_s
+        vel = (pos[M] - pos[M - 1]) / period_s
+        return out + beyond_s[:, None] * vel[None, :]

@@ -28,7 +28,9 @@ __all__ = [
 ]
 
 
-def dare_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def dare_gain(
+    A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """K (m x n) and P (n x n) of the infinite-horizon discrete LQR; u = K z stabilizes."""
     P = scipy.linalg.solve_discrete_are(A, B, Q, R)
     K = -np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
@@ -49,7 +51,9 @@ def heading_rotation(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def input_tightening(A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, horizon: int) -> np.ndarray:
+def input_tightening(
+    A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, horizon: int
+) -> np.ndarray:
     """Margins (horizon, m): how much each input bound of U shrinks at step j, U ⊖ K R_j.
 
     margin[j, i] = sum_{l<j} |e_i' K Phi^l| w_bar, Phi = A + BK, for the box W = {|w| <= w_bar}.
@@ -64,7 +68,13 @@ def input_tightening(A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndar
 
 
 def robust_input_tightening(
-    A0: np.ndarray, B0: np.ndarray, K0: np.ndarray, w_bar: np.ndarray, horizon: int, *, headings: int = 72
+    A0: np.ndarray,
+    B0: np.ndarray,
+    K0: np.ndarray,
+    w_bar: np.ndarray,
+    horizon: int,
+    *,
+    headings: int = 72,
 ) -> np.ndarray:
     """Largest input tightening over `headings` evenly spaced headings (world-frame box W)."""
     out = np.zeros((horizon, K0.shape[0]))
@@ -74,7 +84,9 @@ def robust_input_tightening(
     return out
 
 
-def position_tube_radius(A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, horizon: int) -> np.ndarray:
+def position_tube_radius(
+    A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, horizon: int
+) -> np.ndarray:
     """Radius (horizon + 1,) of a disc containing the position part of R_j, j = 0..horizon.
 
     Uses sum_{l<j} || |Phi^l_xy| w_bar ||_2, an upper bound of the support in every direction,
@@ -92,7 +104,7 @@ def position_tube_radius(A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.
 def tube_vertices_support(
     A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, j: int, h: np.ndarray
 ) -> float:
-    """Brute-force support of h' K R_j by enumerating every vertex combination (for tests; small j)."""
+    """Brute-force support of h' K R_j over every vertex combination (for tests; small j)."""
     Phi = A + B @ K
     n = A.shape[0]
     corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * n, indexing="ij")).reshape(n, -1).T * w_bar

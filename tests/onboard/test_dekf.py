@@ -32,7 +32,11 @@ def _fly(settings: LearningSettings, seconds: float, seed: int, inputs=_exciting
     for k in range(int(round(seconds / TAU)) + 1):
         y = plant.measure(rng)
         f.step(y, u)
-        state = initial_dekf_state(y, settings) if state is None else dekf_step(state, y, u, settings=settings, tau=TAU)
+        state = (
+            initial_dekf_state(y, settings)
+            if state is None
+            else dekf_step(state, y, u, settings=settings, tau=TAU)
+        )
         history.append((k * TAU, f.beta.copy(), state))
         u = inputs(k * TAU)
         plant.command(*u)
@@ -89,7 +93,13 @@ def test_divergence_guard_resets_and_counts():
     assert f.resets == 1
     np.testing.assert_allclose(f.z, [1e6, -1e6, 0.0])
     assert np.all(np.isfinite(f.beta))
-    state = dekf_step(initial_dekf_state(np.zeros(3), s), np.array([1e6, 0, 0]), np.array([1.0, 0]), settings=s, tau=TAU)
+    state = dekf_step(
+        initial_dekf_state(np.zeros(3), s),
+        np.array([1e6, 0, 0]),
+        np.array([1.0, 0]),
+        settings=s,
+        tau=TAU,
+    )
     assert state.resets == 1
     with np.errstate(invalid="ignore"):
         f.step(np.array([np.nan, 0.0, 0.0]), np.array([1.0, 0.0]))

@@ -32,7 +32,9 @@ def test_tightening_matches_brute_force_vertex_enumeration(seed, j):
         brute = tube_vertices_support(A, B, K, w_bar, j, h)
         assert margins[j, i] == pytest.approx(brute, rel=1e-9, abs=1e-12)
         # The box U is symmetric: the lower bound tightens by the support in -h, the same number.
-        assert tube_vertices_support(A, B, K, w_bar, j, -h) == pytest.approx(brute, rel=1e-9, abs=1e-12)
+        assert tube_vertices_support(A, B, K, w_bar, j, -h) == pytest.approx(
+            brute, rel=1e-9, abs=1e-12
+        )
 
 
 @settings(max_examples=40, deadline=None)

@@ -16,7 +16,9 @@ from onboard.core.unicycle import (
 finite = st.floats(-5, 5, allow_nan=False)
 states = st.tuples(finite, finite, st.floats(-4, 4)).map(np.array)
 inputs = st.tuples(st.floats(-2, 2), st.floats(-0.5, 0.5)).map(np.array)
-betas = st.tuples(st.floats(0.5, 1.5), st.floats(0.5, 1.5), st.floats(-1, 1), st.floats(-1, 1)).map(np.array)
+betas = st.tuples(st.floats(0.5, 1.5), st.floats(0.5, 1.5), st.floats(-1, 1), st.floats(-1, 1)).map(
+    np.array
+)
 
 
 def _fd(f, x, h=1e-6):
@@ -70,10 +72,14 @@ def test_straight_flight_is_exact_and_oracle_is_the_model_difference():
     z0 = np.array([1.0, 2.0, 0.4])
     u = np.tile([1.5, 0.0], (10, 1))
     traj = rollout(z0, u, NOMINAL_BETA, 0.2)
-    np.testing.assert_allclose(traj[-1, :2], z0[:2] + 1.5 * 2.0 * np.array([np.cos(0.4), np.sin(0.4)]))
+    np.testing.assert_allclose(
+        traj[-1, :2], z0[:2] + 1.5 * 2.0 * np.array([np.cos(0.4), np.sin(0.4)])
+    )
     beta = np.array([0.8, 1.2, 0.3, -0.2])
     o = oracle(z0, u[0], beta, 0.2)
-    np.testing.assert_allclose(o[:2], 0.2 * (-0.2 * 1.5 * np.array([np.cos(0.4), np.sin(0.4)]) + [0.3, -0.2]))
+    np.testing.assert_allclose(
+        o[:2], 0.2 * (-0.2 * 1.5 * np.array([np.cos(0.4), np.sin(0.4)]) + [0.3, -0.2])
+    )
 
 
 @given(st.floats(-100, 100))

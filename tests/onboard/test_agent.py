@@ -1,0 +1,116 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+from onboard.core.agent import Agent, AgentInput
+from onboard.core.plan import Plan
+from protocol.scenario import Scenario
+
+PERIOD_NS = 200_000_000
+
+
+def _agent(sc: Scenario, vid: int = 1, **learning) -> Agent:
+    return Agent(
+        vid,
+        fleet_ids=sc.vehicle_ids,
+        controller=sc.controller,
+        learning=dataclasses.replace(sc.learning, **learning),
+        formation=sc.formation,
+        target_observation_std_m=0.05,
+    )
+
+
+def _slot_state(sc: Scenario, idx: int, t_s: float) -> np.ndarray:
+    p, v = sc.target.state_at(t_s)
+    u = v / np.linalg.norm(v)
+    slot = p - sc.formation.trail_m * u + np.array(sc.formation.slots_m[idx])
+    return np.array([*slot, np.arctan2(v[1], v[0])])
+
+
+def _plan(vid: int, stamp_ns: int, start: np.ndarray, vel: np.ndarray, M: int = 5) -> Plan:
+    t = 0.2 * np.arange(M + 1)
+    states = np.column_stack(
+        [start[0] + vel[0] * t, start[1] + vel[1] * t, np.full(M + 1, np.arctan2(vel[1], vel[0]))]
+    )
+    return Plan(vid, stamp_ns, PERIOD_NS, states, np.tile([np.hypot(*vel), 0.0], (M, 1)))
+
+
+def test_at_exact_steady_state_c_is_zero_and_the_command_is_the_steady_input(paper):
+    agent = _agent(paper, enabled=False)  # nominal model = truth here: no wind, unit effectiveness
+    out = None
+    for k in range(30):
+        t = k * 0.2
+        p, _ = paper.target.state_at(t)
+        plans = {
+            vid: _plan(
+                vid,
+                k * PERIOD_NS - PERIOD_NS,
+                _slot_state(paper, i, t - 0.2)[:2],
+                np.array([1.0, 1.0]),
+            )
+            for i, vid in enumerate(paper.vehicle_ids)
+            if vid != 1
+        }
+        out = agent.step(
+            AgentInput(k * PERIOD_NS, _slot_state(paper, 0, t), p, neighbour_plans=plans)
+        )
+    assert out.qp_ok and out.formation_terms == 2
+    assert np.linalg.norm(out.c) < 1e-3
+    np.testing.assert_allclose(out.command, [np.sqrt(2.0), 0.0], atol=1e-3)
+
+
+def test_waits_for_target_then_flies(paper):
+    agent = _agent(paper)
+    out = agent.step(AgentInput(0, np.array([0.0, 0.0, 0.0]), None))
+    assert out.status == "waiting for target" and np.all(out.command == 0)
+    out = agent.step(AgentInput(PERIOD_NS, np.array([0.0, 0.0, 0.0]), np.array([5.0, 5.0])))
+    assert out.qp_ok and np.any(out.command != 0)
+
+
+def test_stale_plans_drop_the_formation_term_but_keep_separation(paper):
+    agent = _agent(paper)
+    fresh = _plan(2, 0, np.array([0.0, 10.0]), np.array([1.0, 1.0]))
+    z = np.array([0.0, 0.0, np.pi / 4])
+    out = agent.step(AgentInput(PERIOD_NS, z, np.array([5.0, 5.0]), neighbour_plans={2: fresh}))
+    assert out.formation_terms == 1
+    t_ns = int(3e9)  # the plan is now 3 s old: beyond plan_stale_s, within plan_forget_s
+    out = agent.step(AgentInput(t_ns, z, np.array([8.0, 8.0]), neighbour_plans={2: fresh}))
+    assert out.formation_terms == 0
+    assert out.neighbour_ages_s[2] == pytest.approx(3.0)
+    assert out.qp_ok
+
+
+def test_separation_constraint_holds_against_a_neighbour_parked_on_the_path(paper):
+    agent = _agent(paper)
+    z = np.array([0.0, 0.0, np.pi / 4])
+    # Vehicle 2 hovers 2.6 m ahead, on the way to vehicle 1's slot, and says so every period.
+    for k in range(1, 8):
+        parked = Plan(
+            2, (k - 1) * PERIOD_NS, PERIOD_NS, np.tile([1.84, 1.84, 0.0], (6, 1)), np.zeros((5, 2))
+        )
+        t = np.array([5.0 + 0.2 * k, 5.0 + 0.2 * k])
+        out = agent.step(AgentInput(k * PERIOD_NS, z, t, neighbour_plans={2: parked}))
+        gaps = np.linalg.norm(out.plan.states[:, :2] - [1.84, 1.84], axis=1)
+        assert out.qp_ok, out.status
+        assert gaps[1:].min() >= paper.controller.d_safe_m - 1e-6
+        z = out.plan.states[1]
+
+
+def test_fallback_never_drives_toward_a_neighbour_inside_its_margin(paper):
+    agent = _agent(paper)
+    z = np.array([0.0, 0.0, np.pi / 4])
+    agent.step(AgentInput(0, z, np.array([5.0, 5.0])))
+    # A plan 1.5 s old: its margin is inflated by v_max x age, and the vehicle is already inside it.
+    parked = Plan(2, 0, PERIOD_NS, np.tile([1.84, 1.84, 0.0], (6, 1)), np.zeros((5, 2)))
+    out = agent.step(AgentInput(int(1.5e9), z, np.array([6.5, 6.5]), neighbour_plans={2: parked}))
+    assert not out.qp_ok and out.status.startswith("fallback")
+    assert out.command[0] == 0.0
+    assert agent.fallbacks == 1
+
+
+def test_nan_measurement_never_reaches_the_command(paper):
+    agent = _agent(paper)
+    agent.step(AgentInput(0, np.array([0.0, 0.0, 0.0]), np.array([5.0, 5.0])))
+    out = agent.step(AgentInput(PERIOD_NS, np.array([np.nan, 0.0, 0.0]), np.array([5.2, 5.2])))
+    assert np.all(np.isfinite(out.command)) and np.all(np.abs(out.command) <= agent.u_max)

@@ -1,0 +1,118 @@
+import cvxpy as cp
+import numpy as np
+import pytest
+
+from onboard.core.config import ControllerSettings
+from onboard.core.lbmpc import QpData, TubeLbmpc
+from onboard.core.unicycle import rollout
+
+SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)
+
+
+def _random_data(rng: np.random.Generator, mpc: TubeLbmpc, *, separation: bool = True) -> QpData:
+    M, N = mpc.M, mpc.n_neighbours
+    z0 = np.array([*rng.uniform(-5, 5, 2), rng.uniform(-np.pi, np.pi)])
+    lin_u = np.column_stack([rng.uniform(0.3, 1.8, M), rng.uniform(-0.4, 0.4, M)])
+    beta = np.array([rng.uniform(0.8, 1.2), rng.uniform(0.8, 1.2), *rng.uniform(-0.3, 0.3, 2)])
+    lin_z = rollout(z0, lin_u, beta, mpc.tau)
+    u_s = lin_u + 0.1 * rng.standard_normal((M, 2))
+    targets = lin_z[1:] + np.column_stack([rng.normal(0, 1.0, (M, 2)), rng.normal(0, 0.2, M)])
+    nb = lin_z[None, 1:, :2] + rng.uniform(3, 6, (N, 1, 1)) * np.array([[[1.0, 0.0]]])
+    margins = np.full((N, M), 2.5) if separation else np.full((N, M), np.inf)
+    return QpData(
+        z0=z0,
+        lin_states=lin_z,
+        lin_inputs=lin_u,
+        beta=beta,
+        u_s=u_s,
+        targets=targets,
+        position_weights=np.full(M, 6.0),
+        terminal_scale=1.0,
+        neighbour_positions=nb,
+        neighbour_margins=margins,
+    )
+
+
+def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
+    """The same QP written out independently in cvxpy and solved by Clarabel."""
+    M = mpc.M
+    Sz, sz, St, st, Hu = mpc.condense(d)
+    c = cp.Variable(2 * M)
+    cost = 0
+    for j in range(1, M + 1):
+        z = St[j] @ c + st[j]
+        err = z - d.targets[j - 1]
+        if j < M:
+            Q = np.diag([d.position_weights[j - 1]] * 2 + [SETTINGS.q_heading])
+        else:
+            Q = d.terminal_scale * mpc.terminal_weight(float(d.targets[-1, 2]))
+        cost += cp.quad_form(err, Q)
+    cons = []
+    for j in range(M):
+        u = Hu[j] @ c + d.u_s[j]
+        cost += cp.quad_form(u - d.u_s[j], np.diag([SETTINGS.r_speed, SETTINGS.r_yaw_rate]))
+        bound = mpc.u_max - mpc.tightening[j]
+        cons += [u <= bound, u >= -bound]
+    for k in range(mpc.n_neighbours):
+        for j in range(1, M + 1):
+            if not np.isfinite(d.neighbour_margins[k, j - 1]):
+                continue
+            p_k = d.neighbour_positions[k, j - 1]
+            away = d.lin_states[j, :2] - p_k
+            n = away / np.linalg.norm(away)
+            cons.append(n @ (Sz[j, :2] @ c + sz[j, :2] - p_k) >= d.neighbour_margins[k, j - 1])
+    prob = cp.Problem(cp.Minimize(cost), cons)
+    prob.solve(solver=cp.CLARABEL)
+    assert prob.status == cp.OPTIMAL
+    return np.asarray(c.value).reshape(M, 2)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_osqp_matches_an_independent_solver(seed):
+    rng = np.random.default_rng(seed)
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    for _ in range(3):  # several periods on one solver object: update + warm start
+        d = _random_data(rng, mpc, separation=bool(seed % 2))
+        sol = mpc.solve(d)
+        assert sol.ok, sol.status
+        np.testing.assert_allclose(sol.c, _reference_solution(mpc, d), atol=1e-3)
+
+
+def test_zero_c_reproduces_the_steady_inputs():
+    rng = np.random.default_rng(0)
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    d = _random_data(rng, mpc)
+    Sz, sz, St, st, Hu = mpc.condense(d)
+    nominal = rollout(d.z0, d.u_s, np.array([1.0, 1.0, 0.0, 0.0]), mpc.tau)
+    # With c = 0 the inputs are u_s exactly and the nominal prediction is close to u_s's rollout.
+    np.testing.assert_allclose(Hu @ np.zeros(2 * mpc.M) + d.u_s, d.u_s)
+    np.testing.assert_allclose(sz, nominal, atol=0.05)
+
+
+def test_nan_data_gives_a_checked_failure_not_a_nan_input():
+    rng = np.random.default_rng(1)
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    d = _random_data(rng, mpc)
+    bad = QpData(**{**d.__dict__, "targets": np.full_like(d.targets, np.nan)})
+    sol = mpc.solve(bad)
+    assert not sol.ok
+    # A good period afterwards still solves (the solver object is not poisoned).
+    assert mpc.solve(_random_data(rng, mpc)).ok
+
+
+def test_infeasible_separation_gives_failure_and_fallback_stays_in_u():
+    rng = np.random.default_rng(2)
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    d = _random_data(rng, mpc)
+    # A neighbour sitting on the vehicle, demanding 50 m of separation after one step.
+    nb = np.repeat(d.lin_states[None, 1:, :2], 2, axis=0)
+    bad = QpData(
+        **{**d.__dict__, "neighbour_positions": nb, "neighbour_margins": np.full((2, mpc.M), 50.0)}
+    )
+    sol = mpc.solve(bad)
+    assert not sol.ok
+    assert np.all(np.isfinite(sol.inputs))
+    u = mpc.fallback_input(d.z0, np.array([1e3, -1e3, 3.0]), np.array([5.0, 2.0]))
+    assert np.all(np.abs(u) <= mpc.u_max)
+    u = mpc.fallback_input(d.z0, np.array([np.nan, 0.0, 0.0]), np.array([0.5, 0.0]))
+    assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= mpc.u_max)

@@ -1,0 +1,78 @@
+import pytest
+
+from onboard.core.errors import ConfigError
+from protocol.scenario import load_scenario, parse_scenario
+
+BASE = {
+    "name": "t",
+    "vehicles": [
+        {"id": 1, "initial": [0.0, 0.0, 0.0], "slot_m": [0.0, 0.0]},
+        {"id": 2, "initial": [0.0, 10.0, 0.0], "slot_m": [0.0, 10.0]},
+    ],
+}
+
+
+def _with(**changes):
+    doc = {**BASE, **changes}
+    return parse_scenario(doc)
+
+
+def test_repository_scenarios_load():
+    for name in ("paper", "paper-strict", "wedge-circle"):
+        sc = load_scenario(f"scenarios/{name}.toml")
+        assert sc.name == name
+        assert sc.controller.period_ns % sc.plant_steps_per_period == 0
+
+
+def test_paper_scenario_holds_the_issue_truth(paper):
+    assert [v.truth.speed_effectiveness for v in paper.vehicles] == [0.85, 0.90, 1.10]
+    assert [v.truth.yaw_rate_effectiveness for v in paper.vehicles] == [0.90, 1.10, 0.95]
+    assert all(
+        v.truth.actuator_lag_s == 0.1 and v.truth.wind.mean_m_s == (0.3, -0.2)
+        for v in paper.vehicles
+    )
+    c = paper.controller
+    assert (c.speed_max_m_s, c.yaw_rate_max_rad_s, c.horizon, c.period_s, c.d_safe_m) == (
+        2.0,
+        0.5,
+        5,
+        0.2,
+        2.0,
+    )
+
+
+@pytest.mark.parametrize(
+    ("changes", "field"),
+    [
+        ({"controller": {"horizon": 0}}, "controller.horizon"),
+        ({"controller": {"speed_max_m_s": -1}}, "controller.speed_max_m_s"),
+        ({"controller": {"horizonn": 5}}, "controller.horizonn"),
+        ({"target": {"kind": "spiral"}}, "target.kind"),
+        ({"formation": {"frame": "body"}}, "formation.frame"),
+        ({"truth": {"speed_effectiveness": 0.0}}, "vehicles[0].truth.speed_effectiveness"),
+        ({"truth": {"wind": {"mean_m_s": [1.0]}}}, "vehicles[0].truth.wind.mean_m_s"),
+        ({"plant_steps_per_period": 7}, "plant_steps_per_period"),
+        ({"seed": -1}, "seed"),
+        ({"colour": "red"}, "colour"),
+        ({"vehicles": []}, "vehicles"),
+        (
+            {
+                "vehicles": [
+                    BASE["vehicles"][0],
+                    {**BASE["vehicles"][1], "initial": [0.0, 1.0, 0.0]},
+                ]
+            },
+            "vehicles[1].initial",
+        ),
+        ({"vehicles": [BASE["vehicles"][0], {**BASE["vehicles"][1], "id": 1}]}, "vehicles"),
+    ],
+)
+def test_errors_name_the_field(changes, field):
+    with pytest.raises(ConfigError) as err:
+        _with(**changes)
+    assert str(err.value).startswith(field + ":"), str(err.value)
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        load_scenario(tmp_path / "nope.toml")
