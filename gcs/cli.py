@@ -18,6 +18,9 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("gcs.sim", "in-process lockstep simulation of a whole fleet"),
     "bench": ("gcs.bench", "per-agent step timing against a cvxpy rebuild, and lockstep speed"),
     "sitl": ("sitl.cli", "one simulated vehicle behind a PX4 or ArduPilot MAVLink interface"),
+    "agent": ("onboard.cli", "the onboard agent of one vehicle: MAVLink autopilot + Zenoh plans"),
+    "target": ("sitl.target_process", "fly the scripted target and publish its observations"),
+    "zenoh-router": ("protocol.zenoh_router", "a Zenoh router for a fleet (compose, multi-host)"),
 }
 
 

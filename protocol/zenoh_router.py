@@ -55,14 +55,23 @@ def serve(port: int, *, host: str = DEFAULT_HOST, stop: threading.Event | None =
             signal.signal(sig, handler)
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `fleetmpc zenoh-router`."""
+    parser.add_argument("--host", default=DEFAULT_HOST, help="address to listen on")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port to listen on")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run a router on --host/--port until SIGINT or SIGTERM."""
+    serve(args.port, host=args.host)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line: run a router on --host/--port until interrupted."""
     parser = argparse.ArgumentParser(prog="zenoh-router", description=__doc__.splitlines()[0])
-    parser.add_argument("--host", default=DEFAULT_HOST, help="address to listen on")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port to listen on")
-    args = parser.parse_args(argv)
-    serve(args.port, host=args.host)
-    return 0
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
 
 
 if __name__ == "__main__":
