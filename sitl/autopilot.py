@@ -1,0 +1,388 @@
+"""The simulated autopilot's mode, arming and setpoint logic: a pure state machine, no I/O.
+
+Time comes in as integer nanoseconds since boot; every call that changes state takes `now_ns`.
+Events a pilot should see (refusals, failsafes) are queued as `Notice`s for the runner to send as
+STATUSTEXT.
+
+Profiles:
+- PX4: boots in HOLD. OFFBOARD is denied unless valid setpoints have streamed with no gap longer
+  than `setpoint_max_gap_ns` (i.e. > 2 Hz) for at least `offboard_warmup_ns`; after
+  `offboard_loss_timeout_ns` (COM_OF_LOSS_T) without a valid setpoint the vehicle switches to HOLD.
+  Offboard may be engaged on the ground, and the horizontal (unicycle) plant then follows the
+  setpoints at any altitude, so the usual arm -> setpoint -> offboard flow works without a takeoff.
+  TAKEOFF climbs to the takeoff altitude and then switches to HOLD.
+- ArduPilot (Copter): boots in STABILIZE. Arming and the modes that need a position are refused
+  until the position estimate is ready (`position_ready_ns` after boot). GUIDED velocity targets
+  are used only once airborne (take off with the takeoff command first) and stop (zero velocity,
+  mode stays GUIDED) after `guided_timeout_ns` without a new one.
+Both: LAND descends and disarms at touchdown; disarming in the air needs the force flag; a vehicle
+disarmed in the air falls at `fall_rate_m_s`. The vertical axis is a separate 1-D kinematic
+channel (altitude above home); the estimator is perfect (noise is added only to what is reported).
+"""
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+from onboard.core.errors import ConfigError
+from onboard.core.validate import positive
+from protocol.mavlink_map import (
+    FlightMode,
+    LandedState,
+    MavResult,
+    MavState,
+    Rejection,
+    SetpointFields,
+    Severity,
+    UnicycleDemand,
+    check_setpoint,
+    decode_setpoint,
+)
+
+__all__ = ["PROFILE_MODES", "Autopilot", "AutopilotConfig", "Notice", "Profile"]
+
+
+class Profile(Enum):
+    """Which real autopilot the simulated one imitates."""
+
+    PX4 = "px4"
+    ARDUPILOT = "ardupilot"
+
+
+PROFILE_MODES: dict[Profile, frozenset[FlightMode]] = {
+    Profile.PX4: frozenset(
+        {
+            FlightMode.POSITION,
+            FlightMode.HOLD,
+            FlightMode.OFFBOARD,
+            FlightMode.TAKEOFF,
+            FlightMode.LAND,
+        }
+    ),
+    Profile.ARDUPILOT: frozenset(
+        {
+            FlightMode.STABILIZE,
+            FlightMode.POSITION,
+            FlightMode.HOLD,
+            FlightMode.OFFBOARD,
+            FlightMode.LAND,
+        }
+    ),
+}
+"""The flight modes each profile implements."""
+
+_NEEDS_POSITION = frozenset({FlightMode.POSITION, FlightMode.HOLD, FlightMode.OFFBOARD})
+_ALTITUDE_EPS_M = 1e-6
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    """Limits and timeouts of the simulated autopilot."""
+
+    profile: Profile = Profile.PX4
+    """PX4 or ArduPilot behaviour."""
+    speed_limit_m_s: float = 2.0
+    """Largest forward speed demanded of the plant [m/s]."""
+    yaw_rate_limit_rad_s: float = 0.5
+    """Largest yaw rate demanded of the plant [rad/s]."""
+    takeoff_altitude_m: float = 10.0
+    """Default takeoff altitude above home [m]."""
+    max_takeoff_altitude_m: float = 500.0
+    """Largest takeoff altitude a command may ask for [m]."""
+    climb_rate_m_s: float = 1.5
+    """Climb rate of a takeoff, and the largest commanded climb rate [m/s]."""
+    descent_rate_m_s: float = 0.7
+    """Descent rate of a landing, and the largest commanded descent rate [m/s]."""
+    fall_rate_m_s: float = 5.0
+    """Descent rate of a vehicle disarmed in the air [m/s]."""
+    offboard_loss_timeout_ns: int = 1_000_000_000
+    """PX4 COM_OF_LOSS_T: OFFBOARD without a valid setpoint for this long switches to HOLD [ns]."""
+    offboard_warmup_ns: int = 1_000_000_000
+    """PX4: setpoints must have streamed this long before OFFBOARD is accepted [ns]."""
+    setpoint_max_gap_ns: int = 500_000_000
+    """A longer gap between valid setpoints breaks the stream (500 ms = 2 Hz) [ns]."""
+    guided_timeout_ns: int = 3_000_000_000
+    """ArduPilot: a GUIDED velocity target older than this is replaced by zero velocity [ns]."""
+    position_ready_ns: int = 4_000_000_000
+    """ArduPilot: time after boot at which the position estimate becomes ready [ns]."""
+    yaw_gain_1_s: float = 2.0
+    """Yaw rate per radian of heading error when a setpoint carries a yaw [1/s]."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.profile, Profile):
+            raise ConfigError("profile", f"must be a Profile, got {self.profile!r}")
+        for name in (
+            "speed_limit_m_s",
+            "yaw_rate_limit_rad_s",
+            "takeoff_altitude_m",
+            "max_takeoff_altitude_m",
+            "climb_rate_m_s",
+            "descent_rate_m_s",
+            "fall_rate_m_s",
+            "yaw_gain_1_s",
+        ):
+            positive(name, getattr(self, name))
+        if self.takeoff_altitude_m > self.max_takeoff_altitude_m:
+            raise ConfigError("takeoff_altitude_m", "must not exceed max_takeoff_altitude_m")
+        for name in (
+            "offboard_loss_timeout_ns",
+            "offboard_warmup_ns",
+            "setpoint_max_gap_ns",
+            "guided_timeout_ns",
+            "position_ready_ns",
+        ):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise ConfigError(name, f"must be a non-negative integer [ns], got {value!r}")
+        if self.setpoint_max_gap_ns == 0:
+            raise ConfigError("setpoint_max_gap_ns", "must be > 0")
+
+
+@dataclass(frozen=True)
+class Notice:
+    """A message for the pilot (sent as STATUSTEXT)."""
+
+    severity: Severity
+    text: str
+
+
+@dataclass
+class _Stream:
+    """The last valid setpoint and when the current unbroken stream of them began."""
+
+    setpoint: SetpointFields | None = None
+    last_ns: int = 0
+    start_ns: int = 0
+
+
+class Autopilot:
+    """Mode, arming, setpoint and altitude logic of one simulated vehicle."""
+
+    def __init__(self, config: AutopilotConfig) -> None:
+        self.config = config
+        self.mode = FlightMode.HOLD if config.profile == Profile.PX4 else FlightMode.STABILIZE
+        self.armed = False
+        self.altitude_m = 0.0
+        self.climb_rate_m_s = 0.0
+        self.rejected: dict[Rejection, int] = {}
+        self._takeoff_target_m: float | None = None
+        self._stream = _Stream()
+        self._notices: list[Notice] = []
+
+    # ----------------------------------------------------------------------------- queries
+    @property
+    def px4(self) -> bool:
+        return self.config.profile == Profile.PX4
+
+    @property
+    def landed(self) -> bool:
+        """On the ground: at zero altitude and not climbing."""
+        return self.altitude_m <= _ALTITUDE_EPS_M and self.climb_rate_m_s <= 0.0
+
+    @property
+    def landed_state(self) -> LandedState:
+        if self.landed:
+            return LandedState.ON_GROUND
+        if self.climb_rate_m_s > 0.0 and (
+            self.mode == FlightMode.TAKEOFF or self._takeoff_target_m is not None
+        ):
+            return LandedState.TAKEOFF
+        if self.mode == FlightMode.LAND:
+            return LandedState.LANDING
+        return LandedState.IN_AIR
+
+    @property
+    def system_status(self) -> MavState:
+        return MavState.ACTIVE if self.armed else MavState.STANDBY
+
+    def position_ready(self, now_ns: int) -> bool:
+        """Whether the (simulated) position estimate is usable."""
+        return self.px4 or now_ns >= self.config.position_ready_ns
+
+    def setpoint_stream_ok(self, now_ns: int) -> bool:
+        """PX4's offboard availability: an unbroken > 2 Hz stream for at least the warm-up time."""
+        s, c = self._stream, self.config
+        return (
+            s.setpoint is not None
+            and now_ns - s.last_ns <= c.setpoint_max_gap_ns
+            and now_ns - s.start_ns >= c.offboard_warmup_ns
+        )
+
+    def take_notices(self) -> list[Notice]:
+        """Notices queued since the last call, oldest first."""
+        notices, self._notices = self._notices, []
+        return notices
+
+    # ----------------------------------------------------------------------------- commands
+    def receive_setpoint(self, setpoint: SetpointFields, now_ns: int) -> Rejection | None:
+        """Take a SET_POSITION_TARGET_LOCAL_NED; a rejected one changes nothing but a counter."""
+        rejection = check_setpoint(setpoint)
+        if rejection is not None:
+            count = self.rejected.get(rejection, 0)
+            self.rejected[rejection] = count + 1
+            if count == 0:
+                self._notify(Severity.WARNING, f"Setpoint ignored: {rejection.value}")
+            return rejection
+        if not self.px4 and self.mode != FlightMode.OFFBOARD:
+            return None  # ArduPilot reads position targets only in GUIDED
+        s = self._stream
+        if s.setpoint is None or now_ns - s.last_ns > self.config.setpoint_max_gap_ns:
+            s.start_ns = now_ns
+        s.setpoint, s.last_ns = setpoint, now_ns
+        return None
+
+    def arm(self, now_ns: int) -> MavResult:
+        if self.armed:
+            return MavResult.ACCEPTED
+        if not self.px4 and not self.position_ready(now_ns):
+            return self._refuse(Severity.CRITICAL, "PreArm: Need Position Estimate")
+        if self.mode == FlightMode.LAND:
+            return self._refuse(Severity.CRITICAL, "Arming denied: not in an armable mode")
+        if self.px4 and self.mode == FlightMode.OFFBOARD and not self.setpoint_stream_ok(now_ns):
+            return self._refuse(Severity.CRITICAL, "Arming denied: no offboard setpoints")
+        self.armed = True
+        self._notify(Severity.INFO, "Armed by external command")
+        return MavResult.ACCEPTED
+
+    def disarm(self, now_ns: int, *, force: bool = False) -> MavResult:
+        if not self.armed:
+            return MavResult.ACCEPTED
+        if not (self.landed or force):
+            return self._refuse(Severity.CRITICAL, "Disarming denied: not landed")
+        self._disarm("Disarmed by external command")
+        return MavResult.ACCEPTED
+
+    def set_mode(self, mode: FlightMode | None, now_ns: int) -> MavResult:
+        """Switch flight mode; None (a mode the profile does not know) is refused."""
+        if mode is None or mode not in PROFILE_MODES[self.config.profile]:
+            return self._refuse(Severity.WARNING, "Mode change denied: unsupported mode")
+        if mode == self.mode:
+            return MavResult.ACCEPTED
+        if mode in _NEEDS_POSITION and not self.position_ready(now_ns):
+            return self._refuse(
+                Severity.WARNING, f"Mode change failed: {mode.name} requires position"
+            )
+        if self.px4 and mode == FlightMode.OFFBOARD and not self.setpoint_stream_ok(now_ns):
+            return self._refuse(
+                Severity.WARNING, "Offboard denied: no setpoint stream >2 Hz for 1 s"
+            )
+        self._enter(mode)
+        return MavResult.ACCEPTED
+
+    def takeoff(self, now_ns: int, *, altitude_m: float | None = None) -> MavResult:
+        """Climb to `altitude_m` above home (None: the configured takeoff altitude)."""
+        c = self.config
+        target = c.takeoff_altitude_m if altitude_m is None else altitude_m
+        if not (math.isfinite(target) and 0.5 <= target <= c.max_takeoff_altitude_m):
+            return self._refuse(Severity.WARNING, "Takeoff denied: altitude out of range")
+        if self.px4:
+            if self.mode == FlightMode.LAND and self.armed:
+                return self._refuse(Severity.WARNING, "Takeoff denied: landing")
+            self._takeoff_target_m = target
+            self._enter(FlightMode.TAKEOFF)
+            return MavResult.ACCEPTED
+        if self.mode != FlightMode.OFFBOARD or not self.armed or not self.landed:
+            return self._refuse(Severity.WARNING, "Takeoff failed: needs GUIDED, armed, landed")
+        self._takeoff_target_m = target
+        self._stream.setpoint = None
+        return MavResult.ACCEPTED
+
+    def land(self, now_ns: int) -> MavResult:
+        if self.mode != FlightMode.LAND:
+            self._enter(FlightMode.LAND)
+        return MavResult.ACCEPTED
+
+    # ----------------------------------------------------------------------------- time
+    def step(self, now_ns: int, tick_ns: int, *, heading_rad: float) -> tuple[float, float]:
+        """Advance by one plant tick ending at `now_ns`; return the (speed, yaw-rate) demand."""
+        c = self.config
+        fresh = self._fresh_setpoint(now_ns)
+        if self.px4 and self.mode == FlightMode.OFFBOARD and fresh is None:
+            self._enter(FlightMode.HOLD)
+            timeout_s = c.offboard_loss_timeout_ns * 1e-9
+            self._notify(
+                Severity.CRITICAL, f"Offboard lost: no setpoint for {timeout_s:.1f} s, Hold"
+            )
+        demand = self._decode(fresh, heading_rad)
+        self._climb(demand, tick_ns * 1e-9)
+        horizontal = self.armed and (self.px4 or not self.landed)
+        if demand is None or not horizontal:
+            return 0.0, 0.0
+        speed = min(max(demand.speed_m_s, -c.speed_limit_m_s), c.speed_limit_m_s)
+        yaw_rate = min(max(demand.yaw_rate_rad_s, -c.yaw_rate_limit_rad_s), c.yaw_rate_limit_rad_s)
+        return speed, yaw_rate
+
+    # ----------------------------------------------------------------------------- internals
+    def _fresh_setpoint(self, now_ns: int) -> SetpointFields | None:
+        """The setpoint to fly now, or None (never in modes that ignore setpoints)."""
+        s, c = self._stream, self.config
+        if self.mode != FlightMode.OFFBOARD or s.setpoint is None:
+            return None
+        timeout_ns = c.offboard_loss_timeout_ns if self.px4 else c.guided_timeout_ns
+        return s.setpoint if now_ns - s.last_ns < timeout_ns else None
+
+    def _decode(self, setpoint: SetpointFields | None, heading_rad: float) -> UnicycleDemand | None:
+        if setpoint is None:
+            return None
+        demand = decode_setpoint(
+            setpoint,
+            heading_rad=heading_rad,
+            yaw_gain_1_s=self.config.yaw_gain_1_s,
+            yaw_relative_in_body=not self.px4,
+        )
+        return None if isinstance(demand, Rejection) else demand
+
+    def _climb(self, demand: UnicycleDemand | None, dt_s: float) -> None:
+        """Vertical channel: pick a climb rate for this tick and integrate the altitude."""
+        c = self.config
+        climbing_modes = (FlightMode.TAKEOFF, FlightMode.OFFBOARD)
+        target = self._takeoff_target_m if self.armed and self.mode in climbing_modes else None
+        if target is not None and self.altitude_m >= target:
+            self._finish_takeoff(target)
+            target = None
+        if not self.armed:
+            rate = -c.fall_rate_m_s if self.altitude_m > 0.0 else 0.0
+        elif self.mode == FlightMode.LAND:
+            rate = -c.descent_rate_m_s
+        elif target is not None:
+            rate = c.climb_rate_m_s
+        elif self.mode == FlightMode.OFFBOARD and demand is not None:
+            rate = min(max(demand.climb_rate_m_s, -c.descent_rate_m_s), c.climb_rate_m_s)
+        else:
+            rate = 0.0
+        altitude = max(self.altitude_m + rate * dt_s, 0.0)
+        if target is not None and altitude >= target:
+            altitude, rate = target, 0.0
+            self._finish_takeoff(target)
+        self.altitude_m = altitude
+        self.climb_rate_m_s = rate if altitude > 0.0 or rate > 0.0 else 0.0
+        if self.armed and self.mode == FlightMode.LAND and self.landed:
+            self._notify(Severity.INFO, "Landing detected")
+            self._disarm("Disarmed by landing")
+
+    def _finish_takeoff(self, target_m: float) -> None:
+        self._takeoff_target_m = None
+        if self.mode == FlightMode.TAKEOFF:
+            self._enter(FlightMode.HOLD)
+        self._notify(Severity.INFO, f"Takeoff complete at {target_m:.1f} m")
+
+    def _enter(self, mode: FlightMode) -> None:
+        if mode == FlightMode.TAKEOFF and self._takeoff_target_m is None:
+            self._takeoff_target_m = self.config.takeoff_altitude_m
+        elif mode != FlightMode.TAKEOFF and (self.px4 or mode == FlightMode.LAND):
+            self._takeoff_target_m = None
+        if not self.px4 and mode == FlightMode.OFFBOARD:
+            self._stream.setpoint = None  # GUIDED starts by holding position
+        self.mode = mode
+
+    def _disarm(self, text: str) -> None:
+        self.armed = False
+        self._takeoff_target_m = None
+        self._notify(Severity.INFO, text)
+
+    def _refuse(self, severity: Severity, text: str) -> MavResult:
+        self._notify(severity, text)
+        return MavResult.DENIED if self.px4 else MavResult.FAILED
+
+    def _notify(self, severity: Severity, text: str) -> None:
+        self._notices.append(Notice(severity, text[:50]))

@@ -1,0 +1,182 @@
+"""`fleetmpc sitl`: one simulated vehicle behind a PX4 (default) or ArduPilot MAVLink interface.
+
+PX4 ports (as PX4 SITL, vehicle I): binds 14580 + I - 1 and streams to the offboard-API port
+14540 + I - 1; binds 18570 + I - 1 and streams to the ground-station port 14550. ArduPilot: TCP
+server on 5760 + 10 (I - 1). Base ports come from the scenario's [network] table; --port-offset
+shifts all of them, and each can be set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
+"""
+
+import argparse
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from onboard.core.errors import ConfigError
+from protocol.scenario import Scenario, load_scenario
+from sitl.autopilot import AutopilotConfig, Profile
+from sitl.clock import RealTimeClock
+from sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
+from sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
+
+__all__ = ["add_arguments", "build_config", "run"]
+
+PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
+"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1)."""
+PX4_GCS_LOCAL_BASE_PORT = 18570
+"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1)."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
+    parser.add_argument("--vehicle", required=True, type=int, help="vehicle id (MAVLink system id)")
+    parser.add_argument("--autopilot", choices=[p.value for p in Profile], default="px4")
+    parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    parser.add_argument(
+        "--host", help="address to bind and stream to (default: scenario network.host)"
+    )
+    parser.add_argument("--port-offset", type=int, default=0, help="added to every default port")
+    ports = parser.add_argument_group("explicit ports (override the defaults)")
+    ports.add_argument("--offboard-port", type=int, help="PX4: port streamed to (offboard API)")
+    ports.add_argument(
+        "--offboard-local-port", type=int, help="PX4: port bound for the offboard link (0: any)"
+    )
+    ports.add_argument(
+        "--gcs-port", type=int, help="PX4: ground-station port streamed to (0: no GCS link)"
+    )
+    ports.add_argument(
+        "--gcs-local-port", type=int, help="PX4: port bound for the GCS link (0: any)"
+    )
+    ports.add_argument("--tcp-port", type=int, help="ArduPilot: TCP server port (0: any)")
+    timing = parser.add_argument_group("autopilot timing (simulated seconds)")
+    timing.add_argument(
+        "--com-of-loss-t", type=float, default=1.0, metavar="S", help="PX4 offboard loss timeout"
+    )
+    timing.add_argument(
+        "--guided-timeout", type=float, default=3.0, metavar="S", help="ArduPilot velocity timeout"
+    )
+    timing.add_argument(
+        "--position-ready",
+        type=float,
+        default=4.0,
+        metavar="S",
+        help="ArduPilot: position estimate ready after boot",
+    )
+
+
+def _ns(option: str, seconds: float, *, lo: float, hi: float) -> int:
+    if not lo <= seconds <= hi:  # also rejects NaN
+        raise ConfigError(option, f"must be in [{lo}, {hi}] s, got {seconds}")
+    return round(seconds * 1e9)
+
+
+def _port(option: str, value: int, *, allow_zero: bool) -> int:
+    if not (0 if allow_zero else 1) <= value <= 65535:
+        raise ConfigError(option, f"must be a port number, got {value}")
+    return value
+
+
+def _with_heartbeat(rates_hz) -> tuple[tuple[int, float], ...]:
+    return ((HEARTBEAT_ID, 1.0), *rates_hz.items())
+
+
+@dataclass(frozen=True)
+class _Defaults:
+    offboard_port: int
+    offboard_local_port: int
+    gcs_port: int
+    gcs_local_port: int
+    tcp_port: int
+
+
+def _default_ports(scenario: Scenario, vehicle_id: int, offset: int) -> _Defaults:
+    n = scenario.network
+    i = vehicle_id - 1
+    return _Defaults(
+        offboard_port=n.offboard_base_port + i + offset,
+        offboard_local_port=PX4_OFFBOARD_LOCAL_BASE_PORT + i + offset,
+        gcs_port=n.gcs_port + offset,
+        gcs_local_port=PX4_GCS_LOCAL_BASE_PORT + i + offset,
+        tcp_port=n.ardupilot_tcp_base_port + 10 * i + offset,
+    )
+
+
+def build_config(args: argparse.Namespace) -> ServerConfig:
+    """Validate the command line against the scenario; errors name the option."""
+    scenario = load_scenario(args.scenario)
+    spec = scenario.vehicle(args.vehicle)
+    profile = Profile(args.autopilot)
+    d = _default_ports(scenario, spec.id, args.port_offset)
+
+    def pick(option: str, value: int | None, default: int, *, allow_zero: bool) -> int:
+        return _port(option, default if value is None else value, allow_zero=allow_zero)
+
+    autopilot = AutopilotConfig(
+        profile=profile,
+        speed_limit_m_s=spec.truth.speed_limit_m_s,
+        yaw_rate_limit_rad_s=spec.truth.yaw_rate_limit_rad_s,
+        takeoff_altitude_m=scenario.site.altitude_m,
+        offboard_loss_timeout_ns=_ns("--com-of-loss-t", args.com_of_loss_t, lo=0.05, hi=60.0),
+        guided_timeout_ns=_ns("--guided-timeout", args.guided_timeout, lo=0.05, hi=60.0),
+        position_ready_ns=_ns("--position-ready", args.position_ready, lo=0.0, hi=600.0),
+    )
+    common = dict(
+        vehicle=spec,
+        site=scenario.site,
+        tick_ns=scenario.tick_ns,
+        autopilot=autopilot,
+        seed=scenario.seed,
+        host=args.host or scenario.network.host,
+    )
+    if profile == Profile.ARDUPILOT:
+        return ServerConfig(
+            **common, tcp_port=pick("--tcp-port", args.tcp_port, d.tcp_port, allow_zero=True)
+        )
+    udp = [
+        UdpEndpoint(
+            "offboard",
+            pick(
+                "--offboard-local-port",
+                args.offboard_local_port,
+                d.offboard_local_port,
+                allow_zero=True,
+            ),
+            pick("--offboard-port", args.offboard_port, d.offboard_port, allow_zero=False),
+            _with_heartbeat(PX4_ONBOARD_RATES_HZ),
+        )
+    ]
+    gcs_port = pick("--gcs-port", args.gcs_port, d.gcs_port, allow_zero=True)
+    if gcs_port:
+        gcs_local = pick("--gcs-local-port", args.gcs_local_port, d.gcs_local_port, allow_zero=True)
+        udp.append(UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(PX4_GCS_RATES_HZ)))
+    return ServerConfig(**common, udp=tuple(udp))
+
+
+@dataclass
+class _StopFlag:
+    requested: bool = False
+
+    def __call__(self) -> bool:
+        return self.requested
+
+    def request(self, signum: int, frame: object) -> None:
+        self.requested = True
+
+
+def run(args: argparse.Namespace) -> int:
+    config = build_config(args)
+    clock = RealTimeClock(speed=args.speed)
+    stop = _StopFlag()
+    previous = {s: signal.signal(s, stop.request) for s in (signal.SIGINT, signal.SIGTERM)}
+    server = VehicleServer(config, clock=clock)
+    try:
+        endpoints = ", ".join(f"{k} {v}" for k, v in server.addresses.items())
+        who = f"vehicle {config.vehicle.id} ({args.autopilot}, x{clock.speed:g})"
+        print(f"fleetmpc sitl: {who} ready: {endpoints}", flush=True)
+        server.run(stop)
+    finally:
+        server.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        print(f"fleetmpc sitl: stopped {server.summary()}", file=sys.stderr, flush=True)
+    return 0

@@ -1,0 +1,329 @@
+"""One simulated vehicle on the network: truth plant + autopilot logic behind MAVLink links.
+
+Each loop iteration: wait until the next plant tick or until a socket is readable; advance the
+plant tick by tick up to the clock's time (the autopilot picks each tick's command, telemetry due
+at that tick is sent, stamped with its simulated time); then read and handle every pending
+message. Mode and arming changes are announced at once with a HEARTBEAT, events with STATUSTEXT.
+Nothing raises out of the loop: a failing handler is counted and the loop goes on.
+"""
+
+import contextlib
+import selectors
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.core.errors import ConfigError
+from protocol.mavlink_map import Autopilot as AutopilotType
+from protocol.scenario import Site, VehicleSpec
+from sitl.autopilot import Autopilot, AutopilotConfig, Profile
+from sitl.clock import Clock
+from sitl.handlers import MessageHandler
+from sitl.mavlink_io import (
+    DecodeStats,
+    FrameDecoder,
+    Incoming,
+    MavlinkEncoder,
+    TcpLink,
+    TcpServer,
+    UdpLink,
+    mavlink,
+)
+from sitl.plant import TruthPlant
+from sitl.telemetry import Identity, Snapshot, StreamSchedule, build, heartbeat, statustext
+
+__all__ = ["ServerConfig", "UdpEndpoint", "VehicleServer"]
+
+_HEARTBEAT_ONLY = ((mavlink.MAVLINK_MSG_ID_HEARTBEAT, 1.0),)
+_MAX_WAIT_S = 0.05  # wall-clock bound on one wait, so a stop request is seen promptly
+
+
+@dataclass(frozen=True)
+class UdpEndpoint:
+    """One UDP link of the vehicle."""
+
+    name: str
+    """Label used in messages ("offboard", "gcs")."""
+    local_port: int
+    """Port the vehicle binds (0: any free port)."""
+    remote_port: int | None
+    """Port the vehicle streams to on the host; None: only answer peers that talk to it."""
+    rates_hz: tuple[tuple[int, float], ...] = _HEARTBEAT_ONLY
+    """Default message rates of this link: (message id, Hz) pairs."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.local_port <= 65535:
+            raise ConfigError(f"{self.name}.local_port", f"must be a port, got {self.local_port}")
+        if self.remote_port is not None and not 1 <= self.remote_port <= 65535:
+            raise ConfigError(f"{self.name}.remote_port", f"must be a port, got {self.remote_port}")
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Everything one vehicle process needs."""
+
+    vehicle: VehicleSpec
+    """Id, initial state and truth parameters."""
+    site: Site
+    """Home position and flight altitude."""
+    tick_ns: int
+    """Plant integration tick [ns]."""
+    autopilot: AutopilotConfig
+    """Autopilot limits, timeouts and profile."""
+    seed: int = 0
+    """Seed of the measurement noise (combined with the vehicle id)."""
+    host: str = "127.0.0.1"
+    """Address every socket binds to and streams to."""
+    udp: tuple[UdpEndpoint, ...] = ()
+    """UDP links (PX4 profile)."""
+    tcp_port: int | None = None
+    """TCP server port (ArduPilot profile); None: no TCP server, 0: any free port."""
+    tcp_rates_hz: tuple[tuple[int, float], ...] = _HEARTBEAT_ONLY
+    """Default message rates of each TCP client link."""
+    peer_timeout_ns: int = 10_000_000_000
+    """A UDP peer silent for this long stops receiving telemetry [ns]."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.tick_ns, int) or self.tick_ns <= 0:
+            raise ConfigError("tick_ns", f"must be a positive integer, got {self.tick_ns!r}")
+        if not self.udp and self.tcp_port is None:
+            raise ConfigError("links", "a vehicle needs at least one UDP link or a TCP port")
+        if self.tcp_port is not None and not 0 <= self.tcp_port <= 65535:
+            raise ConfigError("tcp_port", f"must be a port, got {self.tcp_port}")
+
+
+@dataclass
+class _Counters:
+    loop_errors: int = 0
+    last_error: str = ""
+    ticks: int = 0
+    sent: int = 0
+
+
+@dataclass
+class _Links:
+    udp: list[UdpLink] = field(default_factory=list)
+    tcp_server: TcpServer | None = None
+    tcp: list[TcpLink] = field(default_factory=list)
+
+    def all(self) -> list[UdpLink | TcpLink]:
+        return [*self.udp, *self.tcp]
+
+
+class VehicleServer:
+    """The simulated vehicle process's state and I/O loop."""
+
+    def __init__(self, config: ServerConfig, *, clock: Clock) -> None:
+        self.config = config
+        self.clock = clock
+        v = config.vehicle
+        self.plant = TruthPlant(v.truth, x_m=v.initial[0], y_m=v.initial[1], yaw_rad=v.initial[2])
+        self.autopilot = Autopilot(config.autopilot)
+        px4 = config.autopilot.profile == Profile.PX4
+        self.ident = Identity(
+            system_id=v.id,
+            autopilot=AutopilotType.PX4 if px4 else AutopilotType.ARDUPILOTMEGA,
+            site=config.site,
+        )
+        self.encoder = MavlinkEncoder(system_id=v.id)
+        self.stats = DecodeStats()
+        self.counters = _Counters()
+        self._rng = np.random.default_rng([config.seed, v.id])
+        self._links = _Links()
+        self._schedules: dict[UdpLink | TcpLink, StreamSchedule] = {}
+        self._decoder = FrameDecoder(self.stats)
+        self._selector = selectors.DefaultSelector()
+        self._announced: tuple | None = None
+        self.handler = MessageHandler(
+            self.autopilot,
+            self.ident,
+            self.encoder.mav,
+            schedule_of=lambda inc: self._schedules[inc.link],
+            snapshot=self.snapshot,
+        )
+        try:
+            self._open()
+        except BaseException:
+            self.close()
+            raise
+
+    # ----------------------------------------------------------------------------- set-up
+    def _open(self) -> None:
+        c = self.config
+        for ep in c.udp:
+            remote = None if ep.remote_port is None else (c.host, ep.remote_port)
+            try:
+                link = UdpLink.open(ep.name, host=c.host, local_port=ep.local_port, remote=remote)
+            except OSError as e:
+                raise ConfigError(
+                    f"{ep.name}-local-port", f"cannot bind {c.host}:{ep.local_port}: {e}"
+                ) from None
+            self._links.udp.append(link)
+            self._schedules[link] = StreamSchedule(dict(ep.rates_hz))
+            self._selector.register(link.sock, selectors.EVENT_READ)
+        if c.tcp_port is not None:
+            try:
+                server = TcpServer.open(host=c.host, port=c.tcp_port)
+            except OSError as e:
+                raise ConfigError(
+                    "tcp-port", f"cannot listen on {c.host}:{c.tcp_port}: {e}"
+                ) from None
+            server.stats = self.stats
+            self._links.tcp_server = server
+            self._selector.register(server.sock, selectors.EVENT_READ)
+
+    @property
+    def addresses(self) -> dict[str, str]:
+        """Local endpoints by link name, e.g. "udp 127.0.0.1:14580 -> 127.0.0.1:14540"."""
+        out = {}
+        for link in self._links.udp:
+            host, port = link.local_address
+            target = f" -> {link.remote[0]}:{link.remote[1]}" if link.remote else ""
+            out[link.name] = f"udp {host}:{port}{target}"
+        if self._links.tcp_server is not None:
+            host, port = self._links.tcp_server.local_address
+            out["tcp"] = f"tcp {host}:{port}"
+        return out
+
+    # ----------------------------------------------------------------------------- state
+    def snapshot(self) -> Snapshot:
+        """The vehicle as reported now (fresh measurement noise)."""
+        z = self.plant.measure(self._rng)
+        vn, ve = self.plant.ground_velocity_m_s
+        ap = self.autopilot
+        return Snapshot(
+            time_ns=self.plant.time_ns,
+            north_m=float(z[0]),
+            east_m=float(z[1]),
+            yaw_rad=float(z[2]),
+            vel_north_m_s=vn,
+            vel_east_m_s=ve,
+            yaw_rate_rad_s=self.plant.achieved_input[1],
+            altitude_m=ap.altitude_m,
+            climb_rate_m_s=ap.climb_rate_m_s,
+            armed=ap.armed,
+            mode=ap.mode,
+            landed_state=ap.landed_state,
+            system_status=ap.system_status,
+            position_ready=ap.position_ready(self.plant.time_ns),
+        )
+
+    # ----------------------------------------------------------------------------- loop
+    def run(self, should_stop) -> None:
+        """Serve until `should_stop()` is true."""
+        while not should_stop():
+            wait_ns = self.plant.time_ns + self.config.tick_ns - self.clock.now_ns()
+            self.step(min(self.clock.wall_seconds(wait_ns), _MAX_WAIT_S))
+
+    def step(self, timeout_s: float = 0.0) -> None:
+        """One loop iteration: wait up to `timeout_s`, advance the plant, handle input."""
+        try:
+            if timeout_s > 0:
+                self._selector.select(timeout_s)
+            now_ns = self.clock.now_ns()
+            self._advance_to(now_ns)
+            self._serve_input(now_ns)
+            self._announce()
+            self._housekeeping(now_ns)
+        except Exception as e:  # never let one bad event end the vehicle
+            self.counters.loop_errors += 1
+            self.counters.last_error = f"{type(e).__name__}: {e}"
+
+    def _advance_to(self, now_ns: int) -> None:
+        tick = self.config.tick_ns
+        while self.plant.time_ns + tick <= now_ns:
+            heading = float(self.plant.state[2])
+            speed, yaw_rate = self.autopilot.step(self.plant.time_ns, tick, heading_rad=heading)
+            self.plant.command(speed, yaw_rate)
+            self.plant.advance(tick)
+            self.counters.ticks += 1
+            self._announce()
+            self._send_telemetry(self.plant.time_ns)
+
+    def _send_telemetry(self, now_ns: int) -> None:
+        snap: Snapshot | None = None
+        for link in self._links.all():
+            for msg_id in self._schedules[link].due(now_ns):
+                snap = snap or self.snapshot()
+                message = build(self.encoder.mav, msg_id, snap, self.ident)
+                if message is not None:
+                    self._send(message, link)
+
+    def _serve_input(self, now_ns: int) -> None:
+        server = self._links.tcp_server
+        if server is not None:
+            for link in server.accept(len(self._links.tcp)):
+                self._links.tcp.append(link)
+                self._schedules[link] = StreamSchedule(dict(self.config.tcp_rates_hz))
+                self._selector.register(link.fd, selectors.EVENT_READ)
+        incoming: list[Incoming] = []
+        for udp in self._links.udp:
+            incoming.extend(udp.receive(self._decoder, now_ns))
+        for tcp in self._links.tcp:
+            incoming.extend(tcp.receive(now_ns))
+        for inc in incoming:
+            try:
+                replies = self.handler.handle(inc, now_ns)
+            except Exception as e:
+                self.counters.loop_errors += 1
+                self.counters.last_error = f"{inc.message.get_type()}: {type(e).__name__}: {e}"
+                continue
+            self._announce()  # the new state is on the wire before the COMMAND_ACK
+            for reply in replies:
+                self._send(reply.message, reply.to.link, reply.to.peer)
+
+    def _announce(self) -> None:
+        """HEARTBEAT at once on a mode/arming/status change; STATUSTEXT for every notice."""
+        ap = self.autopilot
+        state = (ap.mode, ap.armed, ap.system_status)
+        if state != self._announced:
+            self._announced = state
+            hb = heartbeat(
+                self.encoder.mav, self.ident, armed=ap.armed, mode=ap.mode, status=state[2]
+            )
+            self._broadcast(hb)
+        for notice in ap.take_notices():
+            self._broadcast(statustext(self.encoder.mav, notice.severity, notice.text))
+
+    def _housekeeping(self, now_ns: int) -> None:
+        for link in self._links.udp:
+            stale = [a for a, t in link.peers.items() if now_ns - t > self.config.peer_timeout_ns]
+            for address in stale:
+                del link.peers[address]
+        for link in [t for t in self._links.tcp if t.closed]:
+            self._links.tcp.remove(link)
+            self._schedules.pop(link, None)
+            with contextlib.suppress(KeyError, ValueError):
+                self._selector.unregister(link.fd)
+        for link in self._links.tcp:
+            link.flush()
+
+    def _broadcast(self, message) -> None:
+        for link in self._links.all():
+            self._send(message, link)
+
+    def _send(self, message, link: UdpLink | TcpLink, peer=None) -> None:
+        frame = self.encoder.pack(message)
+        link.send(frame, peer)
+        self.counters.sent += 1
+
+    # ----------------------------------------------------------------------------- shutdown
+    def summary(self) -> str:
+        s, c, ap = self.stats, self.counters, self.autopilot
+        rejected = ", ".join(f"{r.value}: {n}" for r, n in ap.rejected.items()) or "none"
+        text = (
+            f"vehicle {self.ident.system_id}: t = {self.plant.time_ns * 1e-9:.2f} s, "
+            f"received {s.messages} messages ({s.bytes} bytes), dropped {s.bad_frames} bad frames "
+            f"and {s.unknown} unknown, {self.handler.commands} commands, sent {c.sent}; "
+            f"setpoints rejected: {rejected}; loop errors: {c.loop_errors}"
+        )
+        return text + (f" (last: {c.last_error})" if c.last_error else "")
+
+    def close(self) -> None:
+        """Close every socket; safe to call twice."""
+        for link in self._links.all():
+            link.close()
+        if self._links.tcp_server is not None:
+            self._links.tcp_server.close()
+        self._links = _Links()
+        self._selector.close()

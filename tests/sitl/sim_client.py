@@ -1,0 +1,166 @@
+"""A pymavlink test client that follows the vehicle's simulated clock.
+
+It remembers the latest `time_boot_ms` it has seen, so waits and setpoint streams can be
+expressed in simulated time whatever `--speed` the vehicle runs at: a setpoint stream sends the
+next setpoint when a message stamped at or after the next due time arrives.
+"""
+
+import math
+import os
+import time
+
+os.environ["MAVLINK20"] = "1"
+
+from pymavlink import mavutil  # noqa: E402
+
+from protocol.mavlink_map import FlightMode, SetpointFields, mode_from_custom  # noqa: E402
+
+M = mavutil.mavlink
+
+
+class SimClient:
+    def __init__(self, conn, *, target_system: int) -> None:
+        self.conn = conn
+        self.target = target_system
+        self.t_ms = -1
+        self.heartbeat = None
+        self.texts: list[tuple[int, str]] = []
+        self.acks: list = []
+        self._stream: SetpointFields | None = None
+        self._period_ms = 100
+        self._next_ms = 0
+        self.last_setpoint_t_ms = -1
+        self.setpoints_sent = 0
+
+    @classmethod
+    def listen_udp(cls, *, target_system: int, port: int = 0) -> "SimClient":
+        """Listen on 127.0.0.1:`port` (0: any free port) and answer whoever streams to it."""
+        conn = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{port}", source_system=255, source_component=190
+        )
+        return cls(conn, target_system=target_system)
+
+    @classmethod
+    def connect_tcp(cls, port: int, *, target_system: int) -> "SimClient":
+        conn = mavutil.mavlink_connection(
+            f"tcp:127.0.0.1:{port}", source_system=255, source_component=190, retries=20
+        )
+        return cls(conn, target_system=target_system)
+
+    @property
+    def port(self) -> int:
+        return self.conn.port.getsockname()[1]
+
+    def close(self) -> None:
+        self.conn.close()
+
+    # ----------------------------------------------------------------------------- receiving
+    def pump(self, timeout_s: float = 0.05):
+        m = self.conn.recv_match(blocking=True, timeout=timeout_s)
+        if m is None or m.get_srcSystem() != self.target or m.get_type() == "BAD_DATA":
+            return None
+        t = getattr(m, "time_boot_ms", None)
+        if t is not None:
+            self.t_ms = max(self.t_ms, t)
+            self._maybe_send_setpoint()
+        kind = m.get_type()
+        if kind == "HEARTBEAT" and m.get_srcComponent() == 1:
+            self.heartbeat = m
+        elif kind == "STATUSTEXT":
+            self.texts.append((m.severity, m.text))
+        elif kind == "COMMAND_ACK":
+            self.acks.append(m)
+        return m
+
+    def wait(self, predicate, *, what: str, wall_s: float = 30.0):
+        """Pump until a message satisfies `predicate`; return it."""
+        deadline = time.monotonic() + wall_s
+        while time.monotonic() < deadline:
+            m = self.pump()
+            if m is not None and predicate(m):
+                return m
+        raise AssertionError(f"timed out waiting for {what} (vehicle time {self.t_ms} ms)")
+
+    def wait_type(self, kind: str, *, wall_s: float = 30.0):
+        return self.wait(lambda m: m.get_type() == kind, what=kind, wall_s=wall_s)
+
+    def wait_until_ms(self, t_ms: int, *, wall_s: float = 60.0) -> None:
+        """Pump until the vehicle's clock reaches `t_ms` (needs a timestamped stream)."""
+        self.wait(lambda m: self.t_ms >= t_ms, what=f"vehicle time {t_ms} ms", wall_s=wall_s)
+
+    def sleep_sim(self, duration_s: float) -> None:
+        if self.t_ms < 0:
+            self.wait(lambda m: self.t_ms >= 0, what="a timestamped message")
+        self.wait_until_ms(self.t_ms + round(duration_s * 1000))
+
+    # ----------------------------------------------------------------------------- state
+    def mode(self, autopilot: int = M.MAV_AUTOPILOT_PX4) -> FlightMode | None:
+        assert self.heartbeat is not None, "no heartbeat yet"
+        return mode_from_custom(self.heartbeat.custom_mode, autopilot)
+
+    @property
+    def armed(self) -> bool:
+        assert self.heartbeat is not None, "no heartbeat yet"
+        return bool(self.heartbeat.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+
+    # ----------------------------------------------------------------------------- sending
+    def command(self, command: int, *params: float, wall_s: float = 10.0) -> int:
+        """COMMAND_LONG to the vehicle; returns the COMMAND_ACK result."""
+        p = [*params, *([0.0] * (7 - len(params)))]
+        self.conn.mav.command_long_send(self.target, 1, command, 0, *p)
+        ack = self.wait(
+            lambda m: m.get_type() == "COMMAND_ACK" and m.command == command,
+            what=f"COMMAND_ACK of {command}",
+            wall_s=wall_s,
+        )
+        return ack.result
+
+    def set_px4_mode(self, mode: FlightMode) -> int:
+        from protocol.mavlink_map import PX4_CUSTOM_MODE_OF, px4_split_custom_mode
+
+        main, sub = px4_split_custom_mode(PX4_CUSTOM_MODE_OF[mode])
+        return self.command(M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
+
+    def send_setpoint(self, sp: SetpointFields) -> None:
+        self.conn.mav.set_position_target_local_ned_send(
+            max(self.t_ms, 0),
+            self.target,
+            1,
+            sp.frame,
+            sp.type_mask,
+            0.0,
+            0.0,
+            0.0,
+            sp.vx_m_s,
+            sp.vy_m_s,
+            sp.vz_m_s,
+            0.0,
+            0.0,
+            0.0,
+            sp.yaw_rad,
+            sp.yaw_rate_rad_s,
+        )
+
+    def stream(self, sp: SetpointFields | None, *, rate_hz: float = 10.0) -> None:
+        """Send `sp` every 1/rate_hz simulated seconds from now on (None stops the stream)."""
+        first = self._stream is None
+        self._stream = sp
+        self._period_ms = round(1000.0 / rate_hz)
+        if sp is not None and first:
+            self._next_ms = max(self.t_ms, 0)
+            self._maybe_send_setpoint()
+
+    def _maybe_send_setpoint(self) -> None:
+        if self._stream is None or self.t_ms < self._next_ms:
+            return
+        self.send_setpoint(self._stream)
+        self.setpoints_sent += 1
+        self.last_setpoint_t_ms = self.t_ms
+        self._next_ms += self._period_ms
+        if self._next_ms <= self.t_ms:
+            self._next_ms = self.t_ms + self._period_ms
+
+
+def horizontal_speed(m) -> float:
+    """Ground speed of a LOCAL_POSITION_NED message [m/s]."""
+    return math.hypot(m.vx, m.vy)
