@@ -21,6 +21,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "agent": ("onboard.cli", "the onboard agent of one vehicle: MAVLink autopilot + Zenoh plans"),
     "target": ("sitl.target_process", "fly the scripted target and publish its observations"),
     "zenoh-router": ("protocol.zenoh_router", "a Zenoh router for a fleet (compose, multi-host)"),
+    "report": ("gcs.report", "figures and metrics from a Rerun recording (.rrd)"),
 }
 
 
