@@ -13,7 +13,14 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink import mavutil  # noqa: E402
 
-from protocol.mavlink_map import FlightMode, SetpointFields, mode_from_custom  # noqa: E402
+from protocol.mavlink_map import (  # noqa: E402
+    PX4_CUSTOM_MODE_OF,
+    FlightMode,
+    MavResult,
+    SetpointFields,
+    mode_from_custom,
+    px4_split_custom_mode,
+)
 
 M = mavutil.mavlink
 
@@ -116,8 +123,6 @@ class SimClient:
         return ack.result
 
     def set_px4_mode(self, mode: FlightMode) -> int:
-        from protocol.mavlink_map import PX4_CUSTOM_MODE_OF, px4_split_custom_mode
-
         main, sub = px4_split_custom_mode(PX4_CUSTOM_MODE_OF[mode])
         return self.command(M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
 
@@ -164,3 +169,48 @@ class SimClient:
 def horizontal_speed(m) -> float:
     """Ground speed of a LOCAL_POSITION_NED message [m/s]."""
     return math.hypot(m.vx, m.vy)
+
+
+def px4_args(client: SimClient, *, speed: float, vehicle: int = 1) -> list[str]:
+    return [
+        "--vehicle",
+        str(vehicle),
+        "--speed",
+        str(speed),
+        "--offboard-port",
+        str(client.port),
+        "--offboard-local-port",
+        "0",
+        "--gcs-port",
+        "0",
+    ]
+
+
+def fly_offboard(client: SimClient, sp: SetpointFields) -> None:
+    """Stream `sp` at 10 Hz: OFFBOARD denied first, accepted after 1 s of stream; then arm."""
+    client.wait_type("HEARTBEAT")
+    client.sleep_sim(0.2)
+    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.DENIED
+    assert any("Offboard denied" in text for _, text in client.texts)
+    client.stream(sp, rate_hz=10.0)
+    t_start = client.t_ms
+    client.wait_until_ms(t_start + 500)
+    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.DENIED, (
+        "0.5 s of stream is too short"
+    )
+    client.wait_until_ms(t_start + 1100)
+    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.ACCEPTED
+    assert client.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
+    assert client.mode() == FlightMode.OFFBOARD and client.armed
+
+
+def wait_hold_after_stop(client: SimClient) -> float:
+    """Stop the stream; return the simulated seconds until HOLD shows (an upper bound)."""
+    client.stream(None)
+    t_stop = client.last_setpoint_t_ms  # the vehicle received the last setpoint after this
+    client.wait(
+        lambda m: m.get_type() == "HEARTBEAT" and client.mode() == FlightMode.HOLD,
+        what="HOLD heartbeat",
+    )
+    after = client.wait(lambda m: hasattr(m, "time_boot_ms"), what="a timestamped message")
+    return (after.time_boot_ms - t_stop) / 1000.0

@@ -6,61 +6,9 @@ All times are the vehicle's simulated time (time_boot_ms), so the checks hold at
 import math
 
 import pytest
-from sim_client import M, SimClient, horizontal_speed
+from sim_client import SimClient, fly_offboard, horizontal_speed, px4_args, wait_hold_after_stop
 
-from protocol.mavlink_map import (
-    FlightMode,
-    Frame,
-    MavResult,
-    SetpointFields,
-    TypeMask,
-    encode_setpoint,
-)
-
-
-def px4_args(client: SimClient, *, speed: float, vehicle: int = 1) -> list[str]:
-    return [
-        "--vehicle",
-        str(vehicle),
-        "--speed",
-        str(speed),
-        "--offboard-port",
-        str(client.port),
-        "--offboard-local-port",
-        "0",
-        "--gcs-port",
-        "0",
-    ]
-
-
-def fly_offboard(client: SimClient, sp: SetpointFields) -> None:
-    """Stream `sp` at 10 Hz: OFFBOARD denied first, accepted after 1 s of stream; then arm."""
-    client.wait_type("HEARTBEAT")
-    client.sleep_sim(0.2)
-    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.DENIED
-    assert any("Offboard denied" in text for _, text in client.texts)
-    client.stream(sp, rate_hz=10.0)
-    t_start = client.t_ms
-    client.wait_until_ms(t_start + 500)
-    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.DENIED, (
-        "0.5 s of stream is too short"
-    )
-    client.wait_until_ms(t_start + 1100)
-    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.ACCEPTED
-    assert client.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
-    assert client.mode() == FlightMode.OFFBOARD and client.armed
-
-
-def wait_hold_after_stop(client: SimClient) -> float:
-    """Stop the stream; return the simulated seconds until HOLD shows (an upper bound)."""
-    client.stream(None)
-    t_stop = client.last_setpoint_t_ms  # the vehicle received the last setpoint after this
-    client.wait(
-        lambda m: m.get_type() == "HEARTBEAT" and client.mode() == FlightMode.HOLD,
-        what="HOLD heartbeat",
-    )
-    after = client.wait(lambda m: hasattr(m, "time_boot_ms"), what="a timestamped message")
-    return (after.time_boot_ms - t_stop) / 1000.0
+from protocol.mavlink_map import FlightMode, Frame, SetpointFields, TypeMask, encode_setpoint
 
 
 @pytest.mark.parametrize("speed", [1.0, 4.0])
