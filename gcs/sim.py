@@ -11,6 +11,7 @@ from gcs.figures import write_figures
 from gcs.lockstep import run_lockstep
 from gcs.metrics import compute_metrics
 from gcs.progress import ProgressBar
+from gcs.recording import write_recording
 from onboard.core.errors import ConfigError
 from protocol.scenario import load_scenario
 
@@ -30,6 +31,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--metrics", metavar="FILE", help="write the metrics as JSON")
     parser.add_argument("--plots", metavar="DIR", help="write the paper's figures as PNG")
+    parser.add_argument(
+        "--rrd",
+        metavar="FILE",
+        help="write the run as a Rerun recording (`fleetmpc report` reads it)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -98,4 +104,8 @@ def run(args: argparse.Namespace) -> int:
     if args.plots:
         for p in write_figures(rec, args.plots):
             print(f"figure: {p}")
+    if args.rrd:
+        run_info = {k: metrics[k] for k in ("learning", "feasible", "seed")}
+        rid = write_recording(rec, args.rrd, run_info=run_info)
+        print(f"recording: {args.rrd} (id {rid})")
     return 0

@@ -1,0 +1,311 @@
+"""A flight record as a Rerun recording (`.rrd`): a map, time series, events and a blueprint.
+
+Everything is logged column-wise (`send_columns`) on the `sim_time` timeline, a duration in
+integer nanoseconds. Entity layout (a live ground station logs the same paths):
+
+- `map/vehicles/<id>`: position (Points2D) and heading (Arrows2D);
+- `map/trails/<id>`: the last `trail_window_s` of the path (LineStrips2D);
+- `map/target`, `map/slots/<id>` (Points2D), `map/formation_links` (LineStrips2D, every pair);
+- `series/separation/<a>-<b>`, `series/centre_distance`, `series/formation_error/<id>` [m],
+  `series/c_norm/<id>`, `series/beta/<id>/<param>`, `series/beta_truth/<id>/<param>`,
+  `series/solve_time_ms/<id>` (Scalars);
+- `events` (TextLog): QP fallbacks;
+- `meta` (static AnyValues) and `flight_record` (AnyValues, float64, one row per period): what
+  `gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
+
+Map frame: the viewer's 2-D x is East and its y is South (the viewer's y points down), so North
+is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that conversion lives.
+"""
+
+import json
+import uuid
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from gcs.metrics import pair_indices
+from gcs.record import FlightRecord
+
+__all__ = [
+    "APPLICATION_ID",
+    "BETA_PARAMS",
+    "RECORD_ARRAYS",
+    "TIMELINE",
+    "fleet_blueprint",
+    "log_flight_record",
+    "map_from_ned",
+    "sim_time_ns",
+    "write_recording",
+]
+
+APPLICATION_ID = "fleetmpc"
+TIMELINE = "sim_time"
+BETA_PARAMS = (
+    "speed_effectiveness",
+    "yaw_rate_effectiveness",
+    "drift_north_m_s",
+    "drift_east_m_s",
+)
+"""Names of the four beta entries, in FlightRecord.beta's order."""
+RECORD_ARRAYS = (
+    "truth",
+    "target",
+    "target_velocity",
+    "slots",
+    "command",
+    "c",
+    "beta",
+    "beta_truth",
+    "qp_ok",
+    "step_time_ms",
+    "slot_offsets_world",
+)
+"""Per-period FlightRecord fields stored losslessly under `flight_record`."""
+
+_HEADING_ARROW_M = 2.0
+_RGB = (
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (188, 189, 34),
+)
+
+
+def map_from_ned(north_east_m: np.ndarray) -> np.ndarray:
+    """(..., 2) North, East [m] -> (..., 2) viewer map x = East, y = South [m]."""
+    ne = np.asarray(north_east_m, dtype=np.float64)
+    return np.stack([ne[..., 1], -ne[..., 0]], axis=-1)
+
+
+def sim_time_ns(t_s: np.ndarray) -> np.ndarray:
+    """Sample times [s] -> integer nanoseconds (int64) for the `sim_time` timeline."""
+    return np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64)
+
+
+def _colour(i: int) -> tuple[int, int, int]:
+    return _RGB[i % len(_RGB)]
+
+
+def fleet_blueprint(*, vehicle_ids: tuple[int, ...]) -> rrb.Blueprint:
+    """The viewer layout: the map on the left, the time series on the right."""
+    series = [
+        rrb.TimeSeriesView(origin="series/separation", name="separation [m]"),
+        rrb.TimeSeriesView(origin="series/centre_distance", name="centre distance [m]"),
+        rrb.TimeSeriesView(origin="series/formation_error", name="formation error [m]"),
+        rrb.TimeSeriesView(origin="series/c_norm", name="||c||"),
+        rrb.TimeSeriesView(
+            name="beta (learned, truth)",
+            origin="series",
+            contents=["series/beta/**", "series/beta_truth/**"],
+        ),
+        rrb.TimeSeriesView(origin="series/solve_time_ms", name="agent step [ms]"),
+    ]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="map", name=f"map ({len(vehicle_ids)} UAVs)"),
+                rrb.TextLogView(origin="events", name="events"),
+                row_shares=[4, 1],
+            ),
+            rrb.Grid(*series),
+            column_shares=[1, 1],
+        ),
+    )
+
+
+def _scalars(
+    stream: rr.RecordingStream, path: str, *, t_ns: np.ndarray, values: np.ndarray
+) -> None:
+    keep = np.isfinite(values)
+    if not keep.any():
+        return
+    stream.send_columns(
+        path,
+        indexes=[rr.TimeColumn(TIMELINE, duration=t_ns[keep].astype("timedelta64[ns]"))],
+        columns=rr.Scalars.columns(scalars=values[keep]),
+    )
+
+
+def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) -> None:
+    stream.log(
+        "meta",
+        rr.AnyValues(
+            scenario=rec.scenario,
+            vehicle_ids=np.asarray(rec.vehicle_ids, dtype=np.int64),
+            desired_distance_m=np.asarray(rec.desired_distance_m, dtype=np.float64).ravel(),
+            trail_m=np.array([rec.trail_m], dtype=np.float64),
+            min_separation_m=np.array([rec.min_separation_m], dtype=np.float64),
+            speed_max_m_s=np.array([rec.speed_max_m_s], dtype=np.float64),
+            yaw_rate_max_rad_s=np.array([rec.yaw_rate_max_rad_s], dtype=np.float64),
+            d_safe_m=np.array([rec.d_safe_m], dtype=np.float64),
+            run_info_json=json.dumps(run_info, sort_keys=True),
+        ),
+        static=True,
+    )
+
+
+def _log_record_arrays(
+    stream: rr.RecordingStream, rec: FlightRecord, *, time: rr.TimeColumn
+) -> None:
+    k = len(rec.t_s)
+    arrays = {}
+    for name in RECORD_ARRAYS:
+        a = np.asarray(getattr(rec, name))
+        a = a.astype(np.bool_) if name == "qp_ok" else a.astype(np.float64)
+        arrays[name] = a.reshape(k, -1)
+    columns = [
+        column
+        for name, a in arrays.items()
+        for column in rr.AnyValues.columns(**{name: a.ravel()}).partition(np.full(k, a.shape[1]))
+    ]
+    stream.send_columns("flight_record", indexes=[time], columns=columns)
+
+
+def _log_map(
+    stream: rr.RecordingStream,
+    rec: FlightRecord,
+    *,
+    t_ns: np.ndarray,
+    time: rr.TimeColumn,
+    trail_window_s: float,
+) -> None:
+    k, n = rec.truth.shape[:2]
+    pos = map_from_ned(rec.truth[:, :, :2])
+    yaw = rec.truth[:, :, 2]
+    heading = map_from_ned(_HEADING_ARROW_M * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1))
+    slots = map_from_ned(rec.slots)
+    window = max(1, int(round(trail_window_s * 1e9 / max(np.median(np.diff(t_ns)), 1))))
+    first = np.maximum(np.arange(k) - window + 1, 0)
+    for i, vid in enumerate(rec.vehicle_ids):
+        rgb = _colour(i)
+        stream.log(f"map/vehicles/{vid}", rr.Points2D.from_fields(colors=[rgb]), static=True)
+        stream.send_columns(
+            f"map/vehicles/{vid}",
+            indexes=[time],
+            columns=[
+                *rr.Points2D.columns(positions=pos[:, i]),
+                *rr.Arrows2D.columns(origins=pos[:, i], vectors=heading[:, i]),
+            ],
+        )
+        stream.log(f"map/trails/{vid}", rr.LineStrips2D.from_fields(colors=[rgb]), static=True)
+        stream.send_columns(
+            f"map/trails/{vid}",
+            indexes=[time],
+            columns=rr.LineStrips2D.columns(strips=[pos[first[j] : j + 1, i] for j in range(k)]),
+        )
+        stream.log(
+            f"map/slots/{vid}",
+            rr.Points2D.from_fields(colors=[rgb], radii=[-3.0], labels=[f"slot {vid}"]),
+            static=True,
+        )
+        stream.send_columns(
+            f"map/slots/{vid}", indexes=[time], columns=rr.Points2D.columns(positions=slots[:, i])
+        )
+    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
+    stream.send_columns(
+        "map/target",
+        indexes=[time],
+        columns=rr.Points2D.columns(positions=map_from_ned(rec.target)),
+    )
+    pairs = pair_indices(n)
+    if pairs:
+        links = np.stack([pos[:, [a, b]] for a, b in pairs], axis=1)  # (K, P, 2, 2)
+        stream.send_columns(
+            "map/formation_links",
+            indexes=[time],
+            columns=rr.LineStrips2D.columns(strips=links.reshape(-1, 2, 2)).partition(
+                np.full(k, len(pairs))
+            ),
+        )
+
+
+def _log_series(stream: rr.RecordingStream, rec: FlightRecord, *, t_ns: np.ndarray) -> None:
+    ids = rec.vehicle_ids
+    pos = rec.truth[:, :, :2]
+    for a, b in pair_indices(len(ids)):
+        d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
+        _scalars(stream, f"series/separation/{ids[a]}-{ids[b]}", t_ns=t_ns, values=d)
+    centre = np.mean(pos - rec.slot_offsets_world, axis=1)
+    _scalars(
+        stream,
+        "series/centre_distance",
+        t_ns=t_ns,
+        values=np.linalg.norm(centre - rec.target, axis=1),
+    )
+    formation_error = np.linalg.norm(pos - rec.slots, axis=2)
+    c_norm = np.linalg.norm(rec.c, axis=2)
+    for i, vid in enumerate(ids):
+        _scalars(stream, f"series/formation_error/{vid}", t_ns=t_ns, values=formation_error[:, i])
+        _scalars(stream, f"series/c_norm/{vid}", t_ns=t_ns, values=c_norm[:, i])
+        _scalars(stream, f"series/solve_time_ms/{vid}", t_ns=t_ns, values=rec.step_time_ms[:, i])
+        for p, param in enumerate(BETA_PARAMS):
+            _scalars(stream, f"series/beta/{vid}/{param}", t_ns=t_ns, values=rec.beta[:, i, p])
+            _scalars(
+                stream,
+                f"series/beta_truth/{vid}/{param}",
+                t_ns=t_ns,
+                values=rec.beta_truth[:, i, p],
+            )
+
+
+def _log_events(stream: rr.RecordingStream, rec: FlightRecord, *, t_ns: np.ndarray) -> None:
+    k_idx, i_idx = np.nonzero(~np.asarray(rec.qp_ok, dtype=bool))
+    texts = [f"run start: scenario {rec.scenario}, UAVs {list(rec.vehicle_ids)}"]
+    levels = [rr.TextLogLevel.INFO]
+    times = [int(t_ns[0])]
+    for k, i in zip(k_idx, i_idx, strict=True):
+        texts.append(f"UAV {rec.vehicle_ids[i]}: QP failed, fallback input applied")
+        levels.append(rr.TextLogLevel.WARN)
+        times.append(int(t_ns[k]))
+    stream.send_columns(
+        "events",
+        indexes=[rr.TimeColumn(TIMELINE, duration=np.array(times).astype("timedelta64[ns]"))],
+        columns=rr.TextLog.columns(text=texts, level=levels),
+    )
+
+
+def log_flight_record(
+    stream: rr.RecordingStream,
+    rec: FlightRecord,
+    *,
+    run_info: dict | None = None,
+    trail_window_s: float = 20.0,
+) -> None:
+    """Log a whole FlightRecord to an open recording stream, column-wise.
+
+    run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
+    trail_window_s: length of the trail drawn behind each vehicle [s].
+    """
+    t_ns = sim_time_ns(rec.t_s)
+    time = rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+    _log_meta(stream, rec, run_info=run_info or {})
+    _log_record_arrays(stream, rec, time=time)
+    _log_map(stream, rec, t_ns=t_ns, time=time, trail_window_s=trail_window_s)
+    _log_series(stream, rec, t_ns=t_ns)
+    _log_events(stream, rec, t_ns=t_ns)
+
+
+def write_recording(
+    rec: FlightRecord,
+    path: str | Path,
+    *,
+    recording_id: str | None = None,
+    run_info: dict | None = None,
+    trail_window_s: float = 20.0,
+) -> str:
+    """Write a FlightRecord and its blueprint to an `.rrd` file; return the recording id."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rid = recording_id or str(uuid.uuid4())
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=rid)
+    stream.save(out, default_blueprint=fleet_blueprint(vehicle_ids=rec.vehicle_ids))
+    log_flight_record(stream, rec, run_info=run_info, trail_window_s=trail_window_s)
+    stream.flush()
+    stream.disconnect()
+    return rid

@@ -1,0 +1,44 @@
+"""`fleetmpc report RUN.rrd --out DIR`: the paper's figures and the metrics from a recording.
+
+The recording is read back into a FlightRecord (`gcs.rrd_reader`), then the same
+`write_figures` and `compute_metrics` as `fleetmpc sim` run on it.
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from gcs.figures import write_figures
+from gcs.metrics import compute_metrics
+from gcs.rrd_reader import read_recording
+
+__all__ = ["METRICS_FILE", "add_arguments", "run"]
+
+METRICS_FILE = "metrics.json"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", help="Rerun recording (.rrd) written by `fleetmpc sim --rrd`")
+    parser.add_argument(
+        "--out", required=True, metavar="DIR", help="folder for the figures and metrics.json"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    loaded = read_recording(args.recording)
+    rec = loaded.record
+    metrics = {
+        **loaded.run_info,
+        "scenario": rec.scenario,
+        "duration_s": float(rec.t_s[-1]),
+        "recording_id": loaded.recording_id,
+        **compute_metrics(rec),
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / METRICS_FILE
+    path.write_text(json.dumps(metrics, indent=2) + "\n")
+    print(f"metrics: {path}")
+    for p in write_figures(rec, out):
+        print(f"figure: {p}")
+    return 0

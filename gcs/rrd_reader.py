@@ -1,0 +1,116 @@
+"""Rebuild a FlightRecord from a Rerun recording written by `gcs.recording`.
+
+Reads the `meta` and `flight_record` entities with rerun-sdk's chunk reader
+(`rr.chunk.RrdReader(path).stream()`); the float64 arrays come back bit for bit, and the sample
+times as `sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`).
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+
+from gcs.record import FlightRecord
+from gcs.recording import RECORD_ARRAYS, TIMELINE
+from onboard.core.errors import FleetMpcError
+
+__all__ = ["RecordingError", "RecordingRun", "read_recording"]
+
+_META_ENTITY = "/meta"
+_RECORD_ENTITY = "/flight_record"
+
+
+class RecordingError(FleetMpcError):
+    """A recording is missing, unreadable or not a fleetmpc flight recording."""
+
+
+class RecordingRun:
+    """A FlightRecord read back from a recording, with the run facts logged beside it."""
+
+    def __init__(self, *, record: FlightRecord, run_info: dict, recording_id: str) -> None:
+        self.record = record
+        self.run_info = run_info
+        self.recording_id = recording_id
+
+
+def _data_columns(batch: pa.RecordBatch) -> dict[str, pa.Array]:
+    out = {}
+    for field, column in zip(batch.schema, batch.columns, strict=True):
+        meta = field.metadata or {}
+        if meta.get(b"rerun:kind") == b"data":
+            out[meta[b"rerun:component"].decode()] = column
+    return out
+
+
+def _rows(column: pa.Array) -> list[np.ndarray]:
+    return [np.asarray(row.values.to_numpy(zero_copy_only=False)) for row in column]
+
+
+def read_recording(path: str | Path) -> RecordingRun:
+    """Read a `.rrd` written by `gcs.recording.write_recording` back into a FlightRecord."""
+    p = Path(path)
+    if not p.is_file():
+        raise RecordingError(f"{p}: no such recording")
+    try:
+        reader = rr.chunk.RrdReader(p)
+        recordings = reader.recordings()
+        chunks = list(reader.stream())
+    except Exception as e:  # the reader raises plain exceptions on a corrupt file
+        raise RecordingError(f"{p}: not a readable Rerun recording ({e})") from e
+    meta: dict[str, pa.Array] = {}
+    times: list[np.ndarray] = []
+    values: dict[str, list[np.ndarray]] = {name: [] for name in RECORD_ARRAYS}
+    for chunk in chunks:
+        if chunk.entity_path == _META_ENTITY:
+            meta.update(_data_columns(chunk.to_record_batch()))
+        elif chunk.entity_path == _RECORD_ENTITY:
+            batch = chunk.to_record_batch()
+            data = _data_columns(batch)
+            if set(data) != set(RECORD_ARRAYS):
+                raise RecordingError(f"{p}: a flight_record chunk lacks some of {RECORD_ARRAYS}")
+            t = batch.column(batch.schema.get_field_index(TIMELINE))
+            times.append(t.cast(pa.int64()).to_numpy())
+            for name in RECORD_ARRAYS:
+                values[name].extend(_rows(data[name]))
+    if not meta or not times:
+        raise RecordingError(f"{p}: no fleetmpc flight record (meta / flight_record) in it")
+
+    t_ns = np.concatenate(times)
+    order = np.argsort(t_ns, kind="stable")
+    t_ns = t_ns[order]
+    ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
+    n, k = len(ids), len(t_ns)
+
+    def scalar(name: str) -> float:
+        return float(_rows(meta[name])[0][0])
+
+    def per_period(name: str, shape: tuple[int, ...]) -> np.ndarray:
+        return np.stack(values[name])[order].reshape(k, *shape)
+
+    record = FlightRecord(
+        scenario=str(meta["scenario"][0][0]),
+        vehicle_ids=ids,
+        t_s=t_ns * 1e-9,
+        truth=per_period("truth", (n, 3)),
+        target=per_period("target", (2,)),
+        target_velocity=per_period("target_velocity", (2,)),
+        slots=per_period("slots", (n, 2)),
+        command=per_period("command", (n, 2)),
+        c=per_period("c", (n, 2)),
+        beta=per_period("beta", (n, 4)),
+        beta_truth=per_period("beta_truth", (n, 4)),
+        qp_ok=per_period("qp_ok", (n,)).astype(bool),
+        step_time_ms=per_period("step_time_ms", (n,)),
+        desired_distance_m=_rows(meta["desired_distance_m"])[0].reshape(n, n),
+        trail_m=scalar("trail_m"),
+        slot_offsets_world=per_period("slot_offsets_world", (n, 2)),
+        min_separation_m=scalar("min_separation_m"),
+        speed_max_m_s=scalar("speed_max_m_s"),
+        yaw_rate_max_rad_s=scalar("yaw_rate_max_rad_s"),
+        d_safe_m=scalar("d_safe_m"),
+    )
+    run_info = json.loads(str(meta["run_info_json"][0][0])) if "run_info_json" in meta else {}
+    rid = recordings[0].recording_id if recordings else ""
+    return RecordingRun(record=record, run_info=run_info, recording_id=rid)

@@ -1,0 +1,161 @@
+"""Rerun recording of a lockstep run: written to a file, read back, reported."""
+
+import dataclasses
+import json
+import time
+
+import numpy as np
+import pytest
+import rerun as rr
+
+from gcs.cli import main
+from gcs.figures import FIGURE_FILES
+from gcs.lockstep import run_lockstep
+from gcs.metrics import compute_metrics, pair_indices
+from gcs.record import FlightRecord
+from gcs.recording import BETA_PARAMS, TIMELINE, write_recording
+from gcs.report import METRICS_FILE
+from gcs.rrd_reader import RecordingError, read_recording
+
+DURATION_S = 5.0
+
+
+@pytest.fixture
+def strict_rerun():
+    """Make rerun raise on a bad log call instead of warning (it is global state: restore it)."""
+    before = rr.strict_mode()
+    rr.set_strict_mode(True)
+    yield
+    rr.set_strict_mode(before)
+
+
+@pytest.fixture(scope="module")
+def run(paper):
+    t0 = time.perf_counter()
+    rec = run_lockstep(paper, duration_s=DURATION_S)
+    return rec, time.perf_counter() - t0
+
+
+@pytest.fixture
+def rrd(run, tmp_path, strict_rerun):
+    rec, run_s = run
+    path = tmp_path / "run.rrd"
+    t0 = time.perf_counter()
+    rid = write_recording(rec, path, recording_id="test-run", run_info={"learning": True})
+    return path, rid, time.perf_counter() - t0, run_s
+
+
+def _chunks_by_entity(path) -> dict[str, list]:
+    out: dict[str, list] = {}
+    for chunk in rr.chunk.RrdReader(path).stream():
+        out.setdefault(chunk.entity_path, []).append(chunk)
+    return out
+
+
+def test_round_trip_is_bit_exact(run, rrd):
+    rec, _ = run
+    path, rid, _, _ = rrd
+    back = read_recording(path)
+    assert back.recording_id == rid == "test-run"
+    assert back.run_info == {"learning": True}
+    for field in dataclasses.fields(FlightRecord):
+        a, b = getattr(rec, field.name), getattr(back.record, field.name)
+        if isinstance(a, np.ndarray):
+            assert b.shape == a.shape, field.name
+            assert b.dtype == np.asarray(a).dtype, field.name
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field.name
+        else:
+            assert a == b, field.name
+    direct, again = compute_metrics(rec), compute_metrics(back.record)
+    assert again["separation_error_m"] == pytest.approx(direct["separation_error_m"], abs=1e-9)
+    for key in ("centre_distance_error_m", "formation_rms_m", "c_norm_final", "min_separation_m"):
+        assert again[key] == pytest.approx(direct[key], abs=1e-9), key
+    assert again == direct  # float64 is stored as float64: the round trip is exact
+
+
+def test_every_entity_family_is_in_the_file(run, rrd):
+    rec, _ = run
+    path, _, _, _ = rrd
+    ids = rec.vehicle_ids
+    expected = {"/map/target", "/map/formation_links", "/series/centre_distance", "/events"}
+    for vid in ids:
+        expected |= {
+            f"/map/vehicles/{vid}",
+            f"/map/trails/{vid}",
+            f"/map/slots/{vid}",
+            f"/series/formation_error/{vid}",
+            f"/series/c_norm/{vid}",
+            f"/series/solve_time_ms/{vid}",
+        }
+        expected |= {f"/series/beta/{vid}/{p}" for p in BETA_PARAMS}
+        expected |= {f"/series/beta_truth/{vid}/{p}" for p in BETA_PARAMS}
+    expected |= {f"/series/separation/{ids[a]}-{ids[b]}" for a, b in pair_indices(len(ids))}
+    chunks = _chunks_by_entity(path)
+    assert expected <= set(chunks), sorted(expected - set(chunks))
+    k = len(rec.t_s)
+    # Every time series has one row per period on the sim_time timeline, in integer ns.
+    for entity in expected - {"/events"}:
+        temporal = [c for c in chunks[entity] if not c.is_static]
+        assert sum(c.num_rows for c in temporal) == k, entity
+        assert all(c.timeline_names == [TIMELINE] for c in temporal), entity
+    batch = chunks["/series/centre_distance"][0].to_record_batch()
+    t_ns = batch.column(batch.schema.get_field_index(TIMELINE)).cast("int64").to_numpy()
+    assert np.array_equal(t_ns, np.round(rec.t_s * 1e9).astype(np.int64))
+    # Heading arrows ride with the positions.
+    names = {
+        name
+        for c in chunks[f"/map/vehicles/{ids[0]}"]
+        if not c.is_static
+        for name in c.to_record_batch().schema.names
+    }
+    assert "Points2D:positions" in names and "Arrows2D:vectors" in names
+    assert rr.chunk.RrdReader(path).blueprints(), "no blueprint sent with the recording"
+
+
+def test_qp_fallback_becomes_a_warning_event(run, tmp_path, strict_rerun):
+    rec, _ = run
+    qp_ok = np.ones_like(rec.qp_ok, dtype=bool)
+    qp_ok[7, 1] = False
+    path = tmp_path / "fallback.rrd"
+    write_recording(dataclasses.replace(rec, qp_ok=qp_ok), path)
+    (events,) = _chunks_by_entity(path)["/events"]
+    batch = events.to_record_batch()
+    texts = [row[0] for row in batch.column(batch.schema.names.index("TextLog:text")).to_pylist()]
+    t_ns = batch.column(batch.schema.get_field_index(TIMELINE)).cast("int64").to_numpy()
+    assert len(texts) == 2
+    assert texts[1] == f"UAV {rec.vehicle_ids[1]}: QP failed, fallback input applied"
+    assert t_ns[1] == round(rec.t_s[7] * 1e9)
+    assert not read_recording(path).record.qp_ok[7, 1]
+
+
+def test_sim_rrd_then_report_regenerates_figures_and_metrics(tmp_path, capsys):
+    rrd, sim_metrics, out = tmp_path / "run.rrd", tmp_path / "sim.json", tmp_path / "report"
+    args = ["sim", "scenarios/paper.toml", "--duration", "3", "--quiet"]
+    assert main([*args, "--metrics", str(sim_metrics), "--rrd", str(rrd)]) == 0
+    assert main(["report", str(rrd), "--out", str(out)]) == 0
+    for name in FIGURE_FILES:
+        assert (out / name).stat().st_size > 1000, name
+    direct = json.loads(sim_metrics.read_text())
+    reported = json.loads((out / METRICS_FILE).read_text())
+    assert {k: reported[k] for k in direct} == direct
+
+
+def test_report_of_a_missing_or_foreign_file_is_a_clean_error(tmp_path, capsys):
+    with pytest.raises(RecordingError, match="no such recording"):
+        read_recording(tmp_path / "missing.rrd")
+    junk = tmp_path / "junk.rrd"
+    junk.write_bytes(b"not a recording")
+    assert main(["report", str(junk), "--out", str(tmp_path / "o")]) == 2
+    assert "report: error" in capsys.readouterr().err
+
+
+def test_logging_cost_is_small_against_the_run(rrd, capsys):
+    """Benchmark-style: prints the cost, asserts nothing on wall time."""
+    path, _, write_s, run_s = rrd
+    with capsys.disabled():
+        print(
+            f"\n[rrd] {DURATION_S:.0f} s paper run: lockstep {1e3 * run_s:.0f} ms, "
+            f"write .rrd {1e3 * write_s:.1f} ms ({100 * write_s / run_s:.1f} % of the run), "
+            f"{path.stat().st_size / 1024:.0f} KiB"
+        )
+    assert path.stat().st_size > 0
