@@ -1,0 +1,152 @@
+"""`fleetmpc agent`: the onboard agent of one vehicle (MAVLink autopilot + Zenoh plans).
+
+    fleetmpc agent --scenario scenarios/paper.toml --vehicle 1 --mavlink udpin:127.0.0.1:14540 \
+        --zenoh-connect tcp/127.0.0.1:7447 --epoch-ns EPOCH --speed 4
+
+Zenoh: by default a peer of the fleet's full mesh on explicit ``tcp/127.0.0.1`` endpoints
+(member index = vehicle index, base port = the scenario's ``network.zenoh_port``; the target
+process is the last member), scouting off. ``--zenoh-connect`` makes a client of a router,
+``--zenoh-config FILE`` loads a Zenoh config file (router/client deployments). Fleet time: see
+`onboard.runner`. SIGINT/SIGTERM: ask the autopilot to HOLD, close the Zenoh session and the
+link, print a JSON summary on stdout, exit 0.
+"""
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
+from onboard.core.agent import Agent
+from onboard.core.errors import ConfigError
+from onboard.planbus import open_plan_bus
+from onboard.runner import FleetClock, FleetRunner, RunnerSettings, SetpointStreamer
+from protocol.scenario import Scenario, load_scenario
+from protocol.zenoh_config import ZenohOptions
+
+__all__ = ["add_arguments", "run", "zenoh_options"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
+    parser.add_argument("--vehicle", required=True, type=int, help="vehicle id (MAVLink system id)")
+    parser.add_argument(
+        "--mavlink", help="pymavlink URL of the autopilot (default udpin:HOST:offboard port)"
+    )
+    zenoh = parser.add_mutually_exclusive_group()
+    zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
+    zenoh.add_argument(
+        "--zenoh-connect", help="comma-separated router endpoints (client mode), e.g. HOST:PORT"
+    )
+    parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
+    parser.add_argument(
+        "--epoch-ns", type=int, default=None, help="host time.time_ns() of fleet time 0"
+    )
+    parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    parser.add_argument(
+        "--setpoint-rate-hz",
+        type=float,
+        default=20.0,
+        help="setpoint stream rate in simulated time (>= 10)",
+    )
+    parser.add_argument("--duration", type=float, default=None, help="stop at this fleet time [s]")
+    parser.add_argument("--connect-timeout", type=float, default=20.0, help="[s] wall")
+    parser.add_argument("--no-engage", action="store_true", help="never switch to offboard")
+    parser.add_argument("--record", type=Path, help="write one JSON line per step here")
+
+
+def zenoh_options(args: argparse.Namespace, scenario: Scenario, index: int) -> ZenohOptions:
+    """The Zenoh options the command line asks for (see the module docstring)."""
+    if args.zenoh_config is not None:
+        return ZenohOptions(config_file=str(args.zenoh_config))
+    if args.zenoh_connect:
+        items = [e.strip() for e in args.zenoh_connect.split(",") if e.strip()]
+        return ZenohOptions(
+            mode="client", connect=tuple(e if "/" in e else f"tcp/{e}" for e in items)
+        )
+    net = scenario.network
+    return ZenohOptions.peer_mesh(
+        index=index, size=len(scenario.vehicles) + 1, base_port=net.zenoh_port, host=net.host
+    )
+
+
+def _log(text: str) -> None:
+    print(f"fleetmpc agent: {text}", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    spec = scenario.vehicle(args.vehicle)
+    index = scenario.vehicle_ids.index(spec.id)
+    if not 10.0 <= args.setpoint_rate_hz <= 1000.0:
+        raise ConfigError(
+            "--setpoint-rate-hz", f"must be in [10, 1000], got {args.setpoint_rate_hz}"
+        )
+    clock = FleetClock(epoch_ns=args.epoch_ns, speed=args.speed)
+    url = args.mavlink or (
+        f"udpin:{scenario.network.host}:{scenario.network.offboard_base_port + index}"
+    )
+    agent = Agent(
+        spec.id,
+        fleet_ids=scenario.vehicle_ids,
+        controller=scenario.controller,
+        learning=scenario.learning,
+        formation=scenario.formation,
+        target_observation_std_m=scenario.target.observation_noise_m,
+    )
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    record_file = open(args.record, "w") if args.record else None  # noqa: SIM115
+
+    def record(row: dict) -> None:
+        record_file.write(json.dumps(row) + "\n")
+        record_file.flush()
+
+    link = bus = streamer = runner = None
+    try:
+        options = zenoh_options(args, scenario, index)
+        bus = open_plan_bus(options, fleet=args.fleet or scenario.name, vehicle_id=spec.id)
+        link = open_autopilot_link(url, system_id=spec.id, log=_log)
+        state = link.connect(timeout_s=args.connect_timeout)
+        _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
+        streamer = SetpointStreamer(link, period_s=1.0 / (args.setpoint_rate_hz * clock.speed))
+        settings = RunnerSettings(
+            period_ns=scenario.controller.period_ns,
+            engage=not args.no_engage,
+            stop_at_fleet_ns=None if args.duration is None else round(args.duration * 1e9),
+        )
+        runner = FleetRunner(
+            agent,
+            link=link,
+            bus=bus,
+            settings=settings,
+            clock=clock,
+            log=_log,
+            record=record if record_file else None,
+        )
+        streamer.start()
+        runner.run(stop, streamer)
+        return 0
+    except AutopilotLinkError as e:
+        _log(str(e))
+        return 2
+    finally:
+        if streamer is not None:
+            streamer.set_command(speed_m_s=0.0, yaw_rate_rad_s=0.0)
+            time.sleep(0.05)
+            streamer.stop()
+        if link is not None:
+            if runner is not None and runner.engaged:
+                link.hold()
+            link.close()
+        if bus is not None:
+            bus.close()
+        if runner is not None:
+            print(json.dumps(runner.summary(streamer)), flush=True)
+        if record_file is not None:
+            record_file.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)

@@ -1,0 +1,246 @@
+"""AutopilotLink: the pymavlink link against a scripted autopilot on loopback UDP, and the fake."""
+
+import math
+import os
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import closing
+
+import pytest
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+
+from onboard.autopilot_link import (  # noqa: E402
+    AutopilotLinkError,
+    FakeAutopilotLink,
+    MavlinkAutopilotLink,
+    open_autopilot_link,
+)
+from onboard.core.errors import ConfigError  # noqa: E402
+from protocol.mavlink_map import (  # noqa: E402
+    Autopilot,
+    FlightMode,
+    base_mode,
+    custom_mode_of,
+)
+
+
+def _free_udp_port() -> int:
+    with closing(socket.socket(socket.AF_INET, socket.SOCK_DGRAM)) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.frame = b""
+
+    def write(self, data: bytes) -> None:
+        self.frame = bytes(data)
+
+
+class ScriptedAutopilot:
+    """A minimal MAVLink autopilot on loopback: streams pose, records and ACKs what it gets."""
+
+    def __init__(self, port: int, *, autopilot: Autopilot, deny_arms: int = 0) -> None:
+        self.autopilot = autopilot
+        self.port = port
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.01)
+        self.sink = _Sink()
+        self.mav = mavlink.MAVLink(self.sink, srcSystem=1, srcComponent=1)
+        self.parser = mavlink.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.mode = FlightMode.HOLD if autopilot == Autopilot.PX4 else FlightMode.STABILIZE
+        self.armed = False
+        self.deny_arms = deny_arms
+        self.received: list = []
+        self.pose = (1.5, -2.5, 0.25)
+        self.bad_position = False
+        self.boot_ms = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _send(self, msg) -> None:
+        self.mav.send(msg)
+        self.sock.sendto(self.sink.frame, ("127.0.0.1", self.port))
+
+    def _heartbeat(self) -> None:
+        self._send(
+            self.mav.heartbeat_encode(
+                mavlink.MAV_TYPE_QUADROTOR,
+                int(self.autopilot),
+                base_mode(armed=self.armed, mode=self.mode),
+                custom_mode_of(self.mode, self.autopilot),
+                4,
+            )
+        )
+
+    def _loop(self) -> None:
+        k = 0
+        while not self._stop.is_set():
+            self.boot_ms += 20
+            if k % 10 == 0:
+                self._heartbeat()
+            x, y, yaw = self.pose
+            if self.bad_position:
+                x = math.nan
+            self._send(self.mav.local_position_ned_encode(self.boot_ms, x, y, -10.0, 0, 0, 0))
+            self._send(self.mav.attitude_encode(self.boot_ms, 0, 0, yaw, 0, 0, 0))
+            k += 1
+            deadline = time.monotonic() + 0.02
+            while time.monotonic() < deadline:
+                try:
+                    data, _ = self.sock.recvfrom(4096)
+                except TimeoutError:
+                    continue
+                for msg in self.parser.parse_buffer(data) or []:
+                    self._handle(msg)
+
+    def _handle(self, msg) -> None:
+        self.received.append(msg)
+        if msg.get_type() != "COMMAND_LONG":
+            return
+        result = 0
+        if msg.command == 400:
+            if self.deny_arms > 0:
+                self.deny_arms -= 1
+                result = 4
+            else:
+                self.armed = True
+        elif msg.command == 176:
+            number = int(msg.param2)
+            if self.autopilot == Autopilot.PX4:
+                self.mode = {6: FlightMode.OFFBOARD, 4: FlightMode.HOLD}.get(number, self.mode)
+            else:
+                self.mode = {4: FlightMode.OFFBOARD, 5: FlightMode.HOLD}.get(number, self.mode)
+        self._send(self.mav.command_ack_encode(msg.command, result, 0, 0, 255, 190))
+        self._heartbeat()
+
+    def of_type(self, kind: str) -> list:
+        return [m for m in list(self.received) if m.get_type() == kind]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        self.sock.close()
+
+
+@pytest.fixture(params=[Autopilot.PX4, Autopilot.ARDUPILOTMEGA], ids=["px4", "ardupilot"])
+def pair(request) -> Iterator[tuple[MavlinkAutopilotLink, ScriptedAutopilot]]:
+    port = _free_udp_port()
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", system_id=1)
+    ap = ScriptedAutopilot(port, autopilot=request.param, deny_arms=2)
+    try:
+        yield link, ap
+    finally:
+        link.close()
+        ap.close()
+
+
+def test_connect_detects_the_autopilot_and_reads_the_pose(pair) -> None:
+    link, ap = pair
+    state = link.connect(timeout_s=5.0)
+    assert state.autopilot == ap.autopilot
+    assert state.system_id == 1
+    assert (state.north_m, state.east_m) == pytest.approx(ap.pose[:2])
+    assert state.yaw_rad == pytest.approx(ap.pose[2])
+    assert state.time_boot_ns > 0 and state.time_boot_ns % 1_000_000 == 0
+
+
+def test_setpoints_use_the_autopilots_frame_and_mask(pair) -> None:
+    link, ap = pair
+    link.connect(timeout_s=5.0)
+    link.send_setpoint(speed_m_s=1.25, yaw_rate_rad_s=-0.3)
+    deadline = time.monotonic() + 2.0
+    while not ap.of_type("SET_POSITION_TARGET_LOCAL_NED") and time.monotonic() < deadline:
+        time.sleep(0.01)
+    sp = ap.of_type("SET_POSITION_TARGET_LOCAL_NED")[-1]
+    assert sp.type_mask == 1479
+    assert sp.coordinate_frame == (8 if ap.autopilot == Autopilot.PX4 else 9)
+    assert (sp.vx, sp.vy, sp.vz) == pytest.approx((1.25, 0.0, 0.0))
+    assert sp.yaw_rate == pytest.approx(-0.3)
+    assert sp.target_system == 1 and sp.target_component == 1
+
+
+def test_engage_follows_the_autopilots_semantics(pair) -> None:
+    link, ap = pair
+    link.connect(timeout_s=5.0)
+    assert link.engage(timeout_s=5.0)
+    commands = [(int(m.command), m.param1, m.param2) for m in ap.of_type("COMMAND_LONG")]
+    arms = [c for c in commands if c[0] == 400]
+    assert len(arms) == 3  # two refusals, then accepted: retried until accepted
+    modes = [c for c in commands if c[0] == 176]
+    if ap.autopilot == Autopilot.PX4:
+        assert modes[-1][1:] == (1.0, 6.0)  # CUSTOM_MODE_ENABLED, OFFBOARD
+        assert commands.index(arms[-1]) < commands.index(modes[-1])
+    else:
+        intervals = {int(c[1]) for c in commands if c[0] == 511}
+        assert {32, 30} <= intervals  # streams requested
+        assert modes[0][1:] == (1.0, 4.0)  # GUIDED
+        assert commands[-1][0] == 22  # takeoff after arming
+    state = link.wait_state(newer_than_ns=link.state().time_boot_ns, timeout_s=1.0)
+    assert state.engaged and state.mode == FlightMode.OFFBOARD and state.armed
+
+
+def test_mode_loss_is_detected_not_fought(pair) -> None:
+    link, ap = pair
+    link.connect(timeout_s=5.0)
+    assert link.engage(timeout_s=5.0)
+    sent = len(ap.of_type("COMMAND_LONG"))
+    ap.mode = FlightMode.HOLD  # the autopilot fails safe
+    deadline = time.monotonic() + 2.0
+    while not link.state().mode_lost and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert link.state().mode_lost
+    assert link.state().mode == FlightMode.HOLD
+    time.sleep(0.3)
+    assert len(ap.of_type("COMMAND_LONG")) == sent  # no attempt to re-engage
+
+
+def test_invalid_telemetry_is_rejected_and_counted(pair) -> None:
+    link, ap = pair
+    link.connect(timeout_s=5.0)
+    ap.bad_position = True
+    time.sleep(0.3)
+    state = link.state()
+    assert state.rejected > 0
+    assert state.north_m == pytest.approx(ap.pose[0])
+
+
+def test_connect_times_out_without_an_autopilot() -> None:
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{_free_udp_port()}")
+    try:
+        with pytest.raises(AutopilotLinkError, match="no HEARTBEAT"):
+            link.connect(timeout_s=0.5)
+    finally:
+        link.close()
+
+
+def test_urls_pick_the_implementation() -> None:
+    assert isinstance(open_autopilot_link("fake://"), FakeAutopilotLink)
+    fake = open_autopilot_link("fake://ardupilot", system_id=3)
+    assert fake.connect(timeout_s=0.1).autopilot == Autopilot.ARDUPILOTMEGA
+    with pytest.raises(ConfigError, match="mavlink_url"):
+        open_autopilot_link("fake://betaflight")
+    with pytest.raises(ConfigError, match="mavlink_url"):
+        open_autopilot_link("")
+
+
+def test_fake_flies_the_setpoint_and_fails_safe_to_hold() -> None:
+    fake = FakeAutopilotLink(yaw_rad=0.0, loss_timeout_ns=500_000_000)
+    fake.connect(timeout_s=0.1)
+    fake.engage(timeout_s=0.1)
+    fake.send_setpoint(speed_m_s=2.0, yaw_rate_rad_s=0.0)
+    fake.advance(400_000_000)
+    assert fake.state().north_m == pytest.approx(0.8)
+    assert not fake.state().mode_lost
+    fake.advance(400_000_000)
+    state = fake.state()
+    assert state.mode == FlightMode.HOLD and state.mode_lost
+    assert state.north_m == pytest.approx(1.0, abs=0.05)  # 0.5 s flown, 40 ms substeps
