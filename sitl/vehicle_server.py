@@ -182,7 +182,7 @@ class VehicleServer:
             out[link.name] = f"udp {host}:{port}{target}"
         if self._links.tcp_server is not None:
             host, port = self._links.tcp_server.local_address
-            out["tcp"] = f"tcp {host}:{port}"
+            out["ardupilot"] = f"tcp {host}:{port}"
         return out
 
     # ----------------------------------------------------------------------------- state

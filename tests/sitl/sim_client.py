@@ -63,7 +63,11 @@ class SimClient:
 
     # ----------------------------------------------------------------------------- receiving
     def pump(self, timeout_s: float = 0.05):
-        m = self.conn.recv_match(blocking=True, timeout=timeout_s)
+        """Read one message (waiting up to `timeout_s`; 0: only if one is already there)."""
+        if timeout_s > 0:
+            m = self.conn.recv_match(blocking=True, timeout=timeout_s)
+        else:
+            m = self.conn.recv_match(blocking=False)
         if m is None or m.get_srcSystem() != self.target or m.get_type() == "BAD_DATA":
             return None
         t = getattr(m, "time_boot_ms", None)
