@@ -151,6 +151,7 @@ def _formation_metrics(paper, tracks: dict[int, np.ndarray]) -> dict:
     return {"separation_error_m": sep, "centre_distance_error_m": float(np.mean(centre_err))}
 
 
+@pytest.mark.slow
 def test_fleet_flies_the_formation_over_mavlink_and_zenoh(paper, processes, tmp_path) -> None:
     router_port = _free_port(socket.SOCK_STREAM)
     gcs_port = _free_port(socket.SOCK_DGRAM)
