@@ -32,7 +32,7 @@ from sitl.telemetry import (
     build,
 )
 
-__all__ = ["MessageHandler", "Reply"]
+__all__ = ["MessageHandler", "Reply", "setpoint_fields"]
 
 M = mavlink
 _MAX_STREAM_RATE_HZ = 50.0
@@ -53,6 +53,19 @@ def _integer(value: float, lo: int, hi: int) -> int | None:
         return None
     i = int(value)
     return i if lo <= i <= hi else None
+
+
+def setpoint_fields(m: mavlink.MAVLink_set_position_target_local_ned_message) -> SetpointFields:
+    """The fields of a SET_POSITION_TARGET_LOCAL_NED a velocity setpoint uses (unvalidated)."""
+    return SetpointFields(
+        frame=m.coordinate_frame,
+        type_mask=m.type_mask,
+        vx_m_s=m.vx,
+        vy_m_s=m.vy,
+        vz_m_s=m.vz,
+        yaw_rad=m.yaw,
+        yaw_rate_rad_s=m.yaw_rate,
+    )
 
 
 @dataclass(frozen=True)
@@ -129,18 +142,8 @@ class MessageHandler:
 
     # ----------------------------------------------------------------------------- setpoints
     def _setpoint(self, m, now_ns: int) -> None:
-        if not self._for_me(m.target_system, m.target_component):
-            return
-        sp = SetpointFields(
-            frame=m.coordinate_frame,
-            type_mask=m.type_mask,
-            vx_m_s=m.vx,
-            vy_m_s=m.vy,
-            vz_m_s=m.vz,
-            yaw_rad=m.yaw,
-            yaw_rate_rad_s=m.yaw_rate,
-        )
-        self.autopilot.receive_setpoint(sp, now_ns)
+        if self._for_me(m.target_system, m.target_component):
+            self.autopilot.receive_setpoint(setpoint_fields(m), now_ns)
 
     # ----------------------------------------------------------------------------- commands
     def _command(self, inc, target_system, target_component, command, params, now_ns):

@@ -114,13 +114,13 @@ class StreamSchedule:
             self.set_default(msg_id, 0)
 
     def set_interval(self, msg_id: int, interval_ns: int | None, now_ns: int) -> None:
-        """Stream `msg_id` every `interval_ns` (None stops it); the first one goes out now."""
+        """Stream `msg_id` every `interval_ns` (None stops it); the first one goes out next."""
         if interval_ns is None:
             self.interval_ns.pop(msg_id, None)
             self.next_due_ns.pop(msg_id, None)
             return
         self.interval_ns[msg_id] = max(int(interval_ns), 1)
-        self.next_due_ns[msg_id] = now_ns
+        self.next_due_ns[msg_id] = -1  # due at once; the schedule is anchored at that send
 
     def set_default(self, msg_id: int, now_ns: int) -> None:
         """Back to the link's default rate for `msg_id` (which may be off)."""
@@ -133,9 +133,10 @@ class StreamSchedule:
         for msg_id, due_ns in self.next_due_ns.items():
             if due_ns <= now_ns:
                 out.append(msg_id)
-                nxt = due_ns + self.interval_ns[msg_id]
+                interval = self.interval_ns[msg_id]
+                nxt = due_ns + interval
                 self.next_due_ns[msg_id] = (
-                    nxt if nxt > now_ns else now_ns + self.interval_ns[msg_id]
+                    nxt if due_ns >= 0 and nxt > now_ns else now_ns + interval
                 )
         return out
 

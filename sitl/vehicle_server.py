@@ -4,6 +4,7 @@ Each loop iteration: wait until the next plant tick or until a socket is readabl
 plant tick by tick up to the clock's time (the autopilot picks each tick's command, telemetry due
 at that tick is sent, stamped with its simulated time); then read and handle every pending
 message. Mode and arming changes are announced at once with a HEARTBEAT, events with STATUSTEXT.
+A parked vehicle (on the ground and not flying) does not move: wind only drifts a flying one.
 Nothing raises out of the loop: a failing handler is counted and the loop goes on.
 """
 
@@ -185,11 +186,21 @@ class VehicleServer:
             out["ardupilot"] = f"tcp {host}:{port}"
         return out
 
+    def local_address(self, link_name: str) -> tuple[str, int]:
+        """(host, port) bound by the UDP link `link_name`, or by the TCP server ("ardupilot")."""
+        for link in self._links.udp:
+            if link.name == link_name:
+                return link.local_address
+        if link_name == "ardupilot" and self._links.tcp_server is not None:
+            return self._links.tcp_server.local_address
+        raise KeyError(link_name)
+
     # ----------------------------------------------------------------------------- state
     def snapshot(self) -> Snapshot:
         """The vehicle as reported now (fresh measurement noise)."""
         z = self.plant.measure(self._rng)
-        vn, ve = self.plant.ground_velocity_m_s
+        parked = self.parked
+        vn, ve = (0.0, 0.0) if parked else self.plant.ground_velocity_m_s
         ap = self.autopilot
         return Snapshot(
             time_ns=self.plant.time_ns,
@@ -198,7 +209,7 @@ class VehicleServer:
             yaw_rad=float(z[2]),
             vel_north_m_s=vn,
             vel_east_m_s=ve,
-            yaw_rate_rad_s=self.plant.achieved_input[1],
+            yaw_rate_rad_s=0.0 if parked else self.plant.achieved_input[1],
             altitude_m=ap.altitude_m,
             climb_rate_m_s=ap.climb_rate_m_s,
             armed=ap.armed,
@@ -229,13 +240,25 @@ class VehicleServer:
             self.counters.loop_errors += 1
             self.counters.last_error = f"{type(e).__name__}: {e}"
 
+    @property
+    def parked(self) -> bool:
+        """On the ground and not flying horizontally: the plant (wind included) stands still.
+
+        A PX4 vehicle armed on the ground counts as flying (offboard from the ground is allowed).
+        """
+        ap = self.autopilot
+        return ap.landed and not (ap.armed and ap.px4)
+
     def _advance_to(self, now_ns: int) -> None:
         tick = self.config.tick_ns
         while self.plant.time_ns + tick <= now_ns:
             heading = float(self.plant.state[2])
             speed, yaw_rate = self.autopilot.step(self.plant.time_ns, tick, heading_rad=heading)
             self.plant.command(speed, yaw_rate)
-            self.plant.advance(tick)
+            if self.parked:
+                self.plant.time_ns += tick  # time passes, the parked vehicle does not drift
+            else:
+                self.plant.advance(tick)
             self.counters.ticks += 1
             self._announce()
             self._send_telemetry(self.plant.time_ns)

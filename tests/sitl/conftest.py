@@ -3,7 +3,6 @@
 import queue
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -13,20 +12,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from sim_client import IDEAL_SCENARIO
 
 ROOT = Path(__file__).resolve().parents[2]
-IDEAL_SCENARIO = Path(__file__).parent / "data" / "ideal.toml"
 SUMMARY = re.compile(
     r"received (?P<messages>\d+) messages \((?P<bytes>\d+) bytes\), dropped (?P<bad>\d+) bad frames"
     r" and (?P<unknown>\d+) unknown, (?P<commands>\d+) commands.*loop errors: (?P<errors>\d+)"
 )
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    """A port that was free on 127.0.0.1 a moment ago."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass

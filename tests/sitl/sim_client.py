@@ -7,7 +7,9 @@ next setpoint when a message stamped at or after the next due time arrives.
 
 import math
 import os
+import socket
 import time
+from pathlib import Path
 
 os.environ["MAVLINK20"] = "1"
 
@@ -23,6 +25,15 @@ from protocol.mavlink_map import (  # noqa: E402
 )
 
 M = mavutil.mavlink
+IDEAL_SCENARIO = Path(__file__).parent / "data" / "ideal.toml"
+"""Two vehicles with ideal truth: what is commanded is what flies."""
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A port that was free on 127.0.0.1 a moment ago."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 class SimClient:

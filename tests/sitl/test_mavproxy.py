@@ -6,11 +6,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import free_port
 from mavsdk.asyncio.plugins.offboard import OffboardResult
 from mavsdk.asyncio.plugins.telemetry import FlightMode
 from mavsdk_flow import FORWARD_M_S, YAWSPEED_DEG_S, mavsdk_flight
-from sim_client import SimClient, fly_offboard, horizontal_speed, wait_hold_after_stop
+from sim_client import SimClient, fly_offboard, free_port, horizontal_speed, wait_hold_after_stop
 
 from protocol.mavlink_map import Frame, encode_setpoint
 

@@ -4,11 +4,10 @@ import asyncio
 import math
 
 import pytest
-from conftest import free_port
 from mavsdk.asyncio.plugins.offboard import OffboardResult
 from mavsdk.asyncio.plugins.telemetry import FlightMode
 from mavsdk_flow import FORWARD_M_S, HOME, YAWSPEED_DEG_S, Observer, mavsdk_flight, position_ned
-from sim_client import M, SimClient
+from sim_client import M, SimClient, free_port
 
 
 def test_mavsdk_discovers_arms_and_flies_offboard(start_sitl):

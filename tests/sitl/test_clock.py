@@ -1,0 +1,31 @@
+"""Simulated time: integer nanoseconds, scaled wall time or a manual clock."""
+
+import pytest
+
+from onboard.core.errors import ConfigError
+from sitl.clock import Clock, ManualClock, RealTimeClock
+
+
+def test_manual_clock_moves_only_when_told():
+    clock: Clock = ManualClock(start_ns=5)
+    assert clock.now_ns() == 5 and clock.now_ns() == 5
+    assert clock.advance(20_000_000) == 20_000_005
+    assert clock.wall_seconds(10**9) == 0.0
+    with pytest.raises(ValueError):
+        clock.advance(-1)
+
+
+@pytest.mark.parametrize("speed", [0.5, 1.0, 4.0, 0.3])
+def test_real_time_clock_is_integer_monotonic_and_scaled(speed):
+    clock: Clock = RealTimeClock(speed=speed)
+    readings = [clock.now_ns() for _ in range(1000)]
+    assert all(isinstance(t, int) for t in readings)
+    assert readings == sorted(readings) and readings[0] >= 0
+    assert clock.wall_seconds(2_000_000_000) == pytest.approx(2.0 / speed)
+    assert clock.wall_seconds(-5) == 0.0
+
+
+@pytest.mark.parametrize("speed", [0.0, -1.0, float("nan"), float("inf"), 1e6, "4"])
+def test_bad_speeds_are_refused(speed):
+    with pytest.raises(ConfigError, match="speed"):
+        RealTimeClock(speed=speed)

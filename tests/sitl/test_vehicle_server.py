@@ -1,0 +1,310 @@
+"""The vehicle server in-process, on real loopback sockets but a manual clock: exact rates."""
+
+import math
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.mavlink_map import (
+    PX4_CUSTOM_MODE_OF,
+    FlightMode,
+    MavResult,
+    MavState,
+    ModeFlag,
+    ned_from_geodetic,
+)
+from protocol.scenario import load_scenario
+from sitl.autopilot import AutopilotConfig, Profile
+from sitl.clock import ManualClock
+from sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
+from sitl.telemetry import PX4_ONBOARD_RATES_HZ
+from sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
+
+M = mavlink
+DATA = Path(__file__).parent / "data"
+PAPER = Path(__file__).resolve().parents[2] / "scenarios" / "paper.toml"
+S = 1_000_000_000
+ONBOARD = ((M.MAVLINK_MSG_ID_HEARTBEAT, 1.0), *PX4_ONBOARD_RATES_HZ.items())
+
+
+class Client:
+    """A raw UDP (or TCP) MAVLink client of an in-process server."""
+
+    def __init__(self, sock: socket.socket, address, *, stream: bool = False) -> None:
+        self.sock = sock
+        self.address = address
+        self.stream = stream
+        self.enc = MavlinkEncoder(system_id=255, component_id=190)
+        self.decoder = FrameDecoder(DecodeStats())
+
+    def send(self, build) -> None:
+        frame = self.enc.pack(build(self.enc.mav))
+        if self.stream:
+            self.sock.sendall(frame)
+        else:
+            self.sock.sendto(frame, self.address)
+
+    def receive(self) -> list:
+        out = []
+        while True:
+            try:
+                data = self.sock.recv(65535)
+            except BlockingIOError:
+                return out
+            out.extend(self.decoder.stream(data) if self.stream else self.decoder.datagram(data))
+
+
+class Rig:
+    """A server on a manual clock and one client that it streams to."""
+
+    def __init__(self, *, scenario: Path = DATA / "ideal.toml", vehicle: int = 1, **server) -> None:
+        scen = load_scenario(scenario)
+        spec = scen.vehicle(vehicle)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        profile = server.pop("profile", Profile.PX4)
+        udp = server.pop("udp", (UdpEndpoint("offboard", 0, self.sock.getsockname()[1], ONBOARD),))
+        config = ServerConfig(
+            vehicle=spec,
+            site=scen.site,
+            tick_ns=scen.tick_ns,
+            autopilot=AutopilotConfig(
+                profile=profile,
+                speed_limit_m_s=spec.truth.speed_limit_m_s,
+                yaw_rate_limit_rad_s=spec.truth.yaw_rate_limit_rad_s,
+                takeoff_altitude_m=scen.site.altitude_m,
+                position_ready_ns=0,
+            ),
+            seed=scen.seed,
+            udp=udp,
+            **server,
+        )
+        self.tick_ns = scen.tick_ns
+        self.clock = ManualClock()
+        self.server = VehicleServer(config, clock=self.clock)
+        address = self.server.local_address("offboard") if udp else None
+        self.client = Client(self.sock, address)
+
+    def close(self) -> None:
+        self.server.close()
+        self.sock.close()
+
+    def run(self, duration_ns: int, client: Client | None = None) -> list:
+        """Advance tick by tick, serving the server; return what `client` received."""
+        client = client or self.client
+        out = []
+        for _ in range(duration_ns // self.tick_ns):
+            self.clock.advance(self.tick_ns)
+            self.server.step()
+            out.extend(client.receive())
+        return out
+
+    def command(self, command: int, *params: float, target: int = 1) -> list:
+        p = [*params, *([0.0] * (7 - len(params)))]
+        self.client.send(lambda mav: mav.command_long_encode(target, 1, command, 0, *p))
+        self.server.step()
+        return self.client.receive()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def of_type(messages, kind: str) -> list:
+    return [m for m in messages if m.get_type() == kind]
+
+
+def test_heartbeat_every_second_with_px4_identity(rig):
+    msgs = rig.run(10 * S)
+    beats = of_type(msgs, "HEARTBEAT")
+    assert 10 <= len(beats) <= 12
+    hb = beats[-1]
+    assert (hb.type, hb.autopilot) == (M.MAV_TYPE_QUADROTOR, M.MAV_AUTOPILOT_PX4)
+    assert hb.custom_mode == PX4_CUSTOM_MODE_OF[FlightMode.HOLD] == (4 << 16) | (3 << 24)
+    assert hb.base_mode & ModeFlag.CUSTOM_MODE_ENABLED and not hb.base_mode & ModeFlag.SAFETY_ARMED
+    assert hb.system_status == MavState.STANDBY
+    assert {m.get_srcSystem() for m in msgs} == {1} and {m.get_srcComponent() for m in msgs} == {1}
+
+
+def test_default_rates_and_set_message_interval(rig):
+    msgs = rig.run(10 * S)
+    assert len(of_type(msgs, "ATTITUDE")) == pytest.approx(500, abs=1)
+    assert len(of_type(msgs, "LOCAL_POSITION_NED")) == pytest.approx(300, abs=1)
+    assert len(of_type(msgs, "HOME_POSITION")) == pytest.approx(5, abs=1)
+
+    (ack,) = of_type(
+        rig.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE, 100_000),
+        "COMMAND_ACK",
+    )
+    assert (ack.command, ack.result) == (M.MAV_CMD_SET_MESSAGE_INTERVAL, MavResult.ACCEPTED)
+    assert (ack.target_system, ack.target_component) == (255, 190)
+    stamps = [m.time_boot_ms for m in of_type(rig.run(5 * S), "ATTITUDE")]
+    assert len(stamps) == pytest.approx(50, abs=1)
+    assert set(np.diff(stamps)) == {100}
+
+    rig.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE, -1)
+    assert of_type(rig.run(2 * S), "ATTITUDE") == []
+    rig.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE, 0)
+    assert len(of_type(rig.run(2 * S), "ATTITUDE")) == pytest.approx(100, abs=1)
+    (ack,) = of_type(rig.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 100_000), "COMMAND_ACK")
+    assert ack.result == MavResult.DENIED
+    (ack,) = of_type(rig.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, 30, math.nan), "COMMAND_ACK")
+    assert ack.result == MavResult.DENIED
+
+
+def test_every_command_gets_exactly_one_ack(rig):
+    commands = [
+        (M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION),
+        (M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_HOME_POSITION),
+        (M.MAV_CMD_REQUEST_MESSAGE, 9999),
+        (M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1),
+        (M.MAV_CMD_COMPONENT_ARM_DISARM, 1),
+        (M.MAV_CMD_COMPONENT_ARM_DISARM, 0),
+        (M.MAV_CMD_COMPONENT_ARM_DISARM, 7),
+        (M.MAV_CMD_DO_SET_MODE, 1, 3, 0),
+        (M.MAV_CMD_DO_SET_MODE, 1, 6, 0),
+        (M.MAV_CMD_DO_SET_MODE, 0, 6, 0),
+        (M.MAV_CMD_NAV_TAKEOFF,),
+        (M.MAV_CMD_NAV_LAND,),
+        (M.MAV_CMD_DO_REPOSITION,),
+        (12345,),
+    ]
+    expected = [
+        MavResult.ACCEPTED, MavResult.ACCEPTED, MavResult.DENIED, MavResult.ACCEPTED,
+        MavResult.ACCEPTED, MavResult.ACCEPTED, MavResult.DENIED, MavResult.ACCEPTED,
+        MavResult.DENIED, MavResult.DENIED, MavResult.DENIED, MavResult.ACCEPTED,
+        MavResult.UNSUPPORTED, MavResult.UNSUPPORTED,
+    ]  # fmt: skip
+    replies = []
+    for cmd, *params in commands:
+        replies.extend(rig.command(cmd, *params))
+    acks = of_type(replies, "COMMAND_ACK")
+    assert [(a.command, a.result) for a in acks] == [
+        (c[0], r) for c, r in zip(commands, expected, strict=True)
+    ]
+    assert len(of_type(replies, "AUTOPILOT_VERSION")) == 2
+    assert len(of_type(replies, "HOME_POSITION")) == 1
+    assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, target=7) == []  # not for us
+
+
+def test_set_mode_message_is_acked_and_announced(rig):
+    rig.run(S)
+    custom = PX4_CUSTOM_MODE_OF[FlightMode.POSITION]
+    rig.client.send(lambda mav: mav.set_mode_encode(1, ModeFlag.CUSTOM_MODE_ENABLED, custom))
+    rig.server.step()
+    replies = rig.client.receive()
+    assert [m.get_type() for m in replies] == ["HEARTBEAT", "COMMAND_ACK"]
+    assert replies[0].custom_mode == custom
+    assert (replies[1].command, replies[1].result) == (
+        M.MAVLINK_MSG_ID_SET_MODE,
+        MavResult.ACCEPTED,
+    )
+
+
+def test_ping_timesync_and_parameters(rig):
+    rig.run(5 * S)
+    rig.client.send(lambda mav: mav.ping_encode(123456, 7, 0, 0))
+    rig.client.send(lambda mav: mav.timesync_encode(0, 42))
+    rig.client.send(lambda mav: mav.param_request_list_encode(1, 1))
+    rig.server.step()
+    replies = rig.client.receive()
+    (pong,) = of_type(replies, "PING")
+    assert (pong.time_usec, pong.seq, pong.target_system, pong.target_component) == (
+        123456,
+        7,
+        255,
+        190,
+    )
+    (sync,) = of_type(replies, "TIMESYNC")
+    assert (sync.tc1, sync.ts1) == (5 * S, 42)
+    params = {p.param_id: p.param_value for p in of_type(replies, "PARAM_VALUE")}
+    assert params["COM_OF_LOSS_T"] == pytest.approx(1.0)
+    assert params["MIS_TAKEOFF_ALT"] == pytest.approx(5.0)
+
+
+def test_position_velocity_and_home_of_a_vehicle_off_the_origin():
+    rig = Rig(vehicle=2)
+    try:
+        rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        msgs = rig.run(S)
+        gp = of_type(msgs, "GLOBAL_POSITION_INT")[-1]
+        north, east = ned_from_geodetic(
+            gp.lat * 1e-7, gp.lon * 1e-7, home_lat_deg=47.397742, home_lon_deg=8.545594
+        )
+        assert (north, east) == (pytest.approx(0.0, abs=0.02), pytest.approx(10.0, abs=0.02))
+        assert gp.alt == 488_000 and gp.relative_alt == 0
+        lp = of_type(msgs, "LOCAL_POSITION_NED")[-1]
+        assert (lp.x, lp.y, lp.z) == (0.0, 10.0, 0.0)
+        home = of_type(msgs, "HOME_POSITION")[-1]
+        assert (home.latitude, home.longitude, home.altitude) == (473977420, 85455940, 488000)
+    finally:
+        rig.close()
+
+
+def test_measurement_noise_and_a_parked_vehicle_that_does_not_drift():
+    rig = Rig(scenario=PAPER)  # noise 0.05 m and 0.01 rad, wind (0.3, -0.2) m/s
+    try:
+        msgs = rig.run(20 * S)
+        lp = of_type(msgs, "LOCAL_POSITION_NED")
+        x = np.array([m.x for m in lp])
+        yaw = np.array([m.yaw for m in of_type(msgs, "ATTITUDE")])
+        assert len(x) == 600
+        assert x.std() == pytest.approx(0.05, rel=0.15)
+        assert abs(x.mean()) < 0.01, "a disarmed vehicle on the ground does not drift"
+        assert np.abs(x).max() <= 3 * 0.05 + 1e-6  # truncated at 3 sigma
+        assert yaw.std() == pytest.approx(0.01, rel=0.15)
+        assert {(m.vx, m.vy) for m in lp} == {(0.0, 0.0)}
+        # Armed (PX4 may fly offboard from the ground), the wind moves it.
+        rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        moving = of_type(rig.run(2 * S), "LOCAL_POSITION_NED")[-1]
+        assert (moving.vx, moving.vy) == (pytest.approx(0.3), pytest.approx(-0.2))
+    finally:
+        rig.close()
+
+
+def test_peers_that_talk_receive_telemetry_until_they_fall_silent(rig):
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other.bind(("127.0.0.1", 0))
+    other.setblocking(False)
+    peer = Client(other, rig.client.address)
+    try:
+        peer.send(lambda mav: mav.heartbeat_encode(6, 8, 0, 0, 4))
+        assert of_type(rig.run(S, peer), "ATTITUDE")
+        rig.run(11 * S, peer)
+        peer.receive()
+        assert rig.run(S, peer) == [], "a peer silent for 10 s is dropped"
+        assert of_type(rig.run(S), "ATTITUDE"), "the configured remote keeps its stream"
+    finally:
+        other.close()
+
+
+def test_ardupilot_over_tcp_streams_only_what_is_asked():
+    rig = Rig(profile=Profile.ARDUPILOT, udp=(), tcp_port=0)
+    conn = socket.create_connection(rig.server.local_address("ardupilot"))
+    conn.setblocking(False)
+    client = Client(conn, None, stream=True)
+    try:
+        rig.server.step()  # accept
+        first = rig.run(3 * S, client)
+        assert {m.get_type() for m in first} == {"HEARTBEAT"}
+        assert first[-1].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA and first[-1].custom_mode == 0
+        client.send(
+            lambda mav: mav.request_data_stream_encode(1, 1, M.MAV_DATA_STREAM_POSITION, 5, 1)
+        )
+        msgs = rig.run(2 * S, client)
+        assert len(of_type(msgs, "GLOBAL_POSITION_INT")) == pytest.approx(10, abs=1)
+        assert len(of_type(msgs, "LOCAL_POSITION_NED")) == pytest.approx(10, abs=1)
+        assert of_type(msgs, "ATTITUDE") == []
+        client.send(lambda mav: mav.request_data_stream_encode(1, 1, M.MAV_DATA_STREAM_ALL, 0, 0))
+        rig.server.step()
+        client.receive()
+        assert {m.get_type() for m in rig.run(2 * S, client)} == {"HEARTBEAT"}
+    finally:
+        conn.close()
+        rig.close()
