@@ -294,7 +294,7 @@ class Autopilot:
 
     # ----------------------------------------------------------------------------- time
     def step(self, now_ns: int, tick_ns: int, *, heading_rad: float) -> tuple[float, float]:
-        """Advance by one plant tick ending at `now_ns`; return the (speed, yaw-rate) demand."""
+        """Decide the (speed, yaw-rate) demand for the plant tick starting at `now_ns`."""
         c = self.config
         fresh = self._fresh_setpoint(now_ns)
         if self.px4 and self.mode == FlightMode.OFFBOARD and fresh is None:

@@ -113,14 +113,10 @@ class MessageHandler:
             return []
         if msg_id == M.MAVLINK_MSG_ID_COMMAND_LONG:
             params = (m.param1, m.param2, m.param3, m.param4, m.param5, m.param6, m.param7)
-            return self._command(
-                inc, m.target_system, m.target_component, m.command, params, now_ns
-            )
+            return self._command(inc, _Command(m.command, params), now_ns=now_ns)
         if msg_id == M.MAVLINK_MSG_ID_COMMAND_INT:
             params = (m.param1, m.param2, m.param3, m.param4, float(m.x), float(m.y), m.z)
-            return self._command(
-                inc, m.target_system, m.target_component, m.command, params, now_ns
-            )
+            return self._command(inc, _Command(m.command, params), now_ns=now_ns)
         if msg_id == M.MAVLINK_MSG_ID_SET_MODE:
             return self._set_mode_message(inc, now_ns)
         if msg_id == M.MAVLINK_MSG_ID_REQUEST_DATA_STREAM:
@@ -146,19 +142,23 @@ class MessageHandler:
             self.autopilot.receive_setpoint(setpoint_fields(m), now_ns)
 
     # ----------------------------------------------------------------------------- commands
-    def _command(self, inc, target_system, target_component, command, params, now_ns):
-        if not self._for_me(target_system, target_component):
+    def _command(self, inc: Incoming, cmd: _Command, *, now_ns: int) -> list[Reply]:
+        """Act on a COMMAND_LONG/COMMAND_INT for this vehicle; the ACK comes first."""
+        m = inc.message
+        if not self._for_me(m.target_system, m.target_component):
             return []
         self.commands += 1
         replies: list[Reply] = []
-        result = self._dispatch(_Command(command, params), inc, now_ns, replies)
-        header = inc.message.get_header()
+        result = self._dispatch(inc, cmd, now_ns=now_ns, replies=replies)
+        header = m.get_header()
         ack = self.mav.command_ack_encode(
-            command, int(result), 0, 0, header.srcSystem, header.srcComponent
+            cmd.command, int(result), 0, 0, header.srcSystem, header.srcComponent
         )
         return [Reply(ack, inc), *replies]
 
-    def _dispatch(self, cmd: _Command, inc: Incoming, now_ns: int, replies: list[Reply]):
+    def _dispatch(
+        self, inc: Incoming, cmd: _Command, *, now_ns: int, replies: list[Reply]
+    ) -> MavResult:
         p = cmd.params
         ap = self.autopilot
         if cmd.command == M.MAV_CMD_COMPONENT_ARM_DISARM:
@@ -174,19 +174,19 @@ class MessageHandler:
         if cmd.command == M.MAV_CMD_NAV_LAND:
             return ap.land(now_ns)
         if cmd.command == M.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return self._set_interval(inc, p, now_ns)
+            return self._set_interval(inc, p, now_ns=now_ns)
         if cmd.command == M.MAV_CMD_REQUEST_MESSAGE:
             msg_id = _integer(p[0], 0, 0xFFFFFF)
             if msg_id is None or msg_id not in ON_REQUEST:
                 return MavResult.DENIED
-            message = build(self.mav, msg_id, self._snapshot(), self.ident)
+            message = build(self.mav, msg_id, self._snapshot(), ident=self.ident)
             replies.append(Reply(message, inc))
             return MavResult.ACCEPTED
         if cmd.command == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             if p[0] != 1.0:
                 return MavResult.DENIED
             message = build(
-                self.mav, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION, self._snapshot(), self.ident
+                self.mav, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION, self._snapshot(), ident=self.ident
             )
             replies.append(Reply(message, inc))
             return MavResult.ACCEPTED
@@ -214,7 +214,7 @@ class MessageHandler:
             return None
         return param7 - self.ident.site.home_alt_m if self._px4 else param7
 
-    def _set_interval(self, inc: Incoming, p, now_ns: int) -> MavResult:
+    def _set_interval(self, inc: Incoming, p, *, now_ns: int) -> MavResult:
         msg_id = _integer(p[0], 0, 0xFFFFFF)
         interval_us = p[1]
         if msg_id is None or msg_id not in STREAMABLE or not math.isfinite(interval_us):

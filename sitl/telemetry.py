@@ -249,7 +249,7 @@ def autopilot_version(mav: mavlink.MAVLink, ident: Identity):
     )
 
 
-def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, ident: Identity):
+def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity):
     """The message `msg_id` describing `snap`, or None if it is not one this vehicle sends."""
     t_ms = _ms(snap.time_ns)
     site = ident.site

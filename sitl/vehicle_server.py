@@ -268,7 +268,7 @@ class VehicleServer:
         for link in self._links.all():
             for msg_id in self._schedules[link].due(now_ns):
                 snap = snap or self.snapshot()
-                message = build(self.encoder.mav, msg_id, snap, self.ident)
+                message = build(self.encoder.mav, msg_id, snap, ident=self.ident)
                 if message is not None:
                     self._send(message, link)
 

@@ -1,4 +1,4 @@
-"""10^5 hostile datagrams at the vehicle's port: it stays up, keeps serving, never over-speeds.
+"""10^5 hostile datagrams (10^6 with -m slow) at the vehicle: it stays up, serves, never speeds.
 
 The mix: random bytes, CRC-valid frames of every message in the dialect with random payloads
 (targets patched to this vehicle so the handlers act on them), valid setpoints whose floats are
@@ -22,7 +22,6 @@ from protocol.mavlink_map import Frame, MavResult, encode_setpoint
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-N_FRAMES = 100_000
 WINDOW = 250
 VEHICLE = 1
 TARGET_FIELDS = ("target_system", "target_component")
@@ -147,7 +146,8 @@ def drain_client(client: SimClient, speeds: list[float]) -> None:
             speeds.append(horizontal_speed(m))
 
 
-def test_hostile_frames_do_not_break_the_vehicle(start_sitl):
+@pytest.mark.parametrize("n_frames", [100_000, pytest.param(1_000_000, marks=pytest.mark.slow)])
+def test_hostile_frames_do_not_break_the_vehicle(start_sitl, n_frames):
     client = SimClient.listen_udp(target_system=VEHICLE)
     fuzz = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     fuzz.bind(("127.0.0.1", 0))
@@ -163,7 +163,7 @@ def test_hostile_frames_do_not_break_the_vehicle(start_sitl):
         parser.robust_parsing = True
         speeds: list[float] = []
         lost_pongs, sent, t0 = 0, 0, time.monotonic()
-        while sent < N_FRAMES:
+        while sent < n_frames:
             for _ in range(WINDOW):
                 fuzz.sendto(factory.datagram(), target)
             sent += WINDOW
@@ -174,7 +174,7 @@ def test_hostile_frames_do_not_break_the_vehicle(start_sitl):
             assert sitl.proc.poll() is None, "the vehicle process died"
         flood_s = time.monotonic() - t0
         print(f"{sent} frames in {flood_s:.1f} s, {lost_pongs} pongs lost, mix {factory.counts}")
-        assert lost_pongs <= 4
+        assert lost_pongs <= max(4, n_frames // 25_000)
 
         # Still serving: fresh heartbeats and telemetry, and commands are answered.
         result = client.command(
@@ -201,9 +201,9 @@ def test_hostile_frames_do_not_break_the_vehicle(start_sitl):
     summary = sitl.summary()
     print(f"vehicle counters: {summary}")
     assert summary["errors"] == 0, sitl.stderr
-    assert summary["bad"] > 0.05 * N_FRAMES
+    assert summary["bad"] > 0.05 * n_frames
     assert summary["unknown"] > 0
-    assert summary["messages"] > 0.5 * N_FRAMES  # decoded, i.e. not lost before the parser
+    assert summary["messages"] > 0.5 * n_frames  # decoded, i.e. not lost before the parser
 
 
 @pytest.mark.parametrize("seed", [1, 2])
