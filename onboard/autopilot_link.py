@@ -39,6 +39,7 @@ from protocol.mavlink_map import (
     custom_mode_of,
     encode_setpoint,
     mode_from_custom,
+    setpoint_message_args,
 )
 
 __all__ = [
@@ -313,22 +314,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         mav = self._conn.mav
         sent = self._send(
             lambda: mav.set_position_target_local_ned_send(
-                boot_ms,
-                target,
-                1,
-                sp.frame,
-                sp.type_mask,
-                0.0,
-                0.0,
-                0.0,
-                sp.vx_m_s,
-                sp.vy_m_s,
-                sp.vz_m_s,
-                0.0,
-                0.0,
-                0.0,
-                sp.yaw_rad,
-                sp.yaw_rate_rad_s,
+                *setpoint_message_args(sp, time_boot_ms=boot_ms, target_system=target)
             )
         )
         if sent:

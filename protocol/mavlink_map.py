@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from enum import Enum, IntEnum
 
 __all__ = [
+    "setpoint_message_args",
     "COPTER_MODE_OF",
     "DISARM_FORCE_MAGIC",
     "EARTH_RADIUS_M",
@@ -319,6 +320,34 @@ class SetpointFields:
     """Yaw setpoint [rad] (used with TypeMask.VELOCITY_YAW)."""
     yaw_rate_rad_s: float = 0.0
     """Yaw-rate setpoint [rad/s] (used with TypeMask.VELOCITY_YAW_RATE)."""
+
+
+def setpoint_message_args(
+    sp: SetpointFields, *, time_boot_ms: int, target_system: int, target_component: int = 1
+) -> tuple:
+    """Positional arguments of pymavlink's SET_POSITION_TARGET_LOCAL_NED encode/send for `sp`.
+
+    Field order: time_boot_ms, target system, target component, frame, type_mask, x, y, z,
+    vx, vy, vz, afx, afy, afz, yaw, yaw_rate (position and acceleration unused, sent as 0).
+    """
+    return (
+        time_boot_ms,
+        target_system,
+        target_component,
+        sp.frame,
+        sp.type_mask,
+        0.0,
+        0.0,
+        0.0,
+        sp.vx_m_s,
+        sp.vy_m_s,
+        sp.vz_m_s,
+        0.0,
+        0.0,
+        0.0,
+        sp.yaw_rad,
+        sp.yaw_rate_rad_s,
+    )
 
 
 @dataclass(frozen=True)

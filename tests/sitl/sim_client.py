@@ -22,6 +22,7 @@ from protocol.mavlink_map import (  # noqa: E402
     SetpointFields,
     mode_from_custom,
     px4_split_custom_mode,
+    setpoint_message_args,
 )
 
 M = mavutil.mavlink
@@ -143,22 +144,7 @@ class SimClient:
 
     def send_setpoint(self, sp: SetpointFields) -> None:
         self.conn.mav.set_position_target_local_ned_send(
-            max(self.t_ms, 0),
-            self.target,
-            1,
-            sp.frame,
-            sp.type_mask,
-            0.0,
-            0.0,
-            0.0,
-            sp.vx_m_s,
-            sp.vy_m_s,
-            sp.vz_m_s,
-            0.0,
-            0.0,
-            0.0,
-            sp.yaw_rad,
-            sp.yaw_rate_rad_s,
+            *setpoint_message_args(sp, time_boot_ms=max(self.t_ms, 0), target_system=self.target)
         )
 
     def stream(self, sp: SetpointFields | None, *, rate_hz: float = 10.0) -> None:

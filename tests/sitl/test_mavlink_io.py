@@ -6,7 +6,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.mavlink_map import Frame, UnicycleDemand, decode_setpoint, encode_setpoint
+from protocol.mavlink_map import (
+    Frame,
+    UnicycleDemand,
+    decode_setpoint,
+    encode_setpoint,
+    setpoint_message_args,
+)
 from sitl.handlers import setpoint_fields
 from sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
 
@@ -19,10 +25,9 @@ def client_frame(message_of) -> bytes:
 def setpoint_frame(sp) -> bytes:
     return client_frame(
         lambda mav: mav.set_position_target_local_ned_encode(
-            0, 1, 1, sp.frame, sp.type_mask, 0, 0, 0,
-            sp.vx_m_s, sp.vy_m_s, sp.vz_m_s, 0, 0, 0, sp.yaw_rad, sp.yaw_rate_rad_s,
+            *setpoint_message_args(sp, time_boot_ms=0, target_system=1)
         )
-    )  # fmt: skip
+    )
 
 
 HEARTBEAT = client_frame(lambda mav: mav.heartbeat_encode(6, 8, 0, 0, 4))
