@@ -14,7 +14,9 @@ than the latest accepted one of the same sender and kind is dropped and counted 
 (same seq) or out of order (older seq), unless its timestamp is newer, which means the sender
 restarted (accepted and counted). Nothing raises into the caller's loop; transport callbacks may
 run on other threads, so the receive state is guarded by a lock. Staleness is the caller's call:
-`latest_plans(now_ns, max_age_ns)` returns what is fresh enough and nothing else.
+`latest_plans(now_ns, max_age_ns)` returns what is fresh enough and nothing else. A ground
+station that must see every message, not just the latest, passes `on_accept`: it is called with
+each accepted message, on the transport's thread, outside the bus's lock.
 """
 
 import numbers
@@ -31,6 +33,7 @@ from protocol.keys import (
     KeyFormatError,
     all_plans_key,
     all_statuses_key,
+    epoch_key,
     parse_key,
     plan_key,
     status_key,
@@ -41,6 +44,7 @@ from protocol.messages import (
     MAX_SENDER_ID,
     MIN_SENDER_ID,
     DecodeError,
+    FleetEpoch,
     Message,
     MessageKind,
     PlanMessage,
@@ -101,6 +105,8 @@ class BusCounters:
     """Accepted although their seq was not newer, because their timestamp was (sender restart)."""
     own_ignored: int = 0
     """Valid messages carrying this bus's own vehicle id (another process using the same id)."""
+    listener_errors: int = 0
+    """Accepted messages whose `on_accept` listener raised (a bug in the listener)."""
     rejected: Mapping[RejectReason, int] = field(default_factory=lambda: MappingProxyType({}))
     """Rejected payloads by reason."""
 
@@ -134,9 +140,17 @@ def _check_ns(name: str, value: int, *, minimum: int | None = None) -> int:
 class _Inbox:
     """Thread-safe receive side: validation, duplicate rules, latest message per sender."""
 
-    def __init__(self, *, fleet: str, vehicle_id: int | None) -> None:
+    def __init__(
+        self,
+        *,
+        fleet: str,
+        vehicle_id: int | None,
+        on_accept: Callable[[Message], None] | None = None,
+    ) -> None:
         self._fleet = fleet
         self._own = vehicle_id
+        self._on_accept = on_accept
+        self._listener_errors = 0
         self._lock = threading.Lock()
         self._latest: dict[tuple[MessageKind, int], Message] = {}
         self._rejected: dict[RejectReason, int] = {}
@@ -151,12 +165,19 @@ class _Inbox:
             reason, message = RejectReason.INTERNAL, None
         with self._lock:
             self._received += 1
+            accepted = False
             if reason is not None:
                 self._rejected[reason] = self._rejected.get(reason, 0) + 1
             elif message.sender_id == self._own:
                 self._own_ignored += 1
             else:
-                self._store(message)
+                accepted = self._store(message)
+        if accepted and self._on_accept is not None:
+            try:
+                self._on_accept(message)
+            except Exception:  # the listener's bug must not kill a transport thread
+                with self._lock:
+                    self._listener_errors += 1
 
     def _check(self, key: str, payload: bytes) -> tuple[RejectReason | None, Message | None]:
         try:
@@ -173,8 +194,8 @@ class _Inbox:
             return RejectReason.KEY_MISMATCH, None
         return None, message
 
-    def _store(self, message: Message) -> None:
-        """Apply the sequence rules; called with the lock held."""
+    def _store(self, message: Message) -> bool:
+        """Apply the sequence rules; True if stored. Called with the lock held."""
         slot = (message.kind, message.sender_id)
         latest = self._latest.get(slot)
         if latest is None or message.seq > latest.seq:
@@ -183,12 +204,13 @@ class _Inbox:
             self._restarts += 1
         elif message.seq == latest.seq:
             self._duplicates += 1
-            return
+            return False
         else:
             self._out_of_order += 1
-            return
+            return False
         self._latest[slot] = message
         self._accepted += 1
+        return True
 
     def latest(self, kind: MessageKind, now_ns: int, max_age_ns: int) -> dict[int, Message]:
         """Latest accepted message of `kind` per sender with |now - stamp| <= max_age."""
@@ -209,6 +231,7 @@ class _Inbox:
                 out_of_order=self._out_of_order,
                 sender_restarts=self._restarts,
                 own_ignored=self._own_ignored,
+                listener_errors=self._listener_errors,
                 rejected=MappingProxyType(dict(sorted(self._rejected.items()))),
             )
 
@@ -220,10 +243,16 @@ class PlanBus(ABC):
     A bus is a context manager; `close` is idempotent; what was received stays readable.
     """
 
-    def __init__(self, *, fleet: str, vehicle_id: int | None) -> None:
+    def __init__(
+        self,
+        *,
+        fleet: str,
+        vehicle_id: int | None,
+        on_accept: Callable[[Message], None] | None = None,
+    ) -> None:
         self._fleet = validate_fleet(fleet)
         self._vehicle_id = _check_vehicle_id(vehicle_id)
-        self._inbox = _Inbox(fleet=self._fleet, vehicle_id=self._vehicle_id)
+        self._inbox = _Inbox(fleet=self._fleet, vehicle_id=self._vehicle_id, on_accept=on_accept)
         self._send_lock = threading.Lock()
         self._seq = dict.fromkeys(MessageKind, 0)
         self._keys: dict[MessageKind, str] = {}
@@ -232,6 +261,7 @@ class PlanBus(ABC):
                 MessageKind.PLAN: plan_key(self._fleet, self._vehicle_id),
                 MessageKind.STATUS: status_key(self._fleet, self._vehicle_id),
                 MessageKind.TARGET_OBSERVATION: target_observation_key(self._fleet),
+                MessageKind.FLEET_EPOCH: epoch_key(self._fleet),
             }
         self._published = 0
         self._publish_errors = 0
@@ -252,7 +282,7 @@ class PlanBus(ABC):
 
     def _subscriptions(self) -> tuple[str, ...]:
         f = self._fleet
-        return (all_plans_key(f), all_statuses_key(f), target_observation_key(f))
+        return (all_plans_key(f), all_statuses_key(f), target_observation_key(f), epoch_key(f))
 
     @property
     def fleet(self) -> str:
@@ -325,6 +355,19 @@ class PlanBus(ABC):
             )
 
         self._publish(MessageKind.TARGET_OBSERVATION, make)
+
+    def publish_epoch(self, *, epoch_ns: int, speed: float) -> None:
+        """Announce the fleet's epoch (wall-clock ns of fleet time 0) and speed."""
+
+        def make(seq: int) -> Message:
+            return FleetEpoch(sender_id=self._vehicle_id, seq=seq, epoch_ns=epoch_ns, speed=speed)
+
+        self._publish(MessageKind.FLEET_EPOCH, make)
+
+    def latest_epoch(self) -> FleetEpoch | None:
+        """The newest epoch announcement (any sender), or None before the first."""
+        announced = self._inbox.latest(MessageKind.FLEET_EPOCH, 0, 0)
+        return max(announced.values(), key=lambda m: (m.seq, -m.sender_id), default=None)
 
     def latest_plan_messages(self, now_ns: int, max_age_ns: int) -> dict[int, PlanMessage]:
         """Latest accepted plan message per neighbour, if |now_ns - stamp| <= max_age_ns."""
@@ -451,8 +494,15 @@ class MemoryHubs:
 class InMemoryPlanBus(PlanBus):
     """A PlanBus on a MemoryHub: no threads, no sockets, deterministic."""
 
-    def __init__(self, hub: MemoryHub, *, fleet: str, vehicle_id: int | None) -> None:
-        super().__init__(fleet=fleet, vehicle_id=vehicle_id)
+    def __init__(
+        self,
+        hub: MemoryHub,
+        *,
+        fleet: str,
+        vehicle_id: int | None,
+        on_accept: Callable[[Message], None] | None = None,
+    ) -> None:
+        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
         self._hub = hub
         hub.attach(self._subscriptions(), self, self._deliver)
 
@@ -470,17 +520,21 @@ def open_plan_bus(
     fleet: str,
     vehicle_id: int | None,
     hubs: MemoryHubs | None = None,
+    on_accept: Callable[[Message], None] | None = None,
 ) -> PlanBus:
     """Open the PlanBus a URL names: ``mem://NAME`` (needs `hubs`), ``zenoh[://...]``.
 
-    A `protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL.
+    A `protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL. `on_accept`: see
+    the module docstring.
     """
     if isinstance(url_or_options, str) and url_or_options.startswith("mem://"):
         if hubs is None:
             raise ConfigError("hubs", "a mem:// plan bus needs the runner's MemoryHubs")
         name = url_or_options.removeprefix("mem://")
         validate_fleet(name, field="plan_bus_url")
-        return InMemoryPlanBus(hubs.hub(name), fleet=fleet, vehicle_id=vehicle_id)
+        return InMemoryPlanBus(
+            hubs.hub(name), fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept
+        )
     from onboard.zenoh_planbus import ZenohPlanBus
     from protocol.zenoh_config import ZenohOptions
 
@@ -495,4 +549,4 @@ def open_plan_bus(
             "plan_bus_url",
             f"unknown plan bus {url_or_options!r} (known: mem://NAME, zenoh, zenoh://HOST:PORT)",
         )
-    return ZenohPlanBus(options, fleet=fleet, vehicle_id=vehicle_id)
+    return ZenohPlanBus(options, fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)

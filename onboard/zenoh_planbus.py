@@ -1,17 +1,19 @@
 """ZenohPlanBus: the PlanBus on eclipse-zenoh 1.x.
 
 One session per bus, configured by `protocol.zenoh_config.ZenohOptions` (explicit endpoints,
-scouting off). The bus subscribes to the fleet's plan, status and target keys with a callback
+scouting off). The bus subscribes to the fleet's plan, status, target and epoch keys with a callback
 (run on zenoh threads; the receive rules in `onboard.planbus` hold a lock) and ignores its own
 session's publications. `close` undeclares everything and closes the session: an open session
 can hang interpreter exit.
 """
 
 import contextlib
+from collections.abc import Callable
 
 import zenoh
 
 from onboard.planbus import PlanBus, PlanBusError
+from protocol.messages import Message
 from protocol.zenoh_config import ZenohOptions
 
 __all__ = ["ZenohPlanBus"]
@@ -20,8 +22,15 @@ __all__ = ["ZenohPlanBus"]
 class ZenohPlanBus(PlanBus):
     """A PlanBus over a Zenoh session."""
 
-    def __init__(self, options: ZenohOptions, *, fleet: str, vehicle_id: int | None) -> None:
-        super().__init__(fleet=fleet, vehicle_id=vehicle_id)
+    def __init__(
+        self,
+        options: ZenohOptions,
+        *,
+        fleet: str,
+        vehicle_id: int | None,
+        on_accept: Callable[[Message], None] | None = None,
+    ) -> None:
+        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
         self.options = options
         config = options.to_config()
         zenoh.init_log_from_env_or("error")

@@ -4,7 +4,8 @@ Every key lives under ``fleetmpc/<fleet>/``:
 
 - ``fleetmpc/<fleet>/uav/<id>/plan``: a vehicle's assumed trajectory (PlanMessage);
 - ``fleetmpc/<fleet>/uav/<id>/status``: a vehicle's status (StatusMessage);
-- ``fleetmpc/<fleet>/target/observation``: an observation of the target (TargetObservation).
+- ``fleetmpc/<fleet>/target/observation``: an observation of the target (TargetObservation);
+- ``fleetmpc/<fleet>/epoch``: when fleet time 0 is, announced by the ground station (FleetEpoch).
 
 ``<fleet>`` is 1..64 characters of ``[A-Za-z0-9_-]`` (no key-expression wildcards or separators);
 ``<id>`` is the vehicle's MAVLink system id 1..250, in decimal without leading zeros.
@@ -21,6 +22,7 @@ __all__ = [
     "ParsedKey",
     "all_plans_key",
     "all_statuses_key",
+    "epoch_key",
     "fleet_key",
     "parse_key",
     "plan_key",
@@ -47,7 +49,7 @@ class ParsedKey:
     kind: MessageKind
     """The message kind the key carries."""
     vehicle_id: int | None
-    """Vehicle system id for per-vehicle keys; None for the target observation key."""
+    """Vehicle system id for per-vehicle keys; None for the fleet-wide keys."""
 
 
 def validate_fleet(fleet: str, *, field: str = "fleet") -> str:
@@ -90,6 +92,11 @@ def target_observation_key(fleet: str) -> str:
     return f"{ROOT}/{validate_fleet(fleet)}/target/observation"
 
 
+def epoch_key(fleet: str) -> str:
+    """Key of the fleet's epoch announcements: ``fleetmpc/<fleet>/epoch``."""
+    return f"{ROOT}/{validate_fleet(fleet)}/epoch"
+
+
 def all_plans_key(fleet: str) -> str:
     """Subscription to every vehicle's plans: ``fleetmpc/<fleet>/uav/*/plan``."""
     return f"{ROOT}/{validate_fleet(fleet)}/uav/*/plan"
@@ -110,6 +117,8 @@ def parse_key(key: str) -> ParsedKey:
     fleet, rest = parts[1], parts[2:]
     if rest == ["target", "observation"]:
         return ParsedKey(fleet, MessageKind.TARGET_OBSERVATION, None)
+    if rest == ["epoch"]:
+        return ParsedKey(fleet, MessageKind.FLEET_EPOCH, None)
     if len(rest) == 3 and rest[0] == "uav" and rest[2] in ("plan", "status"):
         if not _ID_RE.fullmatch(rest[1]) or not MIN_SENDER_ID <= int(rest[1]) <= MAX_SENDER_ID:
             raise KeyFormatError(f"bad vehicle id {rest[1]!r} in key {key!r}")

@@ -1,4 +1,4 @@
-"""Binary wire schema of the Zenoh messages (schema version 1), packed with `struct`.
+"""Binary wire schema of the Zenoh messages (schema version 2), packed with `struct`.
 
 All integers and floats are little-endian; floats are IEEE-754 float64 and round-trip bit-exactly.
 
@@ -6,8 +6,8 @@ Header, 18 bytes, common to every message::
 
     offset size type  field
     0      2    2s    magic, b"FM"
-    2      1    u8    schema version (1)
-    3      1    u8    message kind: 1 plan, 2 status, 3 target observation
+    2      1    u8    schema version (2)
+    3      1    u8    message kind: 1 plan, 2 status, 3 target observation, 4 fleet epoch
     4      1    u8    sender id, the vehicle's MAVLink system id (1..250)
     5      1    u8    reserved, 0
     6      4    u32   sequence number, per sender and kind, increasing
@@ -24,7 +24,7 @@ PlanMessage (kind 1), 18 + 24 + 40 M + 24 bytes (266 bytes at M = 5)::
     42     24(M+1) f64 states, row-major (x North m, y East m, yaw rad) for j = 0..M
     ..     16M  f64   inputs, row-major (speed m/s, yaw rate rad/s) for j = 0..M-1
 
-StatusMessage (kind 2), 141 bytes::
+StatusMessage (kind 2), 149 bytes::
 
     18     1    u8    mode (VehicleMode)
     19     1    u8    flags: bit 0 armed, bit 1 learning_on, bit 2 learning_frozen; other bits 0
@@ -34,7 +34,8 @@ StatusMessage (kind 2), 141 bytes::
     53     8    f64   slot_error_m, distance from the vehicle to its formation slot
     61     4    u32   qp_fallbacks, control periods that applied the fallback law
     65     4    u32   rejected_messages, received messages rejected by the vehicle's bus
-    69     72   8 x (u8 neighbour id, i64 age_ns of its latest plan); unused entries all zero
+    69     8    f64   setpoint_rate_hz, setpoints sent to the autopilot per simulated second
+    77     72   8 x (u8 neighbour id, i64 age_ns of its latest plan); unused entries all zero
 
 TargetObservation (kind 3), 59 bytes::
 
@@ -44,6 +45,11 @@ TargetObservation (kind 3), 59 bytes::
     35     8    f64   velocity North [m/s] (0 without velocity)
     43     8    f64   velocity East [m/s] (0 without velocity)
     51     8    f64   noise_std_m, 1-sigma position noise (>= 0)
+
+FleetEpoch (kind 4), 34 bytes; header stamp 0, sender the ground station::
+
+    18     8    i64   epoch_ns, host wall-clock time (Unix ns) of fleet time 0 (> 0)
+    26     8    f64   speed, simulated seconds per wall-clock second (0.01 .. 1000)
 
 Limits checked on both sides: |x|, |y| <= 1e6 m, |yaw| <= 1e4 rad (unwrapped headings are fine),
 |speed| <= 1e3 m/s, |yaw rate| <= 1e3 rad/s, |beta| <= 1e3. `decode` checks size, magic, version,
@@ -72,6 +78,9 @@ __all__ = [
     "MIN_SENDER_ID",
     "SCHEMA_VERSION",
     "DecodeError",
+    "FleetEpoch",
+    "GROUND_STATION_ID",
+    "TARGET_ID",
     "LearnedParams",
     "Message",
     "MessageKind",
@@ -89,9 +98,13 @@ __all__ = [
 ]
 
 MAGIC = b"FM"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 MIN_SENDER_ID = 1
 MAX_SENDER_ID = 250
+GROUND_STATION_ID = 249
+"""Sender id of the ground station (it announces the fleet epoch)."""
+TARGET_ID = 250
+"""Sender id of the scripted target's observations."""
 MAX_HORIZON = 100
 MAX_NEIGHBOURS = 8
 MAX_PERIOD_NS = 60_000_000_000
@@ -106,11 +119,15 @@ _I64_MIN, _I64_MAX = -(2**63), 2**63 - 1
 
 _HEADER = struct.Struct("<2sBBBBIq")
 _PLAN_FIXED = struct.Struct("<qHBBdI")
-_STATUS_FIXED = struct.Struct("<BBB4ddII")
+_STATUS_FIXED = struct.Struct("<BBB4ddIId")
 _NEIGHBOUR = struct.Struct("<Bq")
 _TARGET = struct.Struct("<B5d")
+_EPOCH = struct.Struct("<qd")
 _STATUS_SIZE = _HEADER.size + _STATUS_FIXED.size + MAX_NEIGHBOURS * _NEIGHBOUR.size
 _TARGET_SIZE = _HEADER.size + _TARGET.size
+_EPOCH_SIZE = _HEADER.size + _EPOCH.size
+MIN_SPEED, MAX_SPEED = 0.01, 1000.0
+MAX_SETPOINT_RATE_HZ = 1e4
 
 
 class MessageKind(IntEnum):
@@ -119,6 +136,7 @@ class MessageKind(IntEnum):
     PLAN = 1
     STATUS = 2
     TARGET_OBSERVATION = 3
+    FLEET_EPOCH = 4
 
 
 class VehicleMode(IntEnum):
@@ -352,6 +370,8 @@ class VehicleStatus:
     """Control periods so far that applied the fallback law (u32)."""
     rejected_messages: int = 0
     """Received messages so far rejected by the vehicle's bus (u32)."""
+    setpoint_rate_hz: float = 0.0
+    """Setpoints sent to the autopilot per simulated second, over the last period."""
 
     def __post_init__(self) -> None:
         _mode("status.mode", self.mode)
@@ -374,6 +394,7 @@ class VehicleStatus:
             )
         _int("status.qp_fallbacks", self.qp_fallbacks, 0, _U32)
         _int("status.rejected_messages", self.rejected_messages, 0, _U32)
+        _float("status.setpoint_rate_hz", self.setpoint_rate_hz, MAX_SETPOINT_RATE_HZ, lo=0.0)
 
 
 @dataclass(frozen=True)
@@ -431,7 +452,30 @@ class TargetObservation:
             object.__setattr__(self, "velocity_m_s", vel)
 
 
-Message = PlanMessage | StatusMessage | TargetObservation
+@dataclass(frozen=True)
+class FleetEpoch:
+    """When fleet time 0 is on the host's wall clock, and how fast fleet time runs."""
+
+    sender_id: int
+    """Announcer's id (the ground station's, 1..250)."""
+    seq: int
+    """Sequence number of the sender's announcements (u32)."""
+    epoch_ns: int
+    """Host wall-clock time (Unix ns) of fleet time 0."""
+    speed: float
+    """Simulated seconds per wall-clock second."""
+    stamp_ns: int = 0
+    """Always 0: an epoch is not a sample of fleet time."""
+
+    kind = MessageKind.FLEET_EPOCH
+
+    def __post_init__(self) -> None:
+        _header_fields(self.sender_id, self.seq, self.stamp_ns)
+        _int("epoch_ns", self.epoch_ns, 1, _I64_MAX)
+        _float("speed", self.speed, MAX_SPEED, lo=MIN_SPEED)
+
+
+Message = PlanMessage | StatusMessage | TargetObservation | FleetEpoch
 
 
 def _header_fields(sender_id: object, seq: object, stamp_ns: object) -> None:
@@ -477,6 +521,7 @@ def encode(message: Message) -> bytes:
                     st.slot_error_m,
                     st.qp_fallbacks,
                     st.rejected_messages,
+                    st.setpoint_rate_hz,
                 ),
                 table,
             )
@@ -490,6 +535,11 @@ def encode(message: Message) -> bytes:
             message.east_m,
             *(vel if vel is not None else (0.0, 0.0)),
             message.noise_std_m,
+        )
+    if isinstance(message, FleetEpoch):
+        kind = MessageKind.FLEET_EPOCH
+        return _header(kind, message.sender_id, message.seq, message.stamp_ns) + _EPOCH.pack(
+            message.epoch_ns, message.speed
         )
     raise ConfigError("message", f"cannot encode {type(message).__name__}")
 
@@ -534,7 +584,7 @@ def _decode_status(data: bytes, sender: int, seq: int, stamp: int) -> StatusMess
     if len(data) != _STATUS_SIZE:
         raise _reject(RejectReason.SIZE, f"status is {_STATUS_SIZE} bytes, got {len(data)}")
     mode, flags, count, *rest = _STATUS_FIXED.unpack_from(data, _HEADER.size)
-    beta, slot_error, fallbacks, rejected = rest[:4], rest[4], rest[5], rest[6]
+    beta, (slot_error, fallbacks, rejected, setpoint_rate) = rest[:4], rest[4:]
     if flags & ~0b111:
         raise _reject(RejectReason.RANGE, f"reserved status flag bits set: {flags:#04x}")
     if count > MAX_NEIGHBOURS:
@@ -553,6 +603,7 @@ def _decode_status(data: bytes, sender: int, seq: int, stamp: int) -> StatusMess
         neighbour_plan_ages=tuple(NeighbourPlanAge(i, age) for i, age in entries[:count]),
         qp_fallbacks=fallbacks,
         rejected_messages=rejected,
+        setpoint_rate_hz=setpoint_rate,
     )
     return StatusMessage(sender_id=sender, seq=seq, stamp_ns=stamp, status=status)
 
@@ -577,10 +628,18 @@ def _decode_target(data: bytes, sender: int, seq: int, stamp: int) -> TargetObse
     )
 
 
+def _decode_epoch(data: bytes, sender: int, seq: int, stamp: int) -> FleetEpoch:
+    if len(data) != _EPOCH_SIZE:
+        raise _reject(RejectReason.SIZE, f"epoch is {_EPOCH_SIZE} bytes, got {len(data)}")
+    epoch_ns, speed = _EPOCH.unpack_from(data, _HEADER.size)
+    return FleetEpoch(sender_id=sender, seq=seq, epoch_ns=epoch_ns, speed=speed, stamp_ns=stamp)
+
+
 _DECODERS = {
     MessageKind.PLAN: _decode_plan,
     MessageKind.STATUS: _decode_status,
     MessageKind.TARGET_OBSERVATION: _decode_target,
+    MessageKind.FLEET_EPOCH: _decode_epoch,
 }
 
 

@@ -21,13 +21,11 @@ import numpy as np
 
 from onboard.core.errors import ConfigError
 from onboard.planbus import open_plan_bus
+from protocol.messages import TARGET_ID
 from protocol.scenario import load_scenario
 from protocol.zenoh_config import ZenohOptions
 
-__all__ = ["TARGET_SENDER_ID", "add_arguments", "run"]
-
-TARGET_SENDER_ID = 250
-"""Sender id of the target's observations."""
+__all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -72,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         bus = open_plan_bus(
             _options(args, scenario),
             fleet=args.fleet or scenario.name,
-            vehicle_id=TARGET_SENDER_ID,
+            vehicle_id=TARGET_ID,
         )
         print(f"fleetmpc target: epoch_ns {epoch_ns} speed {args.speed:g}", flush=True)
         k = 0

@@ -445,3 +445,31 @@ def test_a_process_using_zenoh_buses_exits_promptly() -> None:
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "received [1]"
+
+
+def test_epoch_announcement_and_accept_listener() -> None:
+    hubs = MemoryHubs()
+    seen = []
+    gcs = open_plan_bus("mem://t", fleet="f", vehicle_id=249, hubs=hubs)
+    agent = open_plan_bus("mem://t", fleet="f", vehicle_id=1, hubs=hubs, on_accept=seen.append)
+    assert agent.latest_epoch() is None
+    gcs.publish_epoch(epoch_ns=5_000, speed=4.0)
+    gcs.publish_epoch(epoch_ns=6_000, speed=4.0)
+    gcs.publish_epoch(epoch_ns=6_000, speed=4.0)
+    e = agent.latest_epoch()
+    assert (e.epoch_ns, e.speed, e.sender_id) == (6_000, 4.0, 249)
+    assert [m.epoch_ns for m in seen] == [5_000, 6_000, 6_000]
+    with pytest.raises(ConfigError, match="speed"):
+        gcs.publish_epoch(epoch_ns=1, speed=0.0)
+
+
+def test_a_raising_listener_is_counted_not_propagated() -> None:
+    hubs = MemoryHubs()
+
+    def boom(_message) -> None:
+        raise RuntimeError("listener bug")
+
+    a = open_plan_bus("mem://t", fleet="f", vehicle_id=1, hubs=hubs)
+    b = open_plan_bus("mem://t", fleet="f", vehicle_id=2, hubs=hubs, on_accept=boom)
+    a.publish_epoch(epoch_ns=1, speed=1.0)
+    assert b.counters().listener_errors == 1 and b.latest_epoch() is not None

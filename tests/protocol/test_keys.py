@@ -11,6 +11,7 @@ from protocol.keys import (
     ParsedKey,
     all_plans_key,
     all_statuses_key,
+    epoch_key,
     fleet_key,
     parse_key,
     plan_key,
@@ -35,6 +36,7 @@ def test_key_formats() -> None:
     assert all_plans_key("paper") == "fleetmpc/paper/uav/*/plan"
     assert all_statuses_key("paper") == "fleetmpc/paper/uav/*/status"
     assert fleet_key("paper") == "fleetmpc/paper/**"
+    assert epoch_key("paper") == "fleetmpc/paper/epoch"
 
 
 @given(fleet=fleets, vehicle_id=ids)
@@ -46,6 +48,7 @@ def test_parse_round_trip(fleet: str, vehicle_id: int) -> None:
     assert parse_key(target_observation_key(fleet)) == ParsedKey(
         fleet, MessageKind.TARGET_OBSERVATION, None
     )
+    assert parse_key(epoch_key(fleet)) == ParsedKey(fleet, MessageKind.FLEET_EPOCH, None)
 
 
 @given(fleet=fleets, vehicle_id=ids)

@@ -13,6 +13,7 @@ from onboard.core.errors import ConfigError
 from onboard.core.plan import Plan
 from protocol.messages import (
     DecodeError,
+    FleetEpoch,
     LearnedParams,
     MessageKind,
     NeighbourPlanAge,
@@ -124,7 +125,7 @@ def test_status_round_trip_is_bit_exact(message: StatusMessage) -> None:
     out = decode(payload)
     assert out == message
     assert bits(out.status.beta.as_tuple()) == bits(message.status.beta.as_tuple())
-    assert encode(out) == payload and len(payload) == 141
+    assert encode(out) == payload and len(payload) == 149
 
 
 @given(message=targets)
@@ -168,8 +169,26 @@ def status_bytes() -> bytes:
         neighbour_plan_ages=(NeighbourPlanAge(1, 200_000_000), NeighbourPlanAge(3, -5)),
         qp_fallbacks=4,
         rejected_messages=9,
+        setpoint_rate_hz=20.5,
     )
     return encode(StatusMessage(sender_id=2, seq=7, stamp_ns=5, status=status))
+
+
+def epoch_bytes() -> bytes:
+    return encode(FleetEpoch(sender_id=249, seq=3, epoch_ns=1_700_000_000_000_000_000, speed=4.0))
+
+
+def test_epoch_layout_and_round_trip() -> None:
+    e = epoch_bytes()
+    assert len(e) == 34 and e[3] == MessageKind.FLEET_EPOCH and e[4] == 249
+    assert struct.unpack_from("<qd", e, 18) == (1_700_000_000_000_000_000, 4.0)
+    out = decode(e)
+    assert isinstance(out, FleetEpoch) and (out.epoch_ns, out.speed, out.seq) == (
+        1_700_000_000_000_000_000,
+        4.0,
+        3,
+    )
+    assert encode(out) == e
 
 
 def target_bytes(velocity: tuple[float, float] | None = (1.0, 1.0)) -> bytes:
@@ -183,7 +202,7 @@ def target_bytes(velocity: tuple[float, float] | None = (1.0, 1.0)) -> bytes:
 def test_byte_layout_matches_the_documentation() -> None:
     b = plan_bytes(5)
     assert len(b) == 266
-    assert b[0:2] == b"FM" and b[2] == 1 and b[3] == MessageKind.PLAN and b[4] == 2 and b[5] == 0
+    assert b[0:2] == b"FM" and b[2] == 2 and b[3] == MessageKind.PLAN and b[4] == 2 and b[5] == 0
     assert struct.unpack_from("<Iq", b, 6) == (42, 1_000_000_000)
     assert struct.unpack_from("<qHBBdI", b, 18) == (
         200_000_000,
@@ -198,9 +217,9 @@ def test_byte_layout_matches_the_documentation() -> None:
     assert struct.unpack_from("<2d", b, 42 + 24 * 6) == (1.0, -0.25)
     s = status_bytes()
     assert s[3] == MessageKind.STATUS and s[18:21] == bytes([VehicleMode.HOLD, 0b101, 2])
-    assert struct.unpack_from("<4ddII", s, 21) == (0.8, 1.1, 0.3, -0.2, 1.5, 4, 9)
-    assert struct.unpack_from("<BqBq", s, 69) == (1, 200_000_000, 3, -5)
-    assert s[87:] == bytes(141 - 87)
+    assert struct.unpack_from("<4ddIId", s, 21) == (0.8, 1.1, 0.3, -0.2, 1.5, 4, 9, 20.5)
+    assert struct.unpack_from("<BqBq", s, 77) == (1, 200_000_000, 3, -5)
+    assert s[95:] == bytes(149 - 95)
     t = target_bytes()
     assert t[3] == MessageKind.TARGET_OBSERVATION and t[18] == 1
     assert struct.unpack_from("<5d", t, 19) == (5.0, 6.0, 1.0, 1.0, 0.1)
@@ -229,7 +248,8 @@ REJECTIONS = {
     "truncated status": (status_bytes()[:-8], RejectReason.SIZE),
     "truncated target": (target_bytes()[:-1], RejectReason.SIZE),
     "wrong magic": (b"XX" + plan_bytes()[2:], RejectReason.MAGIC),
-    "wrong version": (patched(plan_bytes(), 2, "<B", 2), RejectReason.VERSION),
+    "wrong version": (patched(plan_bytes(), 2, "<B", 1), RejectReason.VERSION),
+    "future version": (patched(plan_bytes(), 2, "<B", 3), RejectReason.VERSION),
     "unknown kind": (patched(plan_bytes(), 3, "<B", 9), RejectReason.KIND),
     "kind zero": (patched(plan_bytes(), 3, "<B", 0), RejectReason.KIND),
     "sender zero": (patched(plan_bytes(), 4, "<B", 0), RejectReason.SENDER),
@@ -257,8 +277,14 @@ REJECTIONS = {
     "reserved status flags": (patched(status_bytes(), 19, "<B", 0x08), RejectReason.RANGE),
     "nine neighbours": (patched(status_bytes(), 20, "<B", 9), RejectReason.RANGE),
     "stale neighbour entry": (patched(status_bytes(), 20, "<B", 1), RejectReason.RANGE),
-    "neighbour id zero": (patched(status_bytes(), 69, "<B", 0), RejectReason.RANGE),
-    "duplicate neighbour": (patched(status_bytes(), 78, "<B", 1), RejectReason.RANGE),
+    "neighbour id zero": (patched(status_bytes(), 77, "<B", 0), RejectReason.RANGE),
+    "NaN setpoint rate": (patched(status_bytes(), 69, "<d", NAN), RejectReason.NON_FINITE),
+    "negative setpoint rate": (patched(status_bytes(), 69, "<d", -1.0), RejectReason.RANGE),
+    "epoch zero": (patched(epoch_bytes(), 18, "<q", 0), RejectReason.RANGE),
+    "epoch speed zero": (patched(epoch_bytes(), 26, "<d", 0.0), RejectReason.RANGE),
+    "epoch speed NaN": (patched(epoch_bytes(), 26, "<d", NAN), RejectReason.NON_FINITE),
+    "epoch truncated": (epoch_bytes()[:-1], RejectReason.SIZE),
+    "duplicate neighbour": (patched(status_bytes(), 86, "<B", 1), RejectReason.RANGE),
     "beta beyond 1e3": (patched(status_bytes(), 21, "<d", 1e4), RejectReason.RANGE),
     "negative slot error": (patched(status_bytes(), 53, "<d", -1.0), RejectReason.RANGE),
     "reserved target flags": (patched(target_bytes(), 18, "<B", 3), RejectReason.RANGE),
