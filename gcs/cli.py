@@ -22,6 +22,8 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "target": ("sitl.target_process", "fly the scripted target and publish its observations"),
     "zenoh-router": ("protocol.zenoh_router", "a Zenoh router for a fleet (compose, multi-host)"),
     "report": ("gcs.report", "figures and metrics from a Rerun recording (.rrd)"),
+    "gcs": ("gcs.ground_station", "ground station: telemetry, plans and metrics into Rerun"),
+    "up": ("gcs.up", "start a whole fleet on this machine, watch it, bring it down"),
 }
 
 

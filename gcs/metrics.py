@@ -32,6 +32,7 @@ def compute_metrics(rec: FlightRecord) -> dict:
     slot_dist = np.linalg.norm(pos - rec.slots, axis=2)
     c_norm = np.linalg.norm(rec.c, axis=2)
     tol = 1e-9
+    known = np.isfinite(rec.command).all(axis=-1)  # a live record may miss some commands
     inside = (np.abs(rec.command[..., 0]) <= rec.speed_max_m_s + tol) & (
         np.abs(rec.command[..., 1]) <= rec.yaw_rate_max_rad_s + tol
     )
@@ -53,7 +54,7 @@ def compute_metrics(rec: FlightRecord) -> dict:
         "formation_rms_m": float(np.sqrt(np.mean(slot_dist[w10] ** 2))),
         "c_norm_final": float(np.max(np.mean(c_norm[w5], axis=0))),
         "min_separation_m": float(rec.min_separation_m),
-        "inputs_within_bounds": float(np.mean(inside)),
+        "inputs_within_bounds": float(np.mean(inside[known])) if known.any() else None,
         "beta_error": beta_error,
         "step_time_ms": {
             "median": float(np.median(times)) if times.size else None,

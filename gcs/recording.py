@@ -9,7 +9,10 @@ integer nanoseconds. Entity layout (a live ground station logs the same paths):
 - `series/separation/<a>-<b>`, `series/centre_distance`, `series/formation_error/<id>` [m],
   `series/c_norm/<id>`, `series/beta/<id>/<param>`, `series/beta_truth/<id>/<param>`,
   `series/solve_time_ms/<id>` (Scalars);
-- `events` (TextLog): QP fallbacks;
+- `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
+- live runs only: `map/plans/<id>` (each agent's planned horizon, LineStrips2D),
+  `map/target_prediction` (the ground station's prediction of the target over the horizon),
+  `series/plan_age/<id>/<neighbour>` [s] and `series/setpoint_rate/<id>` [Hz] (Scalars);
 - `meta` (static AnyValues) and `flight_record` (AnyValues, float64, one row per period): what
   `gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
 
@@ -19,6 +22,7 @@ is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that
 
 import json
 import uuid
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +31,7 @@ import rerun.blueprint as rrb
 
 from gcs.metrics import pair_indices
 from gcs.record import FlightRecord
+from protocol.messages import PlanMessage, StatusMessage
 
 __all__ = [
     "APPLICATION_ID",
@@ -34,7 +39,12 @@ __all__ = [
     "RECORD_ARRAYS",
     "TIMELINE",
     "fleet_blueprint",
+    "log_events",
     "log_flight_record",
+    "log_plans",
+    "log_status_series",
+    "log_target_predictions",
+    "open_recording",
     "map_from_ned",
     "sim_time_ns",
     "write_recording",
@@ -151,12 +161,12 @@ def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) 
 
 
 def _log_record_arrays(
-    stream: rr.RecordingStream, rec: FlightRecord, *, time: rr.TimeColumn
+    stream: rr.RecordingStream, rec: FlightRecord, *, time: rr.TimeColumn, start: int
 ) -> None:
-    k = len(rec.t_s)
+    k = len(rec.t_s) - start
     arrays = {}
     for name in RECORD_ARRAYS:
-        a = np.asarray(getattr(rec, name))
+        a = np.asarray(getattr(rec, name))[start:]
         a = a.astype(np.bool_) if name == "qp_ok" else a.astype(np.float64)
         arrays[name] = a.reshape(k, -1)
     columns = [
@@ -167,6 +177,25 @@ def _log_record_arrays(
     stream.send_columns("flight_record", indexes=[time], columns=columns)
 
 
+def _log_map_styles(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) -> None:
+    for i, vid in enumerate(vehicle_ids):
+        rgb = _colour(i)
+        stream.log(f"map/vehicles/{vid}", rr.Points2D.from_fields(colors=[rgb]), static=True)
+        stream.log(f"map/trails/{vid}", rr.LineStrips2D.from_fields(colors=[rgb]), static=True)
+        stream.log(
+            f"map/slots/{vid}",
+            rr.Points2D.from_fields(colors=[rgb], radii=[-3.0], labels=[f"slot {vid}"]),
+            static=True,
+        )
+        stream.log(f"map/plans/{vid}", rr.LineStrips2D.from_fields(colors=[rgb]), static=True)
+    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
+    stream.log(
+        "map/target_prediction",
+        rr.LineStrips2D.from_fields(colors=[(0, 0, 0)], radii=[-1.0]),
+        static=True,
+    )
+
+
 def _log_map(
     stream: rr.RecordingStream,
     rec: FlightRecord,
@@ -174,100 +203,117 @@ def _log_map(
     t_ns: np.ndarray,
     time: rr.TimeColumn,
     trail_window_s: float,
+    start: int,
 ) -> None:
     k, n = rec.truth.shape[:2]
     pos = map_from_ned(rec.truth[:, :, :2])
     yaw = rec.truth[:, :, 2]
     heading = map_from_ned(_HEADING_ARROW_M * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1))
     slots = map_from_ned(rec.slots)
-    window = max(1, int(round(trail_window_s * 1e9 / max(np.median(np.diff(t_ns)), 1))))
+    step_ns = np.median(np.diff(t_ns)) if k > 1 else 1
+    window = max(1, int(round(trail_window_s * 1e9 / max(step_ns, 1))))
     first = np.maximum(np.arange(k) - window + 1, 0)
+    rows = slice(start, k)
     for i, vid in enumerate(rec.vehicle_ids):
-        rgb = _colour(i)
-        stream.log(f"map/vehicles/{vid}", rr.Points2D.from_fields(colors=[rgb]), static=True)
         stream.send_columns(
             f"map/vehicles/{vid}",
             indexes=[time],
             columns=[
-                *rr.Points2D.columns(positions=pos[:, i]),
-                *rr.Arrows2D.columns(origins=pos[:, i], vectors=heading[:, i]),
+                *rr.Points2D.columns(positions=pos[rows, i]),
+                *rr.Arrows2D.columns(origins=pos[rows, i], vectors=heading[rows, i]),
             ],
         )
-        stream.log(f"map/trails/{vid}", rr.LineStrips2D.from_fields(colors=[rgb]), static=True)
         stream.send_columns(
             f"map/trails/{vid}",
             indexes=[time],
-            columns=rr.LineStrips2D.columns(strips=[pos[first[j] : j + 1, i] for j in range(k)]),
-        )
-        stream.log(
-            f"map/slots/{vid}",
-            rr.Points2D.from_fields(colors=[rgb], radii=[-3.0], labels=[f"slot {vid}"]),
-            static=True,
+            columns=rr.LineStrips2D.columns(
+                strips=[pos[first[j] : j + 1, i] for j in range(start, k)]
+            ),
         )
         stream.send_columns(
-            f"map/slots/{vid}", indexes=[time], columns=rr.Points2D.columns(positions=slots[:, i])
+            f"map/slots/{vid}",
+            indexes=[time],
+            columns=rr.Points2D.columns(positions=slots[rows, i]),
         )
-    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
     stream.send_columns(
         "map/target",
         indexes=[time],
-        columns=rr.Points2D.columns(positions=map_from_ned(rec.target)),
+        columns=rr.Points2D.columns(positions=map_from_ned(rec.target[rows])),
     )
     pairs = pair_indices(n)
     if pairs:
-        links = np.stack([pos[:, [a, b]] for a, b in pairs], axis=1)  # (K, P, 2, 2)
+        links = np.stack([pos[rows][:, [a, b]] for a, b in pairs], axis=1)  # (K, P, 2, 2)
         stream.send_columns(
             "map/formation_links",
             indexes=[time],
             columns=rr.LineStrips2D.columns(strips=links.reshape(-1, 2, 2)).partition(
-                np.full(k, len(pairs))
+                np.full(k - start, len(pairs))
             ),
         )
 
 
-def _log_series(stream: rr.RecordingStream, rec: FlightRecord, *, t_ns: np.ndarray) -> None:
+def _log_series(
+    stream: rr.RecordingStream, rec: FlightRecord, *, t_ns: np.ndarray, start: int
+) -> None:
     ids = rec.vehicle_ids
     pos = rec.truth[:, :, :2]
+    t_ns = t_ns[start:]
+
+    def scalars(path: str, values: np.ndarray) -> None:
+        _scalars(stream, path, t_ns=t_ns, values=values[start:])
+
     for a, b in pair_indices(len(ids)):
         d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
-        _scalars(stream, f"series/separation/{ids[a]}-{ids[b]}", t_ns=t_ns, values=d)
+        scalars(f"series/separation/{ids[a]}-{ids[b]}", d)
     centre = np.mean(pos - rec.slot_offsets_world, axis=1)
-    _scalars(
-        stream,
-        "series/centre_distance",
-        t_ns=t_ns,
-        values=np.linalg.norm(centre - rec.target, axis=1),
-    )
+    scalars("series/centre_distance", np.linalg.norm(centre - rec.target, axis=1))
     formation_error = np.linalg.norm(pos - rec.slots, axis=2)
     c_norm = np.linalg.norm(rec.c, axis=2)
     for i, vid in enumerate(ids):
-        _scalars(stream, f"series/formation_error/{vid}", t_ns=t_ns, values=formation_error[:, i])
-        _scalars(stream, f"series/c_norm/{vid}", t_ns=t_ns, values=c_norm[:, i])
-        _scalars(stream, f"series/solve_time_ms/{vid}", t_ns=t_ns, values=rec.step_time_ms[:, i])
+        scalars(f"series/formation_error/{vid}", formation_error[:, i])
+        scalars(f"series/c_norm/{vid}", c_norm[:, i])
+        scalars(f"series/solve_time_ms/{vid}", rec.step_time_ms[:, i])
         for p, param in enumerate(BETA_PARAMS):
-            _scalars(stream, f"series/beta/{vid}/{param}", t_ns=t_ns, values=rec.beta[:, i, p])
-            _scalars(
-                stream,
-                f"series/beta_truth/{vid}/{param}",
-                t_ns=t_ns,
-                values=rec.beta_truth[:, i, p],
-            )
+            scalars(f"series/beta/{vid}/{param}", rec.beta[:, i, p])
+            scalars(f"series/beta_truth/{vid}/{param}", rec.beta_truth[:, i, p])
 
 
-def _log_events(stream: rr.RecordingStream, rec: FlightRecord, *, t_ns: np.ndarray) -> None:
-    k_idx, i_idx = np.nonzero(~np.asarray(rec.qp_ok, dtype=bool))
-    texts = [f"run start: scenario {rec.scenario}, UAVs {list(rec.vehicle_ids)}"]
-    levels = [rr.TextLogLevel.INFO]
-    times = [int(t_ns[0])]
-    for k, i in zip(k_idx, i_idx, strict=True):
-        texts.append(f"UAV {rec.vehicle_ids[i]}: QP failed, fallback input applied")
-        levels.append(rr.TextLogLevel.WARN)
-        times.append(int(t_ns[k]))
+def log_events(
+    stream: rr.RecordingStream,
+    events: list[tuple[int, str, str]],
+) -> None:
+    """Log (sim_time ns, level, text) events to `events` in one column batch; level is a
+    `rr.TextLogLevel` name such as "INFO" or "WARN"."""
+    if not events:
+        return
+    times, levels, texts = zip(*events, strict=True)
     stream.send_columns(
         "events",
         indexes=[rr.TimeColumn(TIMELINE, duration=np.array(times).astype("timedelta64[ns]"))],
-        columns=rr.TextLog.columns(text=texts, level=levels),
+        columns=rr.TextLog.columns(text=list(texts), level=list(levels)),
     )
+
+
+def _qp_events(rec: FlightRecord, *, t_ns: np.ndarray, start: int) -> list[tuple[int, str, str]]:
+    events = []
+    if start == 0:
+        events.append(
+            (
+                int(t_ns[0]),
+                "INFO",
+                f"run start: scenario {rec.scenario}, UAVs {list(rec.vehicle_ids)}",
+            )
+        )
+    k_idx, i_idx = np.nonzero(~np.asarray(rec.qp_ok, dtype=bool)[start:])
+    for k, i in zip(k_idx, i_idx, strict=True):
+        events.append(
+            (
+                int(t_ns[start + k]),
+                "WARN",
+                f"UAV {rec.vehicle_ids[i]}: QP failed, fallback input applied",
+            )
+        )
+    return events
 
 
 def log_flight_record(
@@ -276,19 +322,104 @@ def log_flight_record(
     *,
     run_info: dict | None = None,
     trail_window_s: float = 20.0,
+    start: int = 0,
 ) -> None:
-    """Log a whole FlightRecord to an open recording stream, column-wise.
+    """Log a FlightRecord to an open recording stream, column-wise.
 
     run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
     trail_window_s: length of the trail drawn behind each vehicle [s].
+    start: log only periods `start`.. (a live ground station logs a growing record in slices;
+    earlier periods still draw the trails). The static `meta` is logged every time.
     """
     t_ns = sim_time_ns(rec.t_s)
-    time = rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+    time = rr.TimeColumn(TIMELINE, duration=t_ns[start:].astype("timedelta64[ns]"))
     _log_meta(stream, rec, run_info=run_info or {})
-    _log_record_arrays(stream, rec, time=time)
-    _log_map(stream, rec, t_ns=t_ns, time=time, trail_window_s=trail_window_s)
-    _log_series(stream, rec, t_ns=t_ns)
-    _log_events(stream, rec, t_ns=t_ns)
+    if start == 0:
+        _log_map_styles(stream, rec.vehicle_ids)
+    if start >= len(t_ns):
+        return
+    _log_record_arrays(stream, rec, time=time, start=start)
+    _log_map(stream, rec, t_ns=t_ns, time=time, trail_window_s=trail_window_s, start=start)
+    _log_series(stream, rec, t_ns=t_ns, start=start)
+    log_events(stream, _qp_events(rec, t_ns=t_ns, start=start))
+
+
+def _time(stamps_ns) -> rr.TimeColumn:
+    return rr.TimeColumn(
+        TIMELINE, duration=np.asarray(stamps_ns, dtype=np.int64).astype("timedelta64[ns]")
+    )
+
+
+def log_plans(stream: rr.RecordingStream, plans: list[PlanMessage]) -> None:
+    """Each agent's planned horizon at its stamp, one batch per vehicle: `map/plans/<id>`."""
+    by_vehicle: dict[int, list[PlanMessage]] = defaultdict(list)
+    for m in plans:
+        by_vehicle[m.sender_id].append(m)
+    for vid, items in by_vehicle.items():
+        stream.send_columns(
+            f"map/plans/{vid}",
+            indexes=[_time([m.stamp_ns for m in items])],
+            columns=rr.LineStrips2D.columns(
+                strips=[map_from_ned(m.plan.states[:, :2]) for m in items]
+            ),
+        )
+
+
+def log_target_predictions(
+    stream: rr.RecordingStream, predictions: list[tuple[int, np.ndarray]]
+) -> None:
+    """(sim_time ns, predicted positions (M + 1, 2) North/East) as `map/target_prediction`."""
+    if predictions:
+        stamps, paths = zip(*predictions, strict=True)
+        stream.send_columns(
+            "map/target_prediction",
+            indexes=[_time(stamps)],
+            columns=rr.LineStrips2D.columns(strips=[map_from_ned(p) for p in paths]),
+        )
+
+
+def log_status_series(stream: rr.RecordingStream, statuses: list[StatusMessage]) -> None:
+    """Setpoint rates and neighbour plan ages from vehicle statuses, one batch per series."""
+    rates: dict[int, list[tuple[int, float]]] = defaultdict(list)
+    ages: dict[tuple[int, int], list[tuple[int, float]]] = defaultdict(list)
+    for m in statuses:
+        rates[m.sender_id].append((m.stamp_ns, m.status.setpoint_rate_hz))
+        for a in m.status.neighbour_plan_ages:
+            ages[(m.sender_id, a.vehicle_id)].append((m.stamp_ns, a.age_ns * 1e-9))
+    series = {f"series/setpoint_rate/{vid}": rows for vid, rows in rates.items()}
+    series |= {f"series/plan_age/{vid}/{nbr}": rows for (vid, nbr), rows in ages.items()}
+    for path, rows in series.items():
+        t, v = zip(*rows, strict=True)
+        _scalars(stream, path, t_ns=np.asarray(t, dtype=np.int64), values=np.asarray(v))
+
+
+def open_recording(
+    *,
+    vehicle_ids: tuple[int, ...],
+    path: str | Path | None = None,
+    viewer_url: str | None = None,
+    spawn_viewer: bool = False,
+    recording_id: str | None = None,
+) -> rr.RecordingStream:
+    """A recording stream with its blueprint, teed to an `.rrd` file and/or a viewer.
+
+    `viewer_url`: a running viewer's gRPC URL (``rerun+http://HOST:9876/proxy``);
+    `spawn_viewer`: start a local viewer (the `rerun` executable) and stream to it.
+    """
+    stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()))
+    blueprint = fleet_blueprint(vehicle_ids=vehicle_ids)
+    if spawn_viewer:
+        stream.spawn(default_blueprint=blueprint)
+        viewer_url = viewer_url or "rerun+http://127.0.0.1:9876/proxy"
+    sinks = []
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(rr.FileSink(path))
+    if viewer_url is not None:
+        sinks.append(rr.GrpcSink(viewer_url))
+    if sinks:
+        stream.set_sinks(*sinks, default_blueprint=blueprint)
+    return stream
 
 
 def write_recording(
@@ -300,12 +431,8 @@ def write_recording(
     trail_window_s: float = 20.0,
 ) -> str:
     """Write a FlightRecord and its blueprint to an `.rrd` file; return the recording id."""
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    rid = recording_id or str(uuid.uuid4())
-    stream = rr.RecordingStream(APPLICATION_ID, recording_id=rid)
-    stream.save(out, default_blueprint=fleet_blueprint(vehicle_ids=rec.vehicle_ids))
+    stream = open_recording(vehicle_ids=rec.vehicle_ids, path=path, recording_id=recording_id)
     log_flight_record(stream, rec, run_info=run_info, trail_window_s=trail_window_s)
     stream.flush()
     stream.disconnect()
-    return rid
+    return stream.get_recording_id()

@@ -39,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _fraction(x: float | None) -> str:
+    return "unknown" if x is None else f"{x:.4f}"
+
+
 def format_summary(metrics: dict) -> str:
     """A human-readable table of the metrics."""
     rows = [
@@ -54,7 +58,7 @@ def format_summary(metrics: dict) -> str:
         ("formation RMS", f"{metrics['formation_rms_m']:.4f} m"),
         ("||c|| final", f"{metrics['c_norm_final']:.4f}"),
         ("min separation", f"{metrics['min_separation_m']:.3f} m"),
-        ("inputs within U", f"{metrics['inputs_within_bounds']:.4f}"),
+        ("inputs within U", _fraction(metrics["inputs_within_bounds"])),
         ("QP fallbacks", str(metrics["qp_fallbacks"])),
     ]
     st = metrics["step_time_ms"]

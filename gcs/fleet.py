@@ -1,0 +1,100 @@
+"""The processes of a fleet, derived from its scenario: what `fleetmpc up` starts and
+`fleetmpc compose` writes.
+
+One list for both, so a compose file and a native launch can never disagree about a port, a
+system id or an argument. Every process is a `fleetmpc` subcommand; the order is the start order:
+the Zenoh router, the target, the SITL vehicles, their agents, and the ground station last.
+
+Ports and system ids come from the scenario (`[network]` and the vehicles' ids). Every Zenoh
+member is a client of the one router (peers do not relay for each other with gossip off). No
+process is given an epoch: the ground station announces it on the bus once every vehicle is
+engaged, and the target and the agents wait for it (`--wait-epoch`).
+"""
+
+from dataclasses import dataclass
+from pathlib import PurePath
+
+from protocol.scenario import Scenario
+
+__all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One OS process (or container) of a fleet."""
+
+    name: str
+    """Unique name: ``zenoh-router``, ``target``, ``sitl-<id>``, ``agent-<id>`` or ``gcs``."""
+    argv: tuple[str, ...]
+    """Arguments after ``fleetmpc``."""
+    role: str
+    """``router``, ``target``, ``sitl``, ``agent`` or ``gcs``."""
+
+
+@dataclass(frozen=True)
+class FleetOptions:
+    """What a launch chooses beyond the scenario (paths as the processes will see them)."""
+
+    scenario_path: str
+    """The scenario file, as the processes open it."""
+    speed: float = 1.0
+    """Simulated seconds per wall-clock second."""
+    duration_s: float | None = None
+    """Flight time; None: the scenario's."""
+    fleet: str | None = None
+    """Zenoh fleet name; None: the scenario's name."""
+    rrd: str | None = None
+    """Recording the ground station writes."""
+    metrics: str | None = None
+    """Metrics JSON the ground station writes."""
+    status_file: str | None = None
+    """Live status snapshot the ground station rewrites (for a launcher's table)."""
+    viewer: str = "none"
+    """Ground station's Rerun viewer: ``spawn``, ``connect=URL`` or ``none``."""
+    agent_records_dir: str | None = None
+    """If set, each agent writes one JSON line per step to ``<dir>/agent-<id>.jsonl``."""
+
+
+def _num(x: float) -> str:
+    return f"{x:g}"
+
+
+def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSpec]:
+    """The fleet's processes in start order."""
+    net = scenario.network
+    fleet = options.fleet or scenario.name
+    duration = scenario.duration_s if options.duration_s is None else options.duration_s
+    common = ("--scenario", options.scenario_path)
+    bus = ("--zenoh-connect", f"{net.host}:{net.zenoh_port}", "--fleet", fleet)
+    speed = ("--speed", _num(options.speed))
+    procs = [
+        ProcessSpec(
+            "zenoh-router",
+            ("zenoh-router", "--host", net.host, "--port", str(net.zenoh_port)),
+            "router",
+        ),
+        ProcessSpec(
+            "target",
+            ("target", *common, *bus, *speed, "--wait-epoch", "--duration", _num(duration + 1.0)),
+            "target",
+        ),
+    ]
+    for v in scenario.vehicles:
+        procs.append(
+            ProcessSpec(f"sitl-{v.id}", ("sitl", *common, "--vehicle", str(v.id), *speed), "sitl")
+        )
+    for v in scenario.vehicles:
+        argv = ["agent", *common, "--vehicle", str(v.id), *bus, *speed, "--wait-epoch"]
+        if options.agent_records_dir is not None:
+            argv += ["--record", str(PurePath(options.agent_records_dir) / f"agent-{v.id}.jsonl")]
+        procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent"))
+    gcs = ["gcs", *common, *bus, *speed, "--duration", _num(duration), "--viewer", options.viewer]
+    for flag, value in (
+        ("--rrd", options.rrd),
+        ("--metrics", options.metrics),
+        ("--status-file", options.status_file),
+    ):
+        if value is not None:
+            gcs += [flag, value]
+    procs.append(ProcessSpec("gcs", tuple(gcs), "gcs"))
+    return procs

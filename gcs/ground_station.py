@@ -1,0 +1,477 @@
+"""`fleetmpc gcs`: the ground station of a fleet.
+
+    fleetmpc gcs --scenario scenarios/paper.toml --zenoh-connect 127.0.0.1:7447 --speed 4 \
+        --rrd runs/up/run.rrd --metrics runs/up/metrics.json --viewer spawn
+
+What it does, in order:
+
+1. listens for every vehicle's MAVLink telemetry on the ground-station port (default
+   ``udpin:HOST:network.gcs_port``) and joins the fleet's Zenoh bus as a client of the router;
+2. waits until every vehicle's HEARTBEAT shows it armed and engaged (PX4 OFFBOARD, ArduPilot
+   GUIDED), then announces the fleet epoch (``now + --lead`` on the wall clock) on
+   ``fleetmpc/<fleet>/epoch`` every half second, so the target and the agents start together
+   (with ``--epoch-ns`` the fleet already has an epoch: it is used and not announced);
+3. records positions (GLOBAL_POSITION_INT, stamped in fleet time through each vehicle's
+   ``time_boot_ms``), plans, statuses and target observations into a `gcs.live.LiveRecord` and
+   logs them to Rerun in batches (the entity layout of `gcs.recording`), teed to an ``.rrd`` file
+   and/or a viewer; mode changes and STATUSTEXT become events;
+4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
+5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
+   summary as `fleetmpc sim` and writes the same metrics JSON.
+
+Exit status: 0 if the run completed and the safety gate held (no two vehicles closer than
+d_safe), 1 if a gate broke (``--gate-formation-m`` adds the formation gates) or the run was cut
+short, 2 on a configuration or start-up error (e.g. a vehicle never engaged).
+"""
+
+import argparse
+import json
+import math
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from gcs.check import check_scenario
+from gcs.live import LiveRecord
+from gcs.metrics import compute_metrics
+from gcs.recording import (
+    log_events,
+    log_flight_record,
+    log_plans,
+    log_status_series,
+    log_target_predictions,
+    open_recording,
+)
+from gcs.sim import format_summary
+from onboard.core.errors import ConfigError, FleetMpcError
+from onboard.planbus import open_plan_bus
+from onboard.runner import ClockSync, FleetClock
+from protocol.mavlink_map import (
+    Autopilot,
+    FlightMode,
+    ModeFlag,
+    Severity,
+    mode_from_custom,
+    ned_from_geodetic,
+)
+from protocol.messages import (
+    GROUND_STATION_ID,
+    PlanMessage,
+    StatusMessage,
+    TargetObservation,
+)
+from protocol.scenario import Scenario, load_scenario
+from protocol.zenoh_config import ZenohOptions
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+__all__ = ["GroundStation", "add_arguments", "run"]
+
+GCS_SYSTEM_ID = 255
+"""MAVLink system id of the ground station (the conventional GCS id)."""
+_FLUSH_WALL_S = 0.5
+_LINK_LOST_WALL_S = 3.0
+_AFTER_END_SIM_S = 0.5
+"""Telemetry collected past the last period, so it can be interpolated."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
+    parser.add_argument("--mavlink", help="MAVLink URL to listen on (default udpin:HOST:gcs_port)")
+    zenoh = parser.add_mutually_exclusive_group()
+    zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
+    zenoh.add_argument(
+        "--zenoh-connect", help="comma-separated router endpoints (default HOST:zenoh_port)"
+    )
+    parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
+    parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    parser.add_argument(
+        "--duration", type=float, help="fleet time to record [s] (default: scenario)"
+    )
+    parser.add_argument("--rrd", type=Path, help="write the Rerun recording here")
+    parser.add_argument(
+        "--viewer",
+        default="none",
+        help="Rerun viewer: spawn, connect=URL (rerun+http://HOST:9876/proxy) or none",
+    )
+    parser.add_argument("--metrics", type=Path, help="write the metrics JSON here")
+    parser.add_argument("--status-file", type=Path, help="rewrite a JSON status snapshot here")
+    parser.add_argument(
+        "--engage-timeout", type=float, default=120.0, help="wall seconds to wait for engagement"
+    )
+    parser.add_argument(
+        "--lead", type=float, default=1.0, help="wall seconds from the announcement to the epoch"
+    )
+    parser.add_argument(
+        "--epoch-ns",
+        type=int,
+        help="use this fleet epoch (host time.time_ns() of fleet time 0) instead of announcing one",
+    )
+    parser.add_argument(
+        "--gate-formation-m",
+        type=float,
+        help="also fail if a separation or the centre-distance error exceeds this [m]",
+    )
+
+
+def _viewer(text: str) -> tuple[bool, str | None]:
+    """(spawn, connect URL) of a --viewer value."""
+    if text == "none":
+        return False, None
+    if text == "spawn":
+        return True, None
+    if text.startswith("connect="):
+        url = text.removeprefix("connect=")
+        if url.startswith(("rerun://", "rerun+http://", "rerun+https://")):
+            return False, url
+    raise ConfigError(
+        "--viewer",
+        f"must be spawn, connect=rerun+http://HOST:PORT/proxy or none, got {text!r}",
+    )
+
+
+@dataclass
+class VehicleLink:
+    """What the ground station knows of one vehicle's MAVLink side."""
+
+    autopilot: Autopilot | None = None
+    mode: FlightMode | None = None
+    armed: bool = False
+    last_wall_s: float | None = None
+    messages: int = 0
+    lost_reported: bool = False
+    clock: ClockSync | None = None
+
+    @property
+    def engaged(self) -> bool:
+        return self.armed and self.mode == FlightMode.OFFBOARD
+
+
+@dataclass
+class _Pending:
+    plans: list[PlanMessage] = field(default_factory=list)
+    statuses: list[StatusMessage] = field(default_factory=list)
+    events: list[tuple[int, str, str]] = field(default_factory=list)
+
+
+class GroundStation:
+    """The ground station's state and loop; `run` drives it from the command line."""
+
+    def __init__(self, scenario: Scenario, *, speed: float, duration_s: float) -> None:
+        self.scenario = scenario
+        self.speed = speed
+        self.duration_s = duration_s
+        self.periods = int(round(duration_s * 1e9 / scenario.controller.period_ns)) + 1
+        self.live = LiveRecord(scenario)
+        self.links = {vid: VehicleLink() for vid in scenario.vehicle_ids}
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.epoch_ns: int | None = None
+        self.logged_periods = 0
+        self.flush_ms: list[float] = []
+        self._pending = _Pending()
+        self.run_info = {
+            "learning": scenario.learning.enabled,
+            "feasible": check_scenario(scenario).feasible,
+            "seed": scenario.seed,
+            "source": "live",
+        }
+
+    # -- clocks -----------------------------------------------------------------------------------
+    def fleet_s(self, wall_ns: int | None = None) -> float | None:
+        if self.epoch_ns is None:
+            return None
+        wall_ns = time.time_ns() if wall_ns is None else wall_ns
+        return (wall_ns - self.epoch_ns) * self.speed * 1e-9
+
+    def set_epoch(self, epoch_ns: int) -> None:
+        self.epoch_ns = epoch_ns
+        clock = FleetClock(epoch_ns=epoch_ns, speed=self.speed)
+        for link in self.links.values():
+            link.clock = ClockSync(clock)
+
+    # -- MAVLink ----------------------------------------------------------------------------------
+    def on_mavlink(self, msg, received_ns: int) -> None:
+        vid = msg.get_srcSystem()
+        link = self.links.get(vid)
+        if link is None or msg.get_srcComponent() != 1:
+            return
+        link.messages += 1
+        link.last_wall_s = received_ns * 1e-9
+        if link.lost_reported:
+            link.lost_reported = False
+            self._event("INFO", f"UAV {vid}: link back")
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            try:
+                autopilot = Autopilot(msg.autopilot)
+            except ValueError:
+                return
+            mode = mode_from_custom(msg.custom_mode, autopilot)
+            armed = bool(msg.base_mode & ModeFlag.SAFETY_ARMED)
+            if (mode, armed) != (link.mode, link.armed):
+                name = mode.name if mode is not None else f"custom mode {msg.custom_mode}"
+                self._event("INFO", f"UAV {vid}: {name}, {'armed' if armed else 'disarmed'}")
+            link.autopilot, link.mode, link.armed = autopilot, mode, armed
+        elif kind == "STATUSTEXT":
+            level = "WARN" if msg.severity <= Severity.WARNING else "INFO"
+            self._event(level, f"UAV {vid}: {msg.text}")
+        elif kind == "GLOBAL_POSITION_INT" and link.clock is not None:
+            link.clock.update(
+                time_boot_ns=msg.time_boot_ms * 1_000_000, received_wall_ns=received_ns
+            )
+            t_ns = link.clock.fleet_ns(msg.time_boot_ms * 1_000_000)
+            north, east = ned_from_geodetic(
+                msg.lat * 1e-7,
+                msg.lon * 1e-7,
+                home_lat_deg=self.scenario.site.home_lat_deg,
+                home_lon_deg=self.scenario.site.home_lon_deg,
+            )
+            yaw = math.radians(msg.hdg * 0.01) if msg.hdg != 65535 else math.nan
+            self.live.add_pose(vid, t_ns * 1e-9, north, east, yaw)
+
+    def _event(self, level: str, text: str) -> None:
+        t = self.fleet_s()
+        self._pending.events.append((max(0, round((t or 0.0) * 1e9)), level, text))
+
+    def check_links(self, now_wall_s: float) -> None:
+        for vid, link in self.links.items():
+            if link.last_wall_s is None or link.lost_reported:
+                continue
+            if now_wall_s - link.last_wall_s > _LINK_LOST_WALL_S:
+                link.lost_reported = True
+                self._event("WARN", f"UAV {vid}: no MAVLink for {_LINK_LOST_WALL_S:g} s")
+
+    # -- the bus ----------------------------------------------------------------------------------
+    def drain_bus(self) -> None:
+        while True:
+            try:
+                message = self.inbox.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(message, PlanMessage):
+                self.live.add_plan(message)
+                self._pending.plans.append(message)
+                if message.status.qp_fallback:
+                    self._pending.events.append(
+                        (message.stamp_ns, "WARN", f"UAV {message.sender_id}: QP fallback")
+                    )
+            elif isinstance(message, StatusMessage):
+                self.live.add_status(message)
+                self._pending.statuses.append(message)
+            elif isinstance(message, TargetObservation):
+                self.live.add_target(message)
+
+    # -- logging ----------------------------------------------------------------------------------
+    def flush(self, stream) -> None:
+        """Log what arrived since the last flush, in column batches."""
+        t0 = time.perf_counter()
+        self.drain_bus()
+        pending, self._pending = self._pending, _Pending()
+        if stream is not None:
+            log_plans(stream, pending.plans)
+            log_status_series(stream, pending.statuses)
+            log_events(stream, pending.events)
+        done = min(self.live.complete_periods(), self.periods)
+        if done > self.logged_periods:
+            if stream is not None:
+                rec = self.live.record(done)
+                log_flight_record(stream, rec, run_info=self.run_info, start=self.logged_periods)
+                stamp = round(rec.t_s[-1] * 1e9)
+                prediction = self.live.target_prediction(stamp)
+                if prediction is not None:
+                    log_target_predictions(stream, [(stamp, prediction)])
+            self.logged_periods = done
+        self.flush_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def status_snapshot(self, phase: str) -> dict:
+        now = time.time()
+        vehicles = {}
+        for vid, link in self.links.items():
+            st = self.live.latest_status(vid)
+            plan = self.live.latest_plan(vid)
+            ages = [a.age_ns * 1e-9 for a in st.status.neighbour_plan_ages] if st else []
+            vehicles[str(vid)] = {
+                "mode": link.mode.name if link.mode is not None else None,
+                "armed": link.armed,
+                "slot_error_m": st.status.slot_error_m if st else None,
+                "solve_ms": plan.status.solve_time_us * 1e-3 if plan else None,
+                "plan_age_s": max(ages) if ages else None,
+                "setpoint_rate_hz": st.status.setpoint_rate_hz if st else None,
+                "link_age_s": None if link.last_wall_s is None else now - link.last_wall_s,
+                "qp_fallbacks": st.status.qp_fallbacks if st else 0,
+            }
+        return {"phase": phase, "fleet_s": self.fleet_s(), "vehicles": vehicles}
+
+    def metrics(self) -> dict | None:
+        periods = min(self.live.complete_periods(), self.periods)
+        if periods < 1:
+            return None
+        rec = self.live.record(periods)
+        flush = sorted(self.flush_ms) or [math.nan]
+        return {
+            "scenario": self.scenario.name,
+            **self.run_info,
+            "duration_s": float(rec.t_s[-1]),
+            **compute_metrics(rec),
+            "gcs_flush_ms": {
+                "median": flush[len(flush) // 2],
+                "p99": flush[min(len(flush) - 1, int(0.99 * len(flush)))],
+                "count": len(self.flush_ms),
+            },
+            "periods_recorded": periods,
+            "periods_expected": self.periods,
+        }
+
+
+def gate_failures(metrics: dict, scenario: Scenario, *, formation_m: float | None) -> list[str]:
+    """What broke, as sentences; empty if the run passes."""
+    broken = []
+    d_safe = scenario.controller.d_safe_m
+    if not metrics["min_separation_m"] >= d_safe:
+        broken.append(f"min separation {metrics['min_separation_m']:.3f} m < d_safe {d_safe} m")
+    if metrics["periods_recorded"] < metrics["periods_expected"]:
+        broken.append(
+            f"recorded {metrics['periods_recorded']} of {metrics['periods_expected']} periods"
+        )
+    if formation_m is not None:
+        pairs = metrics["separation_pairs"]
+        for (a, b), e in zip(pairs, metrics["separation_error_m"], strict=True):
+            if not e <= formation_m:
+                broken.append(f"separation error {a}-{b} {e:.4f} m > {formation_m} m")
+        if not metrics["centre_distance_error_m"] <= formation_m:
+            c = metrics["centre_distance_error_m"]
+            broken.append(f"centre distance error {c:.4f} m > {formation_m} m")
+    return broken
+
+
+def _zenoh_options(args: argparse.Namespace, scenario: Scenario) -> ZenohOptions:
+    if args.zenoh_config is not None:
+        return ZenohOptions(config_file=str(args.zenoh_config))
+    net = scenario.network
+    items = (args.zenoh_connect or f"{net.host}:{net.zenoh_port}").split(",")
+    return ZenohOptions(
+        mode="client", connect=tuple(e if "/" in e else f"tcp/{e}" for e in map(str.strip, items))
+    )
+
+
+def _log(text: str) -> None:
+    print(f"fleetmpc gcs: {text}", file=sys.stderr, flush=True)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    tmp.replace(path)
+
+
+def run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    if not 0.01 <= args.speed <= 1000.0:
+        raise ConfigError("--speed", f"must be in [0.01, 1000], got {args.speed}")
+    duration = scenario.duration_s if args.duration is None else args.duration
+    if not duration > 0:
+        raise ConfigError("--duration", f"must be > 0, got {duration}")
+    for name in ("engage_timeout", "lead"):
+        if not getattr(args, name) > 0:
+            raise ConfigError(
+                f"--{name.replace('_', '-')}", f"must be > 0, got {getattr(args, name)}"
+            )
+    spawn, viewer_url = _viewer(args.viewer)
+    net = scenario.network
+    url = args.mavlink or f"udpin:{net.host}:{net.gcs_port}"
+    gs = GroundStation(scenario, speed=args.speed, duration_s=duration)
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    mav = bus = stream = None
+    completed = False
+    try:
+        mav = mavutil.mavlink_connection(url, source_system=GCS_SYSTEM_ID)
+        bus = open_plan_bus(
+            _zenoh_options(args, scenario),
+            fleet=args.fleet or scenario.name,
+            vehicle_id=GROUND_STATION_ID,
+            on_accept=gs.inbox.put,
+        )
+        if args.rrd is not None or spawn or viewer_url is not None:
+            stream = open_recording(
+                vehicle_ids=scenario.vehicle_ids,
+                path=args.rrd,
+                viewer_url=viewer_url,
+                spawn_viewer=spawn,
+            )
+        if args.epoch_ns is not None:
+            gs.set_epoch(args.epoch_ns)
+        _log(f"listening on {url}; waiting for {len(gs.links)} vehicles to engage")
+        deadline = time.monotonic() + args.engage_timeout
+        next_flush = next_announce = time.monotonic()
+        end_s = duration + _AFTER_END_SIM_S
+        while not stop.is_set():
+            msg = mav.recv_match(blocking=True, timeout=0.02)
+            now = time.monotonic()
+            if msg is not None:
+                gs.on_mavlink(msg, time.time_ns())
+            if gs.epoch_ns is None:
+                if all(link.engaged for link in gs.links.values()):
+                    gs.set_epoch(time.time_ns() + round(args.lead * 1e9))
+                    _log(f"all engaged; epoch {gs.epoch_ns} (x{args.speed:g})")
+                elif now > deadline:
+                    missing = [str(v) for v, link in gs.links.items() if not link.engaged]
+                    raise FleetMpcError(
+                        f"vehicles {', '.join(missing)} not armed and engaged after "
+                        f"{args.engage_timeout:g} s (modes: "
+                        + ", ".join(
+                            f"{v}: {link.mode.name if link.mode else 'silent'}"
+                            for v, link in gs.links.items()
+                        )
+                        + ")"
+                    )
+            if args.epoch_ns is None and gs.epoch_ns is not None and now >= next_announce:
+                bus.publish_epoch(epoch_ns=gs.epoch_ns, speed=args.speed)
+                next_announce = now + 0.5
+            if now >= next_flush:
+                gs.check_links(time.time())
+                gs.flush(stream)
+                if args.status_file is not None:
+                    phase = "waiting" if gs.epoch_ns is None else "flying"
+                    _write_json(args.status_file, gs.status_snapshot(phase))
+                next_flush = now + _FLUSH_WALL_S
+            t = gs.fleet_s()
+            if t is not None and t >= end_s:
+                completed = True
+                break
+        gs.flush(stream)
+    finally:
+        if bus is not None:
+            bus.close()
+        if mav is not None:
+            mav.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    metrics = gs.metrics()
+    if stream is not None:
+        stream.flush()
+        stream.disconnect()
+    if args.status_file is not None:
+        _write_json(args.status_file, gs.status_snapshot("done"))
+    if metrics is None:
+        _log("no complete control period recorded")
+        return 1
+    print(format_summary(metrics), flush=True)
+    if args.metrics is not None:
+        _write_json(args.metrics, metrics)
+        print(f"metrics: {args.metrics}", flush=True)
+    if args.rrd is not None:
+        print(f"recording: {args.rrd}", flush=True)
+    broken = gate_failures(metrics, scenario, formation_m=args.gate_formation_m)
+    if not completed:
+        broken.append("interrupted before the end of the run")
+    for b in broken:
+        _log(f"gate: {b}")
+    return 1 if broken else 0

@@ -1,0 +1,297 @@
+"""`fleetmpc up SCENARIO`: start a whole fleet on this machine, watch it, and bring it down.
+
+    fleetmpc up scenarios/paper.toml --speed 4 --viewer spawn
+
+Starts the processes of `gcs.fleet.fleet_processes` (Zenoh router, target, one SITL and one
+agent per vehicle, the ground station) as separate OS processes on loopback, each in its own
+session so a Ctrl-C reaches only this launcher, which then stops them in order. Every process
+writes ``<run-dir>/logs/<name>.log``. While the fleet flies, a status table shows each vehicle's
+mode, arming, slot error, last solve time, oldest neighbour plan, setpoint rate and link age
+(from the ground station's status file).
+
+The run ends when the ground station finishes (``--duration`` of fleet time), on Ctrl-C or
+SIGTERM, or when a process dies: that process is named with the tail of its log. Shutdown sends
+SIGTERM to the ground station first (it closes the recording), then the agents (they command
+HOLD), the target, the SITLs and the router; anything still alive after a grace period is
+killed. Nothing this launcher started outlives it (a viewer spawned with ``--viewer spawn`` is
+the user's window and stays open).
+
+Exit status: 0 if the run completed and its gates held, 1 if a gate broke or a process failed,
+130 after Ctrl-C, 2 on a configuration error.
+"""
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+from gcs.fleet import FleetOptions, ProcessSpec, fleet_processes
+from gcs.sim import format_summary
+from onboard.core.errors import ConfigError
+from protocol.scenario import load_scenario
+
+__all__ = ["add_arguments", "run"]
+
+_STOP_ORDER = ("gcs", "agent", "target", "sitl", "router")
+_GRACE_S = 3.0
+_TAIL_LINES = 15
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", type=Path, help="scenario TOML file")
+    parser.add_argument(
+        "--duration", type=float, metavar="S", help="fleet time (default: scenario)"
+    )
+    parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
+    parser.add_argument("--rrd", type=Path, help="recording (default: RUN_DIR/run.rrd)")
+    parser.add_argument(
+        "--viewer",
+        default=None,
+        help="spawn, connect=URL or none (default: spawn with a display, none without)",
+    )
+    parser.add_argument("--metrics", type=Path, help="metrics JSON (default: RUN_DIR/metrics.json)")
+    parser.add_argument("--run-dir", type=Path, help="logs and outputs (default: runs/up-<time>)")
+    parser.add_argument(
+        "--engage-timeout",
+        type=float,
+        default=120.0,
+        help="wall seconds for every vehicle to engage",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no status table")
+
+
+@dataclass
+class _Child:
+    spec: ProcessSpec
+    proc: subprocess.Popen
+    log: Path
+    expected_exit: bool = False
+
+
+def _tail(path: Path, lines: int = _TAIL_LINES) -> str:
+    try:
+        text = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return "(no log)"
+    return "\n".join("    " + line for line in text[-lines:]) or "    (empty log)"
+
+
+class Fleet:
+    """The launched processes, started in order and stopped in reverse roles order."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = run_dir
+        self.logs = run_dir / "logs"
+        self.logs.mkdir(parents=True, exist_ok=True)
+        self.children: list[_Child] = []
+
+    def start(self, spec: ProcessSpec) -> _Child:
+        log = self.logs / f"{spec.name}.log"
+        with open(log, "w") as out:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "gcs.cli", *spec.argv],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
+        child = _Child(spec, proc, log, expected_exit=spec.role == "target")
+        self.children.append(child)
+        return child
+
+    def get(self, name: str) -> _Child:
+        return next(c for c in self.children if c.spec.name == name)
+
+    def wait_for_text(self, child: _Child, text: str, *, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while text not in child.log.read_text(errors="replace"):
+            if child.proc.poll() is not None:
+                raise _ProcessFailed(child)
+            if time.monotonic() > deadline:
+                raise _ProcessFailed(child, f"did not print {text!r} within {timeout_s:g} s")
+            time.sleep(0.05)
+
+    def failed(self) -> _Child | None:
+        """The first child that exited when it should not have."""
+        for c in self.children:
+            rc = c.proc.poll()
+            if rc is not None and c.spec.role != "gcs" and (rc != 0 or not c.expected_exit):
+                return c
+        return None
+
+    def stop(self) -> dict[str, int | None]:
+        """Stop every child (SIGTERM by role order, then SIGKILL); return the exit codes."""
+        for role in _STOP_ORDER:
+            group = [c for c in self.children if c.spec.role == role and c.proc.poll() is None]
+            for c in group:
+                c.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + _GRACE_S
+            for c in group:
+                try:
+                    c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    c.proc.kill()
+                    c.proc.wait(timeout=5.0)
+        return {c.spec.name: c.proc.returncode for c in self.children}
+
+
+class _ProcessFailed(Exception):
+    def __init__(self, child: _Child, why: str | None = None) -> None:
+        self.child = child
+        rc = child.proc.poll()
+        self.why = why or f"exited with status {rc}"
+        super().__init__(f"{child.spec.name} {self.why}")
+
+
+def _fmt(value, spec: str, unit: str = "") -> str:
+    return "-" if value is None else f"{value:{spec}}{unit}"
+
+
+def status_table(status: dict) -> list[str]:
+    """The status table's lines for a ground-station status snapshot."""
+    t = status.get("fleet_s")
+    head = f"phase {status.get('phase', '?')}, fleet time " + ("-" if t is None else f"{t:6.1f} s")
+    rows = [
+        head,
+        f"{'UAV':>4} {'mode':<9} {'armed':<5} {'slot err':>9} {'solve':>8} "
+        f"{'plan age':>9} {'setpoints':>10} {'link':>7} {'fallbk':>6}",
+    ]
+    for vid, v in status.get("vehicles", {}).items():
+        link = v.get("link_age_s")
+        health = "-" if link is None else ("ok" if link < 1.0 else f"{link:4.1f}s!")
+        rows.append(
+            f"{vid:>4} {v.get('mode') or '-':<9} {'yes' if v.get('armed') else 'no':<5} "
+            f"{_fmt(v.get('slot_error_m'), '7.3f', ' m'):>9} "
+            f"{_fmt(v.get('solve_ms'), '5.2f', ' ms'):>8} "
+            f"{_fmt(v.get('plan_age_s'), '6.2f', ' s'):>9} "
+            f"{_fmt(v.get('setpoint_rate_hz'), '6.1f', ' Hz'):>10} {health:>7} "
+            f"{v.get('qp_fallbacks', 0):>6}"
+        )
+    return rows
+
+
+class _StatusView:
+    """Redraws the table in place on a terminal; a line every few seconds otherwise."""
+
+    def __init__(self, path: Path, *, quiet: bool) -> None:
+        self.path = path
+        self.quiet = quiet
+        self.tty = sys.stdout.isatty()
+        self._drawn = 0
+        self._last_plain = 0.0
+
+    def update(self) -> None:
+        if self.quiet:
+            return
+        try:
+            status = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return
+        lines = status_table(status)
+        if self.tty:
+            if self._drawn:
+                sys.stdout.write(f"\x1b[{self._drawn}F")
+            sys.stdout.write("".join(f"\x1b[2K{line}\n" for line in lines))
+            self._drawn = len(lines)
+        elif time.monotonic() - self._last_plain >= 5.0:
+            self._last_plain = time.monotonic()
+            sys.stdout.write("\n".join(lines) + "\n")
+        sys.stdout.flush()
+
+
+def _default_viewer() -> str:
+    if (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and shutil.which("rerun"):
+        return "spawn"
+    return "none"
+
+
+def run(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    if not 0.01 <= args.speed <= 1000.0:
+        raise ConfigError("--speed", f"must be in [0.01, 1000], got {args.speed}")
+    duration = scenario.duration_s if args.duration is None else args.duration
+    if not duration > 0:
+        raise ConfigError("--duration", f"must be > 0, got {duration}")
+    run_dir = args.run_dir or Path("runs") / f"up-{datetime.now():%Y%m%d-%H%M%S}"
+    rrd = args.rrd or run_dir / "run.rrd"
+    metrics = args.metrics or run_dir / "metrics.json"
+    status_file = run_dir / "status.json"
+    viewer = args.viewer or _default_viewer()
+    fleet = Fleet(run_dir)
+    specs = fleet_processes(
+        scenario,
+        FleetOptions(
+            scenario_path=str(args.scenario),
+            speed=args.speed,
+            duration_s=duration,
+            rrd=str(rrd),
+            metrics=str(metrics),
+            status_file=str(status_file),
+            viewer=viewer,
+        ),
+    )
+    gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
+    gcs_argv += ["--engage-timeout", f"{args.engage_timeout:g}"]
+    specs = [s if s.role != "gcs" else ProcessSpec(s.name, tuple(gcs_argv), s.role) for s in specs]
+    interrupted = threading.Event()
+    previous = {
+        s: signal.signal(s, lambda *_: interrupted.set()) for s in (signal.SIGINT, signal.SIGTERM)
+    }
+    view = _StatusView(status_file, quiet=args.quiet)
+    print(
+        f"fleetmpc up: {scenario.name}, {len(scenario.vehicles)} UAVs, {duration:g} s at "
+        f"x{args.speed:g}; logs in {fleet.logs}",
+        flush=True,
+    )
+    failure: _ProcessFailed | None = None
+    rc = None
+    try:
+        for spec in specs:
+            child = fleet.start(spec)
+            if spec.role == "router":
+                fleet.wait_for_text(child, "listening", timeout_s=15.0)
+        gcs = fleet.get("gcs")
+        wall_limit = time.monotonic() + args.engage_timeout + duration / args.speed + 60.0
+        while not interrupted.is_set():
+            rc = gcs.proc.poll()
+            if rc is not None:
+                break
+            bad = fleet.failed()
+            if bad is not None:
+                raise _ProcessFailed(bad)
+            if time.monotonic() > wall_limit:
+                raise _ProcessFailed(gcs, "did not finish in time")
+            view.update()
+            interrupted.wait(0.5)
+    except _ProcessFailed as e:
+        failure = e
+    finally:
+        codes = fleet.stop()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if failure is not None:
+        print(f"fleetmpc up: FAILED: {failure}; the tail of its log:", file=sys.stderr)
+        print(_tail(failure.child.log), file=sys.stderr)
+    if interrupted.is_set() and rc is None:
+        print("fleetmpc up: interrupted; every process stopped", file=sys.stderr)
+    if metrics.is_file():
+        print(format_summary(json.loads(metrics.read_text())))
+        print(f"metrics: {metrics}\nrecording: {rrd}")
+    print(f"exit codes: {', '.join(f'{k} {v}' for k, v in codes.items())}", flush=True)
+    if failure is not None:
+        return 1
+    if interrupted.is_set() and rc is None:
+        return 130
+    if codes.get("gcs") != 0:
+        print(f"fleetmpc up: ground station reported a broken gate:\n{_tail(gcs.log, 5)}")
+        return 1
+    return 0

@@ -1,0 +1,65 @@
+"""The fleet's process list: derived from the scenario, the same for `up` and compose."""
+
+from pathlib import Path
+
+from gcs.fleet import FleetOptions, fleet_processes
+from protocol.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _arg(argv: tuple[str, ...], flag: str) -> str:
+    return argv[argv.index(flag) + 1]
+
+
+def test_every_process_of_a_five_vehicle_fleet() -> None:
+    sc = load_scenario(ROOT / "scenarios" / "wedge-circle.toml")
+    procs = fleet_processes(sc, FleetOptions(scenario_path="s.toml", speed=4.0, rrd="r.rrd"))
+    names = [p.name for p in procs]
+    ids = sc.vehicle_ids
+    assert names == [
+        "zenoh-router",
+        "target",
+        *(f"sitl-{i}" for i in ids),
+        *(f"agent-{i}" for i in ids),
+        "gcs",
+    ]
+    by_name = {p.name: p for p in procs}
+    router = f"{sc.network.host}:{sc.network.zenoh_port}"
+    assert _arg(by_name["zenoh-router"].argv, "--port") == str(sc.network.zenoh_port)
+    for p in procs[1:]:
+        assert p.argv[0] == p.role and _arg(p.argv, "--scenario") == "s.toml"
+        assert _arg(p.argv, "--speed") == "4"
+        if p.role != "sitl":
+            assert _arg(p.argv, "--zenoh-connect") == router
+            assert _arg(p.argv, "--fleet") == sc.name
+    for i in ids:
+        assert _arg(by_name[f"sitl-{i}"].argv, "--vehicle") == str(i)
+        agent = by_name[f"agent-{i}"].argv
+        assert _arg(agent, "--vehicle") == str(i) and "--wait-epoch" in agent
+        assert "--epoch-ns" not in agent
+    gcs = by_name["gcs"].argv
+    assert _arg(gcs, "--duration") == f"{sc.duration_s:g}" and _arg(gcs, "--rrd") == "r.rrd"
+    assert "--metrics" not in gcs and _arg(gcs, "--viewer") == "none"
+
+
+def test_options_reach_the_processes(paper) -> None:
+    opts = FleetOptions(
+        scenario_path="/app/paper.toml",
+        duration_s=12.5,
+        fleet="blue",
+        metrics="/out/m.json",
+        status_file="/out/s.json",
+        agent_records_dir="/out",
+    )
+    by_name = {p.name: p.argv for p in fleet_processes(paper, opts)}
+    assert _arg(by_name["gcs"], "--duration") == "12.5"
+    assert _arg(by_name["gcs"], "--metrics") == "/out/m.json"
+    assert _arg(by_name["gcs"], "--status-file") == "/out/s.json"
+    assert _arg(by_name["target"], "--duration") == "13.5"
+    assert _arg(by_name["agent-2"], "--record") == "/out/agent-2.jsonl"
+    assert all(
+        _arg(argv, "--fleet") == "blue"
+        for name, argv in by_name.items()
+        if name not in ("zenoh-router",) and not name.startswith("sitl")
+    )

@@ -1,0 +1,145 @@
+"""The ground station's live record: the same metrics as the lockstep from the same data."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from gcs.live import LiveRecord
+from gcs.lockstep import run_lockstep
+from gcs.metrics import compute_metrics
+from gcs.recording import log_flight_record, open_recording
+from gcs.rrd_reader import read_recording
+from onboard.core.plan import Plan
+from protocol.messages import (
+    LearnedParams,
+    PlanMessage,
+    PlanStatus,
+    StatusMessage,
+    TargetObservation,
+    VehicleStatus,
+)
+
+DURATION_S = 6.0
+
+
+@pytest.fixture(scope="module")
+def lockstep(paper):
+    return run_lockstep(paper, duration_s=DURATION_S)
+
+
+def _feed(live: LiveRecord, rec, *, poses: bool = True) -> None:
+    """What a ground station would receive from a run that flew exactly `rec`."""
+    period_ns = live.period_ns
+    m = live.scenario.controller.horizon
+    for k, t in enumerate(rec.t_s):
+        stamp = k * period_ns
+        for i, vid in enumerate(rec.vehicle_ids):
+            if poses:
+                live.add_pose(vid, float(t), *map(float, rec.truth[k, i]))
+            plan = Plan(
+                vehicle_id=vid,
+                stamp_ns=stamp,
+                period_ns=period_ns,
+                states=np.tile(rec.truth[k, i], (m + 1, 1)),
+                inputs=np.tile(rec.command[k, i], (m, 1)),
+            )
+            status = PlanStatus(
+                qp_fallback=not rec.qp_ok[k, i],
+                first_c_norm=float(np.linalg.norm(rec.c[k, i])),
+                solve_time_us=round(rec.step_time_ms[k, i] * 1e3),
+            )
+            live.add_plan(PlanMessage(seq=k, plan=plan, status=status))
+            live.add_status(
+                StatusMessage(
+                    sender_id=vid,
+                    seq=k,
+                    stamp_ns=stamp,
+                    status=VehicleStatus(beta=LearnedParams(*map(float, rec.beta[k, i]))),
+                )
+            )
+        live.add_target(
+            TargetObservation(
+                sender_id=250,
+                seq=k,
+                stamp_ns=stamp,
+                north_m=rec.target[k, 0],
+                east_m=rec.target[k, 1],
+            )
+        )
+
+
+def test_live_record_gives_the_lockstep_metrics(paper, lockstep) -> None:
+    live = LiveRecord(paper)
+    _feed(live, lockstep)
+    assert live.complete_periods() == len(lockstep.t_s)
+    rec = live.record()
+    np.testing.assert_array_equal(rec.truth, lockstep.truth)
+    np.testing.assert_allclose(rec.slots, lockstep.slots, atol=1e-12)
+    np.testing.assert_allclose(rec.target, lockstep.target, atol=1e-12)
+    np.testing.assert_allclose(rec.beta_truth, lockstep.beta_truth, atol=1e-12)
+    want, got = compute_metrics(lockstep), compute_metrics(rec)
+    for key in ("separation_error_m",):
+        np.testing.assert_allclose(got[key], want[key], atol=1e-12)
+    for key in (
+        "centre_distance_error_m",
+        "formation_rms_m",
+        "c_norm_final",
+        "inputs_within_bounds",
+    ):
+        assert got[key] == pytest.approx(want[key], abs=1e-12), key
+    assert got["beta_error"] == want["beta_error"]
+    assert got["qp_fallbacks"] == want["qp_fallbacks"]
+    # Interpolated between 0.2 s samples on the plant tick: a little above the plant-rate minimum.
+    assert want["min_separation_m"] <= got["min_separation_m"] <= want["min_separation_m"] + 0.05
+    prediction = live.target_prediction(round(lockstep.t_s[-1] * 1e9))
+    assert prediction.shape == (paper.controller.horizon + 1, 2)
+    np.testing.assert_allclose(prediction[0], lockstep.target[-1], atol=0.05)
+
+
+def test_without_telemetry_positions_come_from_the_plans(paper, lockstep) -> None:
+    live = LiveRecord(paper)
+    _feed(live, lockstep, poses=False)
+    np.testing.assert_array_equal(live.record().truth, lockstep.truth)
+
+
+def test_partial_and_out_of_order_input(paper) -> None:
+    live = LiveRecord(paper)
+    assert live.complete_periods() == 0
+    with pytest.raises(ValueError, match="no complete control period"):
+        live.record()
+    for vid in paper.vehicle_ids:
+        live.add_pose(vid, 0.0, 0.0, float(vid), 0.0)
+        live.add_pose(vid, 0.5, 1.0, float(vid), 0.0)
+    live.add_pose(1, 0.3, 99.0, 99.0, 0.0)  # older than the newest sample: dropped
+    live.add_pose(1, 0.7, math.nan, 0.0, 0.0)  # not finite: dropped
+    live.add_pose(99, 1.0, 0.0, 0.0, 0.0)  # not a vehicle of the scenario: ignored
+    assert live.complete_periods() == 3  # 0.0, 0.2, 0.4 <= 0.5
+    rec = live.record()
+    np.testing.assert_allclose(rec.truth[:, 0, 0], [0.0, 0.4, 0.8])
+    assert np.isnan(rec.command).all() and np.isnan(rec.beta).all()
+    assert compute_metrics(rec)["inputs_within_bounds"] is None
+
+
+def _first_periods(rec, end: int):
+    """The first `end` periods of a FlightRecord, as a growing live record would be."""
+    per_period = {
+        f.name: getattr(rec, f.name)[:end]
+        for f in dataclasses.fields(rec)
+        if np.shape(getattr(rec, f.name))[:1] == rec.t_s.shape
+    }
+    return dataclasses.replace(rec, **per_period)
+
+
+def test_a_record_logged_in_slices_reads_back_whole(lockstep, tmp_path) -> None:
+    path = tmp_path / "sliced.rrd"
+    stream = open_recording(vehicle_ids=lockstep.vehicle_ids, path=path)
+    k = len(lockstep.t_s)
+    for start, end in ((0, 7), (7, 8), (8, k)):
+        log_flight_record(stream, _first_periods(lockstep, end), start=start)
+    stream.flush()
+    stream.disconnect()
+    back = read_recording(path).record
+    for name in ("t_s", "truth", "command", "c", "beta", "slots", "qp_ok"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(lockstep, name), err_msg=name)
