@@ -6,7 +6,9 @@
 What it does, in order:
 
 1. listens for every vehicle's MAVLink telemetry on the ground-station port (default
-   ``udpin:HOST:network.gcs_port``) and joins the fleet's Zenoh bus as a client of the router;
+   ``udpin:HOST:network.gcs_port``) and joins the fleet's Zenoh bus (a client of a router with
+   ``--zenoh-connect``, else the ground station's member of the fleet's peer mesh,
+   `protocol.zenoh_config.options_from_args`);
 2. waits until every vehicle's HEARTBEAT shows it armed and engaged (PX4 OFFBOARD, ArduPilot
    GUIDED), then announces the fleet epoch (``now + --lead`` on the wall clock) on
    ``fleetmpc/<fleet>/epoch`` every half second, so the target and the agents start together
@@ -66,7 +68,7 @@ from protocol.messages import (
     TargetObservation,
 )
 from protocol.scenario import Scenario, load_scenario
-from protocol.zenoh_config import ZenohOptions
+from protocol.zenoh_config import options_from_args, peer_mesh_index
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -87,7 +89,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     zenoh = parser.add_mutually_exclusive_group()
     zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
     zenoh.add_argument(
-        "--zenoh-connect", help="comma-separated router endpoints (default HOST:zenoh_port)"
+        "--zenoh-connect",
+        help="comma-separated router endpoints (default: a member of the fleet's peer mesh)",
     )
     parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
@@ -350,16 +353,6 @@ def gate_failures(metrics: dict, scenario: Scenario, *, formation_m: float | Non
     return broken
 
 
-def _zenoh_options(args: argparse.Namespace, scenario: Scenario) -> ZenohOptions:
-    if args.zenoh_config is not None:
-        return ZenohOptions(config_file=str(args.zenoh_config))
-    net = scenario.network
-    items = (args.zenoh_connect or f"{net.host}:{net.zenoh_port}").split(",")
-    return ZenohOptions(
-        mode="client", connect=tuple(e if "/" in e else f"tcp/{e}" for e in map(str.strip, items))
-    )
-
-
 def _log(text: str) -> None:
     print(f"fleetmpc gcs: {text}", file=sys.stderr, flush=True)
 
@@ -394,7 +387,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         mav = mavutil.mavlink_connection(url, source_system=GCS_SYSTEM_ID)
         bus = open_plan_bus(
-            _zenoh_options(args, scenario),
+            options_from_args(
+                args.zenoh_config,
+                args.zenoh_connect,
+                scenario=scenario,
+                member_index=peer_mesh_index(scenario, GROUND_STATION_ID),
+            ),
             fleet=args.fleet or scenario.name,
             vehicle_id=GROUND_STATION_ID,
             on_accept=gs.inbox.put,

@@ -1,14 +1,18 @@
 """`fleetmpc agent`: the onboard agent of one vehicle (MAVLink autopilot + Zenoh plans).
 
-    fleetmpc agent --scenario scenarios/paper.toml --vehicle 1 --mavlink udpin:127.0.0.1:14540 \
-        --zenoh-connect tcp/127.0.0.1:7447 --epoch-ns EPOCH --speed 4
+    fleetmpc agent --scenario scenarios/paper.toml --vehicle 1 \
+        --zenoh-connect 127.0.0.1:7447 --wait-epoch --speed 4
 
-Zenoh: by default a peer of the fleet's full mesh on explicit ``tcp/127.0.0.1`` endpoints
-(member index = vehicle index, base port = the scenario's ``network.zenoh_port``; the target
-process is the last member), scouting off. ``--zenoh-connect`` makes a client of a router,
-``--zenoh-config FILE`` loads a Zenoh config file (router/client deployments). Fleet time: see
-`onboard.runner`. SIGINT/SIGTERM: ask the autopilot to HOLD, close the Zenoh session and the
-link, print a JSON summary on stdout, exit 0.
+MAVLink: ``--mavlink URL`` (any pymavlink URL), by default the vehicle's SITL as the scenario
+describes it (`protocol.scenario.mavlink_url`: PX4 ``udpin:HOST:14540 + I - 1``, ArduPilot
+``tcp:HOST:5760 + 10 (I - 1)``). Zenoh: by default a member of the fleet's full peer mesh on
+explicit endpoints (`protocol.zenoh_config.options_from_args`), scouting off;
+``--zenoh-connect`` makes a client of a router, ``--zenoh-config FILE`` loads a Zenoh config
+file. Fleet time (`onboard.runner`): ``--epoch-ns`` gives the epoch, ``--wait-epoch`` takes the
+first one the ground station announces on the bus; the agent connects, streams and engages
+either way, and steps once the epoch is known. An announced speed other than ``--speed`` is an
+error (exit 2). SIGINT/SIGTERM: ask the autopilot to HOLD, close the Zenoh session and the link,
+print a JSON summary on stdout, exit 0.
 """
 
 import argparse
@@ -24,17 +28,18 @@ from onboard.core.agent import Agent
 from onboard.core.errors import ConfigError
 from onboard.planbus import open_plan_bus
 from onboard.runner import FleetClock, FleetRunner, RunnerSettings, SetpointStreamer
-from protocol.scenario import Scenario, load_scenario
-from protocol.zenoh_config import ZenohOptions
+from protocol.scenario import load_scenario, mavlink_url
+from protocol.zenoh_config import options_from_args, peer_mesh_index
 
-__all__ = ["add_arguments", "run", "zenoh_options"]
+__all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
     parser.add_argument("--vehicle", required=True, type=int, help="vehicle id (MAVLink system id)")
     parser.add_argument(
-        "--mavlink", help="pymavlink URL of the autopilot (default udpin:HOST:offboard port)"
+        "--mavlink",
+        help="pymavlink URL of the autopilot (default: the vehicle's SITL per the scenario)",
     )
     zenoh = parser.add_mutually_exclusive_group()
     zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
@@ -42,8 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--zenoh-connect", help="comma-separated router endpoints (client mode), e.g. HOST:PORT"
     )
     parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
-    parser.add_argument(
+    epoch = parser.add_mutually_exclusive_group()
+    epoch.add_argument(
         "--epoch-ns", type=int, default=None, help="host time.time_ns() of fleet time 0"
+    )
+    epoch.add_argument(
+        "--wait-epoch",
+        action="store_true",
+        help="take the epoch the ground station announces on the bus (steps start then)",
     )
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
     parser.add_argument(
@@ -58,21 +69,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", type=Path, help="write one JSON line per step here")
 
 
-def zenoh_options(args: argparse.Namespace, scenario: Scenario, index: int) -> ZenohOptions:
-    """The Zenoh options the command line asks for (see the module docstring)."""
-    if args.zenoh_config is not None:
-        return ZenohOptions(config_file=str(args.zenoh_config))
-    if args.zenoh_connect:
-        items = [e.strip() for e in args.zenoh_connect.split(",") if e.strip()]
-        return ZenohOptions(
-            mode="client", connect=tuple(e if "/" in e else f"tcp/{e}" for e in items)
-        )
-    net = scenario.network
-    return ZenohOptions.peer_mesh(
-        index=index, size=len(scenario.vehicles) + 1, base_port=net.zenoh_port, host=net.host
-    )
-
-
 def _log(text: str) -> None:
     print(f"fleetmpc agent: {text}", file=sys.stderr, flush=True)
 
@@ -80,15 +76,12 @@ def _log(text: str) -> None:
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     spec = scenario.vehicle(args.vehicle)
-    index = scenario.vehicle_ids.index(spec.id)
     if not 10.0 <= args.setpoint_rate_hz <= 1000.0:
         raise ConfigError(
             "--setpoint-rate-hz", f"must be in [10, 1000], got {args.setpoint_rate_hz}"
         )
-    clock = FleetClock(epoch_ns=args.epoch_ns, speed=args.speed)
-    url = args.mavlink or (
-        f"udpin:{scenario.network.host}:{scenario.network.offboard_base_port + index}"
-    )
+    clock = FleetClock(epoch_ns=args.epoch_ns, speed=args.speed, awaiting_epoch=args.wait_epoch)
+    url = args.mavlink or mavlink_url(scenario.network, spec)
     agent = Agent(
         spec.id,
         fleet_ids=scenario.vehicle_ids,
@@ -107,7 +100,12 @@ def run(args: argparse.Namespace) -> int:
 
     link = bus = streamer = runner = None
     try:
-        options = zenoh_options(args, scenario, index)
+        options = options_from_args(
+            args.zenoh_config,
+            args.zenoh_connect,
+            scenario=scenario,
+            member_index=peer_mesh_index(scenario, spec.id),
+        )
         bus = open_plan_bus(options, fleet=args.fleet or scenario.name, vehicle_id=spec.id)
         link = open_autopilot_link(url, system_id=spec.id, log=_log)
         state = link.connect(timeout_s=args.connect_timeout)
@@ -129,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         )
         streamer.start()
         runner.run(stop, streamer)
-        return 0
+        return 0 if runner.failure is None else 2
     except AutopilotLinkError as e:
         _log(str(e))
         return 2

@@ -1,8 +1,11 @@
 """The fleet runner of one vehicle: `Agent.step` on the autopilot's clock, over real links.
 
 Time base. Every process of a fleet shares *fleet time*: simulated nanoseconds since a common
-epoch, ``fleet_ns = (host_wall_ns - epoch_ns) * speed`` (`FleetClock`; the SITL, the target and
-the agents are started with the same ``--epoch-ns`` and ``--speed``). The runner does not step on
+epoch, ``fleet_ns = (host_wall_ns - epoch_ns) * speed`` (`FleetClock`). The epoch is either given
+to every process (``--epoch-ns``) or announced on the bus by the ground station once every vehicle
+is engaged (a `FleetEpoch` on ``fleetmpc/<fleet>/epoch``, ``--wait-epoch``): the runner polls
+the bus and adopts the first announcement; an announced speed other than its own is a
+configuration error that stops the run. The runner does not step on
 the host clock: it steps on the autopilot's ``time_boot_ms`` (so the SITL's ``--speed`` works
 end to end) shifted by the boot offset `ClockSync` estimates — the minimum over all telemetry of
 ``fleet_ns(received) - time_boot_ns`` (transport latency only ever makes a sample larger).
@@ -13,11 +16,14 @@ Loop. Each time the autopilot's fleet time crosses a period boundary k·τ (k·�
 steps the agent at stamp k·τ with the latest pose, the newest target observation and the
 neighbours' latest plans, hands the command to the `SetpointStreamer` (a separate thread that
 sends the latest command at a fixed rate whatever the loop does), and publishes the plan and a
-status. Before the first step the streamer sends zeros, which is what PX4 needs to accept
-OFFBOARD. An exception in a step never leaves the loop: the command becomes zero and the status
-says why. Mode loss is reported, not fought.
+status (with the step's wall time and the setpoint rate actually sent). Before the first step
+the streamer sends zeros, which is what PX4 needs to accept OFFBOARD, and the vehicle is engaged
+after the warm-up whether or not the epoch is known yet: a ground station waits for that. An
+exception in a step never leaves the loop: the command becomes zero and the status says why.
+Mode loss is reported, not fought.
 """
 
+import bisect
 import contextlib
 import json
 import math
@@ -34,6 +40,7 @@ from onboard.core.errors import ConfigError
 from onboard.planbus import PlanBus
 from protocol.mavlink_map import FlightMode
 from protocol.messages import (
+    MAX_SETPOINT_RATE_HZ,
     LearnedParams,
     NeighbourPlanAge,
     PlanStatus,
@@ -43,6 +50,7 @@ from protocol.messages import (
 
 __all__ = [
     "ClockSync",
+    "EpochMismatchError",
     "FleetClock",
     "FleetRunner",
     "RunnerSettings",
@@ -51,52 +59,148 @@ __all__ = [
 ]
 
 _MAX_NEIGHBOURS = 8
+_U32_MAX = 2**32 - 1
 
 
-@dataclass(frozen=True)
+class EpochMismatchError(ConfigError):
+    """The announced fleet epoch runs at a different speed than this process was started with."""
+
+
+_SPEED_RTOL = 1e-6
+
+
 class FleetClock:
-    """Fleet time from the host's wall clock: (wall - epoch) x speed."""
+    """Fleet time from the host's wall clock: (wall - epoch) x speed.
 
-    epoch_ns: int | None = None
-    """Host wall-clock time (time.time_ns) of fleet time 0; None: fleet time = autopilot time."""
-    speed: float = 1.0
-    """Simulated seconds per wall-clock second."""
+    Three ways to get the epoch: given at construction (`epoch_ns`), none at all (fleet time is
+    the autopilot's boot time), or announced later (`awaiting_epoch=True`, then `set_epoch`
+    once, e.g. from the fleet's epoch message). Reading and setting are guarded by a lock.
+    """
 
-    def __post_init__(self) -> None:
-        if not (isinstance(self.speed, int | float) and 0.01 <= self.speed <= 1000.0):
-            raise ConfigError("speed", f"must be in [0.01, 1000], got {self.speed!r}")
-        if self.epoch_ns is not None and not isinstance(self.epoch_ns, int):
-            raise ConfigError("epoch_ns", f"must be an integer, got {self.epoch_ns!r}")
+    def __init__(
+        self, *, epoch_ns: int | None = None, speed: float = 1.0, awaiting_epoch: bool = False
+    ) -> None:
+        if not (
+            isinstance(speed, int | float)
+            and not isinstance(speed, bool)
+            and 0.01 <= speed <= 1000.0
+        ):
+            raise ConfigError("speed", f"must be in [0.01, 1000], got {speed!r}")
+        if epoch_ns is not None and (isinstance(epoch_ns, bool) or not isinstance(epoch_ns, int)):
+            raise ConfigError("epoch_ns", f"must be an integer, got {epoch_ns!r}")
+        if awaiting_epoch and epoch_ns is not None:
+            raise ConfigError("epoch_ns", "give an epoch or wait for one, not both")
+        self._speed = float(speed)
+        self._lock = threading.Lock()
+        self._epoch_ns = epoch_ns
+        self._awaiting = awaiting_epoch
 
-    def fleet_ns(self, wall_ns: int) -> int:
-        """Fleet time at host wall time `wall_ns` (0 without an epoch)."""
-        if self.epoch_ns is None:
+    @property
+    def speed(self) -> float:
+        """Simulated seconds per wall-clock second."""
+        return self._speed
+
+    @property
+    def epoch_ns(self) -> int | None:
+        """Host wall-clock time (time.time_ns) of fleet time 0; None: none (yet)."""
+        with self._lock:
+            return self._epoch_ns
+
+    @property
+    def uses_epoch(self) -> bool:
+        """Fleet time comes from an epoch (given or awaited), not from the autopilot's boot."""
+        with self._lock:
+            return self._awaiting or self._epoch_ns is not None
+
+    @property
+    def ready(self) -> bool:
+        """Fleet time can be told: an epoch is known, or none is used."""
+        with self._lock:
+            return not self._awaiting
+
+    def set_epoch(self, epoch_ns: int, *, speed: float) -> bool:
+        """Adopt an announced epoch; True if this call set it.
+
+        Only the first announcement counts (later ones, even different, change nothing and
+        return False). Raises EpochMismatchError if `speed` differs from this clock's speed.
+        """
+        if not math.isclose(speed, self._speed, rel_tol=_SPEED_RTOL):
+            raise EpochMismatchError(
+                "speed",
+                f"the fleet epoch is announced at x{speed:g}, this process runs at "
+                f"x{self._speed:g}",
+            )
+        if isinstance(epoch_ns, bool) or not isinstance(epoch_ns, int):
+            raise ConfigError("epoch_ns", f"must be an integer, got {epoch_ns!r}")
+        with self._lock:
+            if not self._awaiting:
+                return False
+            self._epoch_ns, self._awaiting = epoch_ns, False
+            return True
+
+    def fleet_ns(self, wall_ns: int) -> int | None:
+        """Fleet time at host wall time `wall_ns`: 0 without an epoch, None while awaiting one."""
+        with self._lock:
+            epoch, awaiting = self._epoch_ns, self._awaiting
+        if awaiting:
+            return None
+        if epoch is None:
             return 0
-        return round((wall_ns - self.epoch_ns) * self.speed)
+        return round((wall_ns - epoch) * self._speed)
 
 
 class ClockSync:
-    """Offset from the autopilot's boot time to fleet time, by a minimum filter."""
+    """Offset from the autopilot's boot time to fleet time, by a minimum filter.
+
+    Every telemetry sample gives ``fleet_ns(received) - time_boot_ns``; transport latency only
+    ever makes it larger, so the minimum is the best estimate. The filter keeps the minimum of
+    ``(received - first received) x speed - time_boot_ns``, which needs no epoch, so the samples
+    taken before a late epoch announcement count as well.
+    """
 
     def __init__(self, clock: FleetClock) -> None:
         self.clock = clock
-        self.offset_ns: int | None = 0 if clock.epoch_ns is None else None
         self.samples = 0
-        self.last_sample_ns = 0
+        self._ref_wall_ns: int | None = None
+        self._min_ns: int | None = None
+        self._last_ns = 0
 
     def update(self, *, time_boot_ns: int, received_wall_ns: int) -> None:
         """Take one telemetry sample."""
-        if self.clock.epoch_ns is None or time_boot_ns < 0:
+        if not self.clock.uses_epoch or time_boot_ns < 0:
             return
-        sample = self.clock.fleet_ns(received_wall_ns) - time_boot_ns
+        if self._ref_wall_ns is None:
+            self._ref_wall_ns = received_wall_ns
+        sample = round((received_wall_ns - self._ref_wall_ns) * self.clock.speed) - time_boot_ns
         self.samples += 1
-        self.last_sample_ns = sample
-        if self.offset_ns is None or sample < self.offset_ns:
-            self.offset_ns = sample
+        self._last_ns = sample
+        if self._min_ns is None or sample < self._min_ns:
+            self._min_ns = sample
+
+    def _shift(self) -> int | None:
+        """Fleet time of the reference wall time (None before an epoch and a sample)."""
+        if self._ref_wall_ns is None:
+            return None
+        return self.clock.fleet_ns(self._ref_wall_ns)
+
+    @property
+    def offset_ns(self) -> int | None:
+        """Fleet time minus autopilot boot time (None before an epoch and a sample)."""
+        if not self.clock.uses_epoch:
+            return 0
+        shift = self._shift()
+        return None if shift is None or self._min_ns is None else self._min_ns + shift
+
+    @property
+    def last_sample_ns(self) -> int:
+        """The newest sample's offset (0 before an epoch and a sample)."""
+        shift = self._shift()
+        return 0 if shift is None else self._last_ns + shift
 
     def fleet_ns(self, time_boot_ns: int) -> int | None:
-        """Fleet time of an autopilot boot time (None before the first sample)."""
-        return None if self.offset_ns is None else time_boot_ns + self.offset_ns
+        """Fleet time of an autopilot boot time (None before an epoch and a sample)."""
+        offset = self.offset_ns
+        return None if offset is None else time_boot_ns + offset
 
 
 def gap_stats_ms(times_ns: list[int]) -> dict[str, float]:
@@ -136,6 +240,15 @@ class SetpointStreamer:
     def set_command(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         with self._lock:
             self._command = (float(speed_m_s), float(yaw_rate_rad_s))
+
+    def rate_hz(self, *, window_ns: int) -> float:
+        """Setpoints sent per second of the streamer's clock over its last `window_ns`."""
+        if window_ns <= 0:
+            raise ConfigError("window_ns", f"must be > 0, got {window_ns}")
+        times = self.send_times_ns  # appended by the streaming thread, never reordered
+        end = len(times)
+        start = bisect.bisect_right(times, self._now() - window_ns, 0, end)
+        return (end - start) * 1e9 / window_ns
 
     def start(self) -> None:
         self._thread.start()
@@ -236,10 +349,53 @@ class FleetRunner:
         self._mode_lost_reported = False
         self.engaged = False
         self.engage_attempted = False
+        self.failure: str | None = None
+        self.epoch_received_wall_ns: int | None = None
+        self._streamer: SetpointStreamer | None = None
+        self._other_epoch_reported = False
+
+    # -- the fleet epoch ------------------------------------------------------------------------
+    def poll_epoch(self) -> None:
+        """Adopt the first epoch announced on the bus, if the clock waits for one.
+
+        A speed other than this runner's is a configuration error: it is logged and kept in
+        `failure`, and `run` stops. Once adopted, a different announcement is logged once and
+        ignored (fleet time never jumps).
+        """
+        clock = self.sync.clock
+        if self.failure is not None or not clock.uses_epoch:
+            return
+        announced = self.bus.latest_epoch()
+        if announced is None:
+            return
+        if clock.ready:
+            if announced.epoch_ns != clock.epoch_ns and not self._other_epoch_reported:
+                self._other_epoch_reported = True
+                self._log(
+                    f"ignoring another fleet epoch {announced.epoch_ns} from sender "
+                    f"{announced.sender_id}: keeping {clock.epoch_ns}"
+                )
+            return
+        try:
+            adopted = clock.set_epoch(announced.epoch_ns, speed=announced.speed)
+        except EpochMismatchError as e:
+            self.failure = str(e)
+            self._log(f"error: {self.failure}")
+            return
+        if adopted:
+            self.epoch_received_wall_ns = time.time_ns()
+            lead_s = (announced.epoch_ns - self.epoch_received_wall_ns) * 1e-9
+            self._log(
+                f"vehicle {self.agent.vehicle_id}: fleet epoch {announced.epoch_ns} "
+                f"(x{announced.speed:g}) from sender {announced.sender_id}, {lead_s:+.3f} s wall "
+                "from now"
+            )
 
     # -- one wake-up ----------------------------------------------------------------------------
     def tick(self, state: LinkState) -> AgentOutput | None:
         """Handle one telemetry snapshot; step the agent if a period boundary passed."""
+        if not self.sync.clock.ready:
+            self.poll_epoch()
         self.sync.update(time_boot_ns=state.time_boot_ns, received_wall_ns=state.received_ns)
         if state.mode_lost and not self._mode_lost_reported:
             self._mode_lost_reported = True
@@ -284,16 +440,24 @@ class FleetRunner:
             self.last_status = f"step error: {type(e).__name__}: {e}"
             self._log(self.last_status)
             return None
-        step_ms = (time.perf_counter_ns() - t0) * 1e-6
+        step_ns = time.perf_counter_ns() - t0
         self.steps += 1
         self.last_output = out
         self.last_status = out.status
-        self._publish(state, out, stamp_ns)
+        self._publish(state, out, stamp_ns, step_ns)
         if self._record is not None:
-            self._record(self._row(state, out, stamp_ns, step_ms))
+            self._record(self._row(state, out, stamp_ns, step_ns * 1e-6))
         return out
 
-    def _publish(self, state: LinkState, out: AgentOutput, stamp_ns: int) -> None:
+    def setpoint_rate_hz(self) -> float:
+        """Setpoints sent per simulated second over the last simulated second (0: no stream)."""
+        if self._streamer is None:
+            return 0.0
+        speed = self.sync.clock.speed
+        wall_rate_hz = self._streamer.rate_hz(window_ns=max(1, round(1e9 / speed)))
+        return min(wall_rate_hz / speed, MAX_SETPOINT_RATE_HZ)
+
+    def _publish(self, state: LinkState, out: AgentOutput, stamp_ns: int, step_ns: int) -> None:
         mode = _vehicle_mode(state)
         learning = bool(self.agent.learning.enabled)
         try:
@@ -304,6 +468,7 @@ class FleetRunner:
                     qp_fallback=not out.qp_ok,
                     learning_on=learning,
                     first_c_norm=float(np.linalg.norm(out.c[0])),
+                    solve_time_us=min(max(step_ns // 1000, 0), _U32_MAX),
                 ),
             )
             beta = [float(b) for b in out.beta]
@@ -323,6 +488,7 @@ class FleetRunner:
                     neighbour_plan_ages=ages,
                     qp_fallbacks=self.agent.fallbacks % 2**32,
                     rejected_messages=self.bus.counters().rejected_total % 2**32,
+                    setpoint_rate_hz=self.setpoint_rate_hz(),
                 ),
                 stamp_ns=stamp_ns,
             )
@@ -351,17 +517,25 @@ class FleetRunner:
             "mode": state.mode.name if state.mode is not None else None,
             "mode_lost": state.mode_lost,
             "step_ms": step_ms,
+            "setpoint_rate_hz": self.setpoint_rate_hz(),
         }
 
     # -- the loop -------------------------------------------------------------------------------
     def run(self, stop: threading.Event, streamer: SetpointStreamer) -> None:
-        """Step until `stop` is set (or fleet time reaches `stop_at_fleet_ns`)."""
+        """Step until `stop` is set, fleet time reaches `stop_at_fleet_ns` or `failure` is set.
+
+        The vehicle is engaged after the warm-up whether or not the fleet epoch is known yet;
+        steps start once it is (until then the streamer keeps sending zeros).
+        """
         s = self.settings
+        self._streamer = streamer
         state = self.link.state()
         first_boot_ns = state.time_boot_ns
         while not stop.is_set():
             state = self.link.wait_state(newer_than_ns=state.time_boot_ns, timeout_s=0.2)
-            if stop.is_set():
+            if not self.sync.clock.ready:
+                self.poll_epoch()  # also without telemetry: a mismatch must stop the run
+            if stop.is_set() or self.failure is not None:
                 break
             if (
                 s.engage
@@ -392,6 +566,9 @@ class FleetRunner:
         st = self.link.state()
         out = {
             "vehicle": self.agent.vehicle_id,
+            "failure": self.failure,
+            "epoch_ns": self.sync.clock.epoch_ns,
+            "epoch_received_wall_ns": self.epoch_received_wall_ns,
             "steps": self.steps,
             "overruns": self.overruns,
             "step_errors": self.step_errors,

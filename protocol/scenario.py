@@ -18,7 +18,19 @@ from onboard.core.validate import finite, in_range, positive, vector
 from sitl.plant import TruthParams, Wind
 from sitl.target import TargetScript
 
-__all__ = ["Network", "Scenario", "Site", "VehicleSpec", "load_scenario", "parse_scenario"]
+__all__ = [
+    "AUTOPILOTS",
+    "Network",
+    "Scenario",
+    "Site",
+    "VehicleSpec",
+    "load_scenario",
+    "mavlink_url",
+    "parse_scenario",
+]
+
+AUTOPILOTS = ("px4", "ardupilot")
+"""Autopilot profiles a vehicle can fly: PX4 (UDP offboard API) or ArduPilot (TCP)."""
 
 
 @dataclass(frozen=True)
@@ -43,7 +55,7 @@ class Site:
 
 @dataclass(frozen=True)
 class Network:
-    """Loopback ports of a fleet; vehicle i uses the base ports plus (i - 1)."""
+    """Loopback ports of a fleet; vehicle (system id) i uses the base ports plus (i - 1)."""
 
     host: str = "127.0.0.1"
     """Address every process binds to or sends to."""
@@ -64,6 +76,23 @@ class Network:
             if not isinstance(port, int) or not 1 <= port <= 65535:
                 raise ConfigError(f"network.{name}", f"must be a port number, got {port!r}")
 
+    def offboard_port(self, vehicle_id: int) -> int:
+        """PX4: the offboard-API UDP port vehicle `vehicle_id` streams to (agents listen here)."""
+        return _derived_port("network.offboard_base_port", self.offboard_base_port, vehicle_id - 1)
+
+    def ardupilot_tcp_port(self, vehicle_id: int) -> int:
+        """ArduPilot: the TCP port vehicle `vehicle_id`'s SITL serves (agents connect here)."""
+        return _derived_port(
+            "network.ardupilot_tcp_base_port", self.ardupilot_tcp_base_port, 10 * (vehicle_id - 1)
+        )
+
+
+def _derived_port(field: str, base: int, step: int) -> int:
+    port = base + step
+    if not 1 <= port <= 65535:
+        raise ConfigError(field, f"{base} + {step} is not a port number")
+    return port
+
 
 @dataclass(frozen=True)
 class VehicleSpec:
@@ -77,6 +106,29 @@ class VehicleSpec:
     """Offset of this vehicle's slot from the formation centre [m] (frame: formation.frame)."""
     truth: TruthParams
     """The simulated vehicle's true parameters."""
+    autopilot: str = "px4"
+    """Autopilot profile of the vehicle's SITL and link: "px4" or "ardupilot"."""
+
+    def __post_init__(self) -> None:
+        if self.autopilot not in AUTOPILOTS:
+            raise ConfigError(
+                "autopilot", f'must be "px4" or "ardupilot", got {_quoted(self.autopilot)}'
+            )
+
+
+def _quoted(value: object) -> str:
+    return f'"{value}"' if isinstance(value, str) else repr(value)
+
+
+def mavlink_url(network: Network, vehicle: VehicleSpec) -> str:
+    """The pymavlink URL of a vehicle's autopilot as its SITL serves it by default.
+
+    PX4: ``udpin:HOST:offboard_base_port + i - 1`` (the SITL streams there, the agent listens);
+    ArduPilot: ``tcp:HOST:ardupilot_tcp_base_port + 10 (i - 1)``; i is the vehicle's system id.
+    """
+    if vehicle.autopilot == "ardupilot":
+        return f"tcp:{network.host}:{network.ardupilot_tcp_port(vehicle.id)}"
+    return f"udpin:{network.host}:{network.offboard_port(vehicle.id)}"
 
 
 @dataclass(frozen=True)
@@ -150,6 +202,8 @@ def _truth(table: dict[str, Any], prefix: str, controller: ControllerSettings) -
     return _build(TruthParams, table, prefix, wind=wind)
 
 
+_VEHICLE_KEYS = {"id", "initial", "slot_m", "truth", "autopilot"}
+
 _TOP_KEYS = {
     "name",
     "description",
@@ -205,10 +259,11 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
         prefix = f"vehicles[{i}]"
         if not isinstance(raw, dict):
             raise ConfigError(prefix, "must be a table")
-        extra = sorted(set(raw) - {"id", "initial", "slot_m", "truth"})
+        extra = sorted(set(raw) - _VEHICLE_KEYS)
         if extra:
             raise ConfigError(
-                f"{prefix}.{extra[0]}", "unknown key (known: id, initial, slot_m, truth)"
+                f"{prefix}.{extra[0]}",
+                f"unknown key (known: {', '.join(sorted(_VEHICLE_KEYS))})",
             )
         vid = raw.get("id", i + 1)
         if not isinstance(vid, int) or not 1 <= vid <= 250:
@@ -218,9 +273,12 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
         truth_table = {**truth_default, **raw.get("truth", {})}
         if "wind" in truth_default and "wind" in raw.get("truth", {}):
             truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
-        vehicles.append(
-            VehicleSpec(vid, initial, slot, _truth(truth_table, f"{prefix}.truth", controller))
-        )
+        truth = _truth(truth_table, f"{prefix}.truth", controller)
+        try:
+            spec = VehicleSpec(vid, initial, slot, truth, autopilot=raw.get("autopilot", "px4"))
+        except ConfigError as e:
+            raise ConfigError(f"{prefix}.{e.field}", str(e).split(": ", 1)[1]) from None
+        vehicles.append(spec)
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ConfigError("vehicles", f"ids must be unique, got {ids}")
@@ -248,6 +306,9 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
                 )
     site = _build(Site, doc.get("site", {}), "site")
     network = _build(Network, doc.get("network", {}), "network")
+    for v in vehicles:  # every vehicle's default ports exist
+        network.offboard_port(v.id)
+        network.ardupilot_tcp_port(v.id)
     return Scenario(
         name=name,
         description=str(doc.get("description", "")),

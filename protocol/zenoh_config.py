@@ -18,16 +18,26 @@ URL form, parsed by `ZenohOptions.from_url`::
 
 Examples: ``zenoh://127.0.0.1:7447?mode=client`` (client of a router),
 ``zenoh://127.0.0.1:7447?listen=127.0.0.1:7448`` (a peer of a mesh).
+
+Processes of a fleet take their options from the command line with `options_from_args`: a
+config file, or ``--zenoh-connect HOST:PORT[,...]`` (a client of a router), or by default a
+member of the fleet's full peer mesh on the scenario's ``network.host`` and ``network.zenoh_port``
+(`peer_mesh_index`: the vehicles in scenario order, then the target, then the ground station).
 """
 
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qsl, urlsplit
 
 import zenoh
 
 from onboard.core.errors import ConfigError
+from protocol.messages import GROUND_STATION_ID, TARGET_ID
+
+if TYPE_CHECKING:
+    from protocol.scenario import Scenario
 
 __all__ = [
     "DEFAULT_HOST",
@@ -35,6 +45,8 @@ __all__ = [
     "ZenohOptions",
     "disable_scouting",
     "endpoint",
+    "options_from_args",
+    "peer_mesh_index",
 ]
 
 DEFAULT_HOST = "127.0.0.1"
@@ -179,3 +191,47 @@ def _host_port(field: str, text: str, *, proto_optional: bool = True) -> str:
     if proto_optional and "/" in text:
         return _check_endpoint(field, text)
     return _check_endpoint(field, f"tcp/{text}")
+
+
+def peer_mesh_index(scenario: "Scenario", sender_id: int) -> int:
+    """Member index of `sender_id` in the fleet's peer mesh.
+
+    Vehicles take 0..N-1 in scenario order, the target (`TARGET_ID`) N and the ground station
+    (`GROUND_STATION_ID`) N + 1.
+    """
+    n = len(scenario.vehicles)
+    if sender_id == TARGET_ID:
+        return n
+    if sender_id == GROUND_STATION_ID:
+        return n + 1
+    return scenario.index_of(sender_id)
+
+
+def options_from_args(
+    config_file: str | Path | None,
+    connect: str | None,
+    *,
+    scenario: "Scenario",
+    member_index: int,
+) -> ZenohOptions:
+    """The Zenoh options of a fleet process's command line.
+
+    `config_file` (``--zenoh-config``) loads a Zenoh config file; else `connect`
+    (``--zenoh-connect``, comma-separated ``HOST:PORT`` or ``PROTO/HOST:PORT``) makes a client of
+    those routers; else the process is member `member_index` (see `peer_mesh_index`) of the
+    fleet's full peer mesh on the scenario's network host and ports.
+    """
+    if config_file is not None:
+        return ZenohOptions(config_file=str(config_file))
+    if connect:
+        items = [e.strip() for e in connect.split(",") if e.strip()]
+        return ZenohOptions(
+            mode="client", connect=tuple(_host_port("--zenoh-connect", e) for e in items)
+        )
+    net = scenario.network
+    return ZenohOptions.peer_mesh(
+        index=member_index,
+        size=len(scenario.vehicles) + 2,
+        base_port=net.zenoh_port,
+        host=net.host,
+    )

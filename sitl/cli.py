@@ -2,8 +2,12 @@
 
 PX4 ports (as PX4 SITL, vehicle I): binds 14580 + I - 1 and streams to the offboard-API port
 14540 + I - 1; binds 18570 + I - 1 and streams to the ground-station port 14550. ArduPilot: TCP
-server on 5760 + 10 (I - 1). Base ports come from the scenario's [network] table; --port-offset
-shifts all of them, and each can be set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
+server on 5760 + 10 (I - 1), plus the same ground-station UDP stream (as ArduPilot SITL's
+``--out udp:HOST:14550``; ``--gcs-port 0`` turns it off). The profile is the vehicle's
+``autopilot`` in the scenario unless --autopilot says otherwise. Base ports come from the
+scenario's [network] table (the agent's default URL uses the same arithmetic,
+`protocol.scenario.mavlink_url`); --port-offset shifts all of them, and each can be set
+explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
 """
 
 import argparse
@@ -30,7 +34,11 @@ PX4_GCS_LOCAL_BASE_PORT = 18570
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
     parser.add_argument("--vehicle", required=True, type=int, help="vehicle id (MAVLink system id)")
-    parser.add_argument("--autopilot", choices=[p.value for p in Profile], default="px4")
+    parser.add_argument(
+        "--autopilot",
+        choices=[p.value for p in Profile],
+        help="autopilot profile (default: the vehicle's autopilot in the scenario, else px4)",
+    )
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
     parser.add_argument(
         "--host", help="address to bind and stream to (default: scenario network.host)"
@@ -42,11 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--offboard-local-port", type=int, help="PX4: port bound for the offboard link (0: any)"
     )
     ports.add_argument(
-        "--gcs-port", type=int, help="PX4: ground-station port streamed to (0: no GCS link)"
+        "--gcs-port", type=int, help="ground-station port streamed to (0: no GCS link)"
     )
-    ports.add_argument(
-        "--gcs-local-port", type=int, help="PX4: port bound for the GCS link (0: any)"
-    )
+    ports.add_argument("--gcs-local-port", type=int, help="port bound for the GCS link (0: any)")
     ports.add_argument("--tcp-port", type=int, help="ArduPilot: TCP server port (0: any)")
     timing = parser.add_argument_group("autopilot timing (simulated seconds)")
     timing.add_argument(
@@ -93,11 +99,11 @@ def _default_ports(scenario: Scenario, vehicle_id: int, offset: int) -> _Default
     n = scenario.network
     i = vehicle_id - 1
     return _Defaults(
-        offboard_port=n.offboard_base_port + i + offset,
+        offboard_port=n.offboard_port(vehicle_id) + offset,
         offboard_local_port=PX4_OFFBOARD_LOCAL_BASE_PORT + i + offset,
         gcs_port=n.gcs_port + offset,
         gcs_local_port=PX4_GCS_LOCAL_BASE_PORT + i + offset,
-        tcp_port=n.ardupilot_tcp_base_port + 10 * i + offset,
+        tcp_port=n.ardupilot_tcp_port(vehicle_id) + offset,
     )
 
 
@@ -105,7 +111,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
     """Validate the command line against the scenario; errors name the option."""
     scenario = load_scenario(args.scenario)
     spec = scenario.vehicle(args.vehicle)
-    profile = Profile(args.autopilot)
+    profile = Profile(args.autopilot or spec.autopilot)
     d = _default_ports(scenario, spec.id, args.port_offset)
 
     def pick(option: str, value: int | None, default: int, *, allow_zero: bool) -> int:
@@ -128,9 +134,16 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         seed=scenario.seed,
         host=args.host or scenario.network.host,
     )
+    gcs_port = pick("--gcs-port", args.gcs_port, d.gcs_port, allow_zero=True)
+    gcs_link = ()
+    if gcs_port:
+        gcs_local = pick("--gcs-local-port", args.gcs_local_port, d.gcs_local_port, allow_zero=True)
+        gcs_link = (UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(PX4_GCS_RATES_HZ)),)
     if profile == Profile.ARDUPILOT:
         return ServerConfig(
-            **common, tcp_port=pick("--tcp-port", args.tcp_port, d.tcp_port, allow_zero=True)
+            **common,
+            tcp_port=pick("--tcp-port", args.tcp_port, d.tcp_port, allow_zero=True),
+            udp=gcs_link,
         )
     udp = [
         UdpEndpoint(
@@ -145,11 +158,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
             _with_heartbeat(PX4_ONBOARD_RATES_HZ),
         )
     ]
-    gcs_port = pick("--gcs-port", args.gcs_port, d.gcs_port, allow_zero=True)
-    if gcs_port:
-        gcs_local = pick("--gcs-local-port", args.gcs_local_port, d.gcs_local_port, allow_zero=True)
-        udp.append(UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(PX4_GCS_RATES_HZ)))
-    return ServerConfig(**common, udp=tuple(udp))
+    return ServerConfig(**common, udp=(*udp, *gcs_link))
 
 
 @dataclass
@@ -171,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     server = VehicleServer(config, clock=clock)
     try:
         endpoints = ", ".join(f"{k} {v}" for k, v in server.addresses.items())
-        who = f"vehicle {config.vehicle.id} ({args.autopilot}, x{clock.speed:g})"
+        who = f"vehicle {config.vehicle.id} ({config.autopilot.profile.value}, x{clock.speed:g})"
         print(f"fleetmpc sitl: {who} ready: {endpoints}", flush=True)
         server.run(stop)
     finally:

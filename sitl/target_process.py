@@ -2,15 +2,19 @@
 
 Time base: fleet time (see `onboard.runner`), ``(time.time_ns() - epoch_ns) * speed``; the
 target is at ``state_at(fleet_s)`` and every observation is stamped with the fleet time it was
-taken at, on the scenario's observation rate (simulated Hz) and noise. Without ``--epoch-ns``
-the epoch is this process's start (printed, so the rest of the fleet can be given it). Before
-the epoch nothing is published. Observations are sent under sender id 250 (not a vehicle id).
-Zenoh: by default the last member of the fleet's peer mesh (see `onboard.cli`);
-``--zenoh-connect`` makes a client of a router; ``--zenoh-config FILE`` loads a config file.
+taken at, on the scenario's observation rate (simulated Hz) and noise. The epoch is
+``--epoch-ns``, or with ``--wait-epoch`` the first one announced on the bus (the ground station's
+`FleetEpoch` on ``fleetmpc/<fleet>/epoch``; waiting ends after ``--epoch-timeout`` wall seconds
+with exit code 2, and an announced speed other than ``--speed`` is an error, exit 2); without
+either, the epoch is this process's start (printed, so the rest of the fleet can be given it).
+Before the epoch nothing is published. Observations are sent under sender id `TARGET_ID`.
+Zenoh: `protocol.zenoh_config.options_from_args` (by default the target's member of the fleet's
+peer mesh; ``--zenoh-connect`` a client of a router; ``--zenoh-config FILE`` a config file).
 SIGINT/SIGTERM: close the session and exit 0.
 """
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -20,12 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from onboard.core.errors import ConfigError
-from onboard.planbus import open_plan_bus
+from onboard.planbus import PlanBus, open_plan_bus
+from protocol.keys import epoch_key
 from protocol.messages import TARGET_ID
 from protocol.scenario import load_scenario
-from protocol.zenoh_config import ZenohOptions
+from protocol.zenoh_config import options_from_args, peer_mesh_index
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "run", "wait_for_epoch"]
+
+_SPEED_RTOL = 1e-6
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,31 +41,63 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
     zenoh.add_argument("--zenoh-connect", help="comma-separated router endpoints (client mode)")
     parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
-    parser.add_argument("--epoch-ns", type=int, default=None, help="host time.time_ns() of t = 0")
+    epoch = parser.add_mutually_exclusive_group()
+    epoch.add_argument("--epoch-ns", type=int, default=None, help="host time.time_ns() of t = 0")
+    epoch.add_argument(
+        "--wait-epoch", action="store_true", help="take the epoch announced on the bus"
+    )
+    parser.add_argument(
+        "--epoch-timeout",
+        type=float,
+        default=120.0,
+        help="--wait-epoch: give up after this many wall-clock seconds (exit 2)",
+    )
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
     parser.add_argument("--duration", type=float, default=None, help="stop at this fleet time [s]")
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: scenario)")
 
 
-def _options(args: argparse.Namespace, scenario) -> ZenohOptions:
-    if args.zenoh_config is not None:
-        return ZenohOptions(config_file=str(args.zenoh_config))
-    if args.zenoh_connect:
-        items = [e.strip() for e in args.zenoh_connect.split(",") if e.strip()]
-        return ZenohOptions(
-            mode="client", connect=tuple(e if "/" in e else f"tcp/{e}" for e in items)
-        )
-    n = len(scenario.vehicles)
-    net = scenario.network
-    return ZenohOptions.peer_mesh(index=n, size=n + 1, base_port=net.zenoh_port, host=net.host)
+def _log(text: str) -> None:
+    print(f"fleetmpc target: {text}", file=sys.stderr, flush=True)
+
+
+def wait_for_epoch(
+    bus: PlanBus, *, speed: float, timeout_s: float, stop: threading.Event
+) -> int | None:
+    """The first epoch announced on `bus` (None if `stop` was set first).
+
+    Raises ConfigError on timeout, naming the fleet's epoch key, or if the announced speed is
+    not `speed`.
+    """
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        announced = bus.latest_epoch()
+        if announced is not None:
+            if not math.isclose(announced.speed, speed, rel_tol=_SPEED_RTOL):
+                raise ConfigError(
+                    "--speed",
+                    f"the fleet epoch is announced at x{announced.speed:g}, this process runs at "
+                    f"x{speed:g}",
+                )
+            return announced.epoch_ns
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise ConfigError(
+                "--epoch-timeout",
+                f"no fleet epoch for fleet {bus.fleet!r} on {epoch_key(bus.fleet)} "
+                f"within {timeout_s:g} s",
+            )
+        stop.wait(min(0.05, left))
+    return None
 
 
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     if not 0.01 <= args.speed <= 1000.0:
         raise ConfigError("--speed", f"must be in [0.01, 1000], got {args.speed}")
+    if not 0.0 < args.epoch_timeout <= 1e6:  # also rejects NaN
+        raise ConfigError("--epoch-timeout", f"must be in (0, 1e6] s, got {args.epoch_timeout}")
     target = scenario.target
-    epoch_ns = time.time_ns() if args.epoch_ns is None else args.epoch_ns
     period_ns = round(1e9 / target.observation_rate_hz)
     end_ns = None if args.duration is None else round(args.duration * 1e9)
     rng = np.random.default_rng(scenario.seed if args.seed is None else args.seed)
@@ -68,10 +107,24 @@ def run(args: argparse.Namespace) -> int:
     bus = None
     try:
         bus = open_plan_bus(
-            _options(args, scenario),
+            options_from_args(
+                args.zenoh_config,
+                args.zenoh_connect,
+                scenario=scenario,
+                member_index=peer_mesh_index(scenario, TARGET_ID),
+            ),
             fleet=args.fleet or scenario.name,
             vehicle_id=TARGET_ID,
         )
+        if args.wait_epoch:
+            _log(f"waiting for the fleet epoch on {epoch_key(bus.fleet)}")
+            epoch_ns = wait_for_epoch(
+                bus, speed=args.speed, timeout_s=args.epoch_timeout, stop=stop
+            )
+            if epoch_ns is None:
+                return 0
+        else:
+            epoch_ns = time.time_ns() if args.epoch_ns is None else args.epoch_ns
         print(f"fleetmpc target: epoch_ns {epoch_ns} speed {args.speed:g}", flush=True)
         k = 0
         while not stop.is_set():
@@ -93,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
                 )
                 published += 1
             except Exception as e:  # keep flying the target
-                print(f"fleetmpc target: publish failed: {e}", file=sys.stderr, flush=True)
+                _log(f"publish failed: {e}")
             # Catch up without a burst if this process was late (e.g. started after the epoch).
             now_stamp = (time.time_ns() - epoch_ns) * args.speed
             k = max(k + 1, int(now_stamp // period_ns))

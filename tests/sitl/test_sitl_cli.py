@@ -47,7 +47,7 @@ def free_offset(ports: list[int]) -> int:
 
 
 def test_default_ports_follow_px4_and_ardupilot_sitl(start_sitl):
-    offset = free_offset([14581, 18571, 5780])
+    offset = free_offset([14581, 18571, 18572, 5780])
     px4, ready = start_sitl("--vehicle", "2", "--port-offset", str(offset))
     assert ready["endpoints"] == (
         f"offboard udp 127.0.0.1:{14581 + offset} -> 127.0.0.1:{14541 + offset}, "
@@ -57,7 +57,10 @@ def test_default_ports_follow_px4_and_ardupilot_sitl(start_sitl):
         "--vehicle", "3", "--autopilot", "ardupilot", "--port-offset", str(offset),
         scenario=IDEAL_SCENARIO.parent / "three.toml",
     )  # fmt: skip
-    assert ready["endpoints"] == f"ardupilot tcp 127.0.0.1:{5780 + offset}"
+    assert ready["endpoints"] == (
+        f"gcs udp 127.0.0.1:{18572 + offset} -> 127.0.0.1:{14550 + offset}, "
+        f"ardupilot tcp 127.0.0.1:{5780 + offset}"
+    )
     assert px4.stop() == 0 and apm.stop() == 0
 
 
