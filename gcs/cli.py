@@ -24,6 +24,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("gcs.report", "figures and metrics from a Rerun recording (.rrd)"),
     "gcs": ("gcs.ground_station", "ground station: telemetry, plans and metrics into Rerun"),
     "up": ("gcs.up", "start a whole fleet on this machine, watch it, bring it down"),
+    "compose": ("gcs.compose", "the fleet as a docker compose file (one service per process)"),
 }
 
 
