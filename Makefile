@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow lint bench install clean
+.PHONY: demo test test-slow lint bench install clean compose-file compose-ci
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,5 +31,17 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/fleetmpc bench scenarios/paper.toml
 
+# docker/compose.yaml is `fleetmpc compose scenarios/paper.toml`; compose-file regenerates it.
+compose-file: $(STAMP)
+	$(BIN)/fleetmpc compose scenarios/paper.toml -o docker/compose.yaml
+
+# The paper fleet under docker compose on a private Docker daemon, with the gates, and a check of
+# a generated 5-vehicle file (needs root; installs docker.io and mmdebstrap). Outputs: runs/compose-ci.
+compose-ci: $(STAMP)
+	mkdir -p runs/compose-ci
+	$(BIN)/fleetmpc compose scenarios/wedge-circle.toml -o runs/compose-ci/wedge-circle.yaml
+	PYTHON=$(abspath $(BIN)/python) docker/ci.sh docker/compose.yaml runs/compose-ci --gates \
+		--config-only runs/compose-ci/wedge-circle.yaml
+
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache
+	rm -rf $(VENV) runs build .pytest_cache .ruff_cache
