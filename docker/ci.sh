@@ -118,11 +118,16 @@ mounts_under() {
         /proc/self/mountinfo | sort -r
 }
 
+# A process's command line, or nothing if it has gone.
+cmdline_of() {
+    { tr '\0' ' ' < "/proc/$1/cmdline"; } 2>/dev/null || true
+}
+
 # PIDs whose command line names a path under $1: the daemon's own containerd and shims.
 pids_under() {
     local p
     for p in /proc/[0-9]*; do
-        if tr '\0' ' ' < "$p/cmdline" 2>/dev/null | grep -qF -- "$1"; then
+        if cmdline_of "${p#/proc/}" | grep -qF -- "$1"; then
             echo "${p#/proc/}"
         fi
     done
@@ -163,7 +168,7 @@ cleanup() {
         # A daemon killed hard can leave its containerd and shims behind: they name our roots.
         for pid in $(pids_under "$RUN_DIR"); do
             [[ $pid == "$$" ]] && continue
-            log "stopping leftover process $pid: $(tr '\0' ' ' < "/proc/$pid/cmdline" 2>/dev/null)"
+            log "stopping leftover process $pid: $(cmdline_of "$pid")"
             kill -KILL "$pid" 2>/dev/null
         done
         sleep 0.2
@@ -201,9 +206,30 @@ cleanup() {
     exit "$status"
 }
 
+# Long steps run as a child that the script waits for: bash runs a trap only once the foreground
+# command is over, but interrupts `wait` at once. On INT/TERM the child is stopped first (compose
+# stops its containers), then the EXIT trap tears everything down.
+CHILD=""
+in_child() {
+    "$@" &
+    CHILD=$!
+    local rc=0
+    wait "$CHILD" || rc=$?
+    CHILD=""
+    return "$rc"
+}
+on_signal() {
+    trap '' INT TERM # the first signal decides the exit status
+    if [[ -n $CHILD ]]; then
+        kill -TERM "$CHILD" 2>/dev/null
+        wait "$CHILD" 2>/dev/null
+    fi
+    exit "$1"
+}
+
 trap cleanup EXIT
-trap 'exit 130' INT
-trap 'exit 143' TERM
+trap 'on_signal 130' INT
+trap 'on_signal 143' TERM
 
 # --- 1. install -----------------------------------------------------------------------------
 
@@ -270,7 +296,7 @@ phase dockerd
 mkdir -p "$STATE/data"
 if [[ -f $STATE/dockerd.pid ]]; then
     old=$(cat "$STATE/dockerd.pid")
-    if [[ -n $old ]] && tr '\0' ' ' < "/proc/$old/cmdline" 2>/dev/null | grep -qF -- "$STATE/data"; then
+    if [[ -n $old ]] && cmdline_of "$old" | grep -qF -- "$STATE/data"; then
         die "a dockerd on $STATE/data is already running (PID $old): another run, or one left behind"
     fi
     rm -f "$STATE/dockerd.pid"
@@ -280,7 +306,7 @@ stale_run_dir=$(cat "$STATE/exec-root" 2>/dev/null || true)
 if [[ -n $stale_run_dir && $stale_run_dir == /tmp/fleetmpc-dockerd.* ]]; then
     for pid in $(pids_under "$stale_run_dir"); do
         [[ $pid == "$$" ]] && continue
-        log "stopping process $pid of an earlier run: $(tr '\0' ' ' < "/proc/$pid/cmdline")"
+        log "stopping process $pid of an earlier run: $(cmdline_of "$pid")"
         kill -KILL "$pid" 2>/dev/null || true
     done
 fi
@@ -376,7 +402,7 @@ docker run --rm --network none "$BASE_IMAGE" python3 --version
 # --- 4. project image -----------------------------------------------------------------------
 
 phase image
-docker build --network host --build-arg "BASE_IMAGE=$BASE_IMAGE" \
+in_child docker build --network host --build-arg "BASE_IMAGE=$BASE_IMAGE" \
     -f "$REPO/docker/Dockerfile" -t "$PROJECT_IMAGE" "$REPO"
 # Dangling layers of earlier builds would pile up in the kept data root.
 docker image prune -f >/dev/null
@@ -392,7 +418,7 @@ for f in "$COMPOSE_FILE" "${CONFIG_ONLY[@]}"; do
 done
 rm -f "$OUT_DIR/run.rrd"
 COMPOSE_STARTED=1
-docker compose --ansi never -p "$COMPOSE_PROJECT" -f "$COMPOSE_FILE" up \
+in_child docker compose --ansi never -p "$COMPOSE_PROJECT" -f "$COMPOSE_FILE" up \
     --abort-on-container-exit --exit-code-from gcs
 docker compose --ansi never -p "$COMPOSE_PROJECT" -f "$COMPOSE_FILE" down --remove-orphans --timeout 10
 COMPOSE_STARTED=0
