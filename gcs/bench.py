@@ -21,6 +21,7 @@ import numpy as np
 from gcs.lockstep import run_lockstep
 from onboard.core.dekf import DualEkf
 from onboard.core.lbmpc import QpData, TubeLbmpc
+from onboard.core.sparse_qp import FixedPatternQp
 from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -119,8 +120,6 @@ def run(args: argparse.Namespace) -> int:
     qp_ns: list[int] = []
     mpc_ns: list[int] = []
     captured: list[QpData] = []
-    import osqp
-
     original_solve = TubeLbmpc.solve
 
     def capturing(self, d):
@@ -129,8 +128,8 @@ def run(args: argparse.Namespace) -> int:
 
     with (
         _timed(DualEkf, "step", dekf_ns),
-        _timed(osqp.OSQP, "solve", qp_ns),
-        _timed(osqp.OSQP, "update", qp_ns),
+        _timed(FixedPatternQp, "solve", qp_ns),
+        _timed(FixedPatternQp, "update", qp_ns),
     ):
         TubeLbmpc.solve = capturing
         try:

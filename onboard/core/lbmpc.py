@@ -15,25 +15,39 @@ predicted position is within reach (a half-plane inner approximation of the disc
 
 OSQP is set up once with a fixed sparsity pattern (structural zeros kept) and updated every period
 with warm start; every solve is checked (status, finiteness, bounds).
+
+Speed: a period runs in a fraction of a millisecond, so the per-period code counts numpy calls.
+Everything that does not depend on the period's data is built in the constructor (the identity
+parts of the stacked model, the heading weights, the input-bound rows, the QP's index maps); the
+linearization of both models, the rotated gains and the c = 0 rollouts come from one plain-float
+pass over the horizon; the rest is a handful of batched matrix products.
 """
 
+import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
-import osqp
-import scipy.sparse as sp
 
 from onboard.core.config import ControllerSettings
 from onboard.core.errors import InfeasibleError
+from onboard.core.sparse_qp import INFINITY, FixedPatternQp
 from onboard.core.tube import (
     cruise_linearization,
     dare_gain,
     position_tube_radius,
     robust_input_tightening,
 )
-from onboard.core.unicycle import NOMINAL_BETA, linearize
 
 __all__ = ["QpData", "QpSolution", "TubeLbmpc"]
+
+# The stacked state X = [zbar; ztil] (6) moves with Ab = blockdiag(A, A~) (6 x 6) and Bb = [B; B~]
+# (6 x 2). Flat positions, within one step's Ab and Bb, of the entries that change with the
+# linearization point (all others are 0, the identity, or tau):
+_AB_HEADING = np.array([0 * 6 + 2, 1 * 6 + 2, 3 * 6 + 5, 4 * 6 + 5])
+"""dx+/dth and dy+/dth of A, then of A~."""
+_BB_POSITION = np.array([0, 1, 2, 3, 6, 7, 8, 9])
+"""B[0:2, 0:2] then B~[0:2, 0:2], row-major."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,14 +95,13 @@ class QpSolution:
     iterations: int
 
 
-def _pattern_indices(mask: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
-    """CSC matrix holding every entry of `mask` (zeros kept), and the (row, col) of each entry."""
-    m = sp.csc_matrix(mask.astype(float))
-    m.sort_indices()
-    cols = np.repeat(np.arange(mask.shape[1]), np.diff(m.indptr))
-    rows = m.indices.copy()
-    m.data[:] = 0.0
-    return m, rows, cols
+class _Period(NamedTuple):
+    """One period's condensed QP (see `TubeLbmpc._layout` for the rows of Y)."""
+
+    Y: np.ndarray
+    """(8M + NM, 2M + 1): every affine map of c the period needs, constant part last."""
+    x0: np.ndarray
+    """(M + 1, 6): the stacked prediction [zbar; ztil] at c = 0, j = 0..M."""
 
 
 class TubeLbmpc:
@@ -119,17 +132,55 @@ class TubeLbmpc:
                 "reduce the disturbance box W or the horizon, or raise the input bounds",
             )
         self.tube_radius_m = position_tube_radius(self.A0, self.B0, self.K0, w_bar, M)
-        self._bound = self.u_max[None, :] - self.tightening
-        self._r = np.array([s.r_speed, s.r_yaw_rate])
-        self._E = np.zeros((M, 2, 2 * M))
-        for j in range(M):
-            self._E[j, :, 2 * j : 2 * j + 2] = np.eye(2)
-        self._setup_solver()
+        self._precompute()
         self._last_c: np.ndarray | None = None
 
-    # -- QP structure ---------------------------------------------------------------------------
-    def _setup_solver(self) -> None:
-        M, N, n = self.M, self.n_neighbours, 2 * self.M
+    # -- constant structure ---------------------------------------------------------------------
+    def _precompute(self) -> None:
+        """Build what every period shares, so a period only writes the values that change.
+
+        One period's condensed QP lives in one array Y of 2M + 1 columns (c_0..c_{M-1}, then a
+        constant) whose rows are, by block (named slices `_rows_*`):
+            states      6M rows   X_j = d[zbar_j; ztil_j]/dc, j = 1..M (the constant column
+                                  holds the learned cost residual ztil_j(c = 0) - r_j)
+            inputs      2M rows   Hu_j = du_j/dc, j = 0..M-1 (u_j - u_s,j; constant 0)
+            separation  NM rows   n_kj' dpbar_j/dc for neighbour k, step j = 1..M
+        With W (8M x 8M) the cost weights on the first two blocks (zero on the nominal states),
+        the cost is (Y c + y)' W (Y c + y), so one product Y' W Y gives P and q, and A is the
+        last two blocks: both are read from Y through flat index maps.
+
+        Cached: the K0 entries as floats; Ab and Bb with their constant entries (identity, tau);
+        E_j, which injects c_j into u_j; W with its constant entries (heading and input weights);
+        the input-bound rows of l and u (the separation rows' u is +infinity); the index maps;
+        and the OSQP problem with its fixed pattern.
+        """
+        s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
+        self._K0_entries = tuple(float(k) for k in self.K0.ravel())
+        self._Ab_template = np.tile(np.eye(6), (M, 1, 1))
+        self._Bb_template = np.zeros((M, 6, 2))
+        self._Bb_template[:, 2, 1] = self.tau
+        self._E = np.zeros((M, 2, n))
+        for j in range(M):
+            self._E[j, :, 2 * j : 2 * j + 2] = np.eye(2)
+        # Rows of Y.
+        self._rows_states = slice(0, 6 * M)
+        self._rows_inputs = slice(6 * M, 8 * M)
+        self._rows_separation = slice(8 * M, 8 * M + N * M)
+        self._Y_shape = (8 * M + N * M, n + 1)
+        # Weights: stage j's learned position and heading rows, the terminal block, the inputs.
+        W = np.zeros((8 * M, 8 * M))
+        learned = 6 * np.arange(M)[:, None] + np.array([3, 4, 5])  # rows of ztil_j, j = 1..M
+        W[learned[:-1, 2], learned[:-1, 2]] = s.q_heading
+        inputs = np.arange(6 * M, 8 * M)
+        W[inputs, inputs] = np.tile([s.r_speed, s.r_yaw_rate], M)
+        self._W_template = W
+        self._W_position = (learned[:-1, :2] * (8 * M + 1)).ravel()  # flat (row = col) entries
+        self._W_terminal = (slice(6 * M - 3, 6 * M), slice(6 * M - 3, 6 * M))
+        bound = (self.u_max[None, :] - self.tightening).ravel()
+        self._input_lower, self._input_upper = -bound, bound
+        self._first_input_limit = tuple(float(u) * (1 + 1e-3) + 1e-6 for u in self.u_max)
+        # Pattern: P upper triangle dense; u_j depends on c_0..c_j; a separation row at step j
+        # on c_0..c_{j-1}.
         p_mask = np.triu(np.ones((n, n), dtype=bool))
         in_mask = np.zeros((2 * M, n), dtype=bool)
         for j in range(M):
@@ -138,31 +189,13 @@ class TubeLbmpc:
         for k in range(N):
             for j in range(1, M + 1):
                 sep_mask[k * M + j - 1, : 2 * j] = True
-        a_mask = np.vstack([in_mask, sep_mask])
-        P, self._p_rows, self._p_cols = _pattern_indices(p_mask)
-        A, self._a_rows, self._a_cols = _pattern_indices(a_mask)
-        P.data[:] = np.eye(n)[self._p_rows, self._p_cols]
-        A.data[:] = 0.0
-        m = a_mask.shape[0]
-        self._A_dense = np.zeros((m, n))
-        self._l = np.full(m, -np.inf)
-        self._u = np.full(m, np.inf)
-        s = self.settings
-        self._solver = osqp.OSQP()
-        self._solver.setup(
-            P=P,
-            q=np.zeros(n),
-            A=A,
-            l=-np.ones(m),
-            u=np.ones(m),
-            verbose=False,
-            eps_abs=s.solver_eps,
-            eps_rel=s.solver_eps,
-            max_iter=s.solver_max_iter,
-            warm_starting=True,
-            polishing=False,
+        self._qp = FixedPatternQp(
+            p_mask, np.vstack([in_mask, sep_mask]), eps=s.solver_eps, max_iter=s.solver_max_iter
         )
+        self._qp.u[2 * M :] = INFINITY
+        self._warm = np.zeros(n)
 
+    # -- small maps -----------------------------------------------------------------------------
     def feedback_gain(self, yaw: float) -> np.ndarray:
         """K at heading `yaw` (2, 3): K0 T(yaw)'."""
         c, s_ = np.cos(yaw), np.sin(yaw)
@@ -173,9 +206,9 @@ class TubeLbmpc:
 
     def terminal_weight(self, yaw: float) -> np.ndarray:
         """P at heading `yaw` (3, 3): T P0 T'."""
-        c, s_ = np.cos(yaw), np.sin(yaw)
+        c, s_ = math.cos(yaw), math.sin(yaw)
         T = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-        return T @ self.P0 @ T.T
+        return T.dot(self.P0).dot(T.T)
 
     def fallback_input(self, z: np.ndarray, reference: np.ndarray, u_s: np.ndarray) -> np.ndarray:
         """The tube feedback law u = u_s + K (z - z_ref), clipped to U (used when a solve fails)."""
@@ -185,132 +218,189 @@ class TubeLbmpc:
         u = np.where(np.isfinite(u), u, 0.0)
         return np.clip(u, -self.u_max, self.u_max)
 
-    def _failed(
-        self, M: int, status: str, sz: np.ndarray, st: np.ndarray, d: QpData
-    ) -> "QpSolution":
+    def _failed(self, status: str, x0: np.ndarray, d: QpData) -> QpSolution:
         return QpSolution(
             ok=False,
             status=status,
-            c=np.zeros((M, 2)),
+            c=np.zeros((self.M, 2)),
             inputs=np.array(d.u_s, dtype=float),
-            nominal=sz,
-            learned=st,
+            nominal=x0[:, :3].copy(),
+            learned=x0[:, 3:].copy(),
             iterations=0,
         )
 
     # -- one period -----------------------------------------------------------------------------
+    def _linearize(
+        self, d: QpData
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Both models along the linearization trajectory, in one plain-float pass over j.
+
+        Returns Phi (M, 6, 6) = Ab + Bb [K 0] (how the stacked state's dependence on c
+        propagates), Bb (M, 6, 2), K (M, 2, 3), x0 (M + 1, 6), the stacked prediction at c = 0
+        ([zref; ztil], the linearized models' rollouts of u_s from z0), and the learned cost
+        residual at c = 0 (M, 3) for j = 1..M, heading wrapped. Per step j, at
+        phi = th + tau a_w w / 2:
+            A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
+            dy/dth = tau a_V v cos phi,  B = [[tau a_V cos phi, dx/dth tau a_w / 2],
+            [tau a_V sin phi, dy/dth tau a_w / 2], [0, tau a_w]],
+            e = (tau d_x - dx/dth phi, tau d_y - dy/dth phi, 0),
+        with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal.
+        With M a handful of steps, a float loop is cheaper than a few dozen numpy calls on
+        (M,)-arrays.
+        """
+        M, tau = self.M, self.tau
+        a_v, a_w, d_x, d_y = (float(b) for b in d.beta)
+        tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
+        hn = 0.5 * tau  # nominal, a_V = a_w = 1
+        k00, k01, k02, k10, k11, k12 = self._K0_entries
+        xb, yb, hb = (float(v) for v in d.z0)
+        xt, yt, ht = xb, yb, hb
+        lin, ref = [], [(xb, yb, hb, xt, yt, ht, 0.0, 0.0, 0.0)]
+        steps = zip(
+            d.lin_states[:M, 2].tolist(),
+            d.lin_inputs.tolist(),
+            d.u_s.tolist(),
+            d.targets.tolist(),
+            strict=True,
+        )
+        for th, (v, w), (us_v, us_w), (rx, ry, rh) in steps:
+            phi = th + hn * w
+            s, c = math.sin(phi), math.cos(phi)
+            dx, dy = -tau * v * s, tau * v * c
+            b00, b01, b10, b11 = tau * c, dx * hn, tau * s, dy * hn
+            xb, yb, hb = (
+                xb + dx * hb + b00 * us_v + b01 * us_w - dx * phi,
+                yb + dy * hb + b10 * us_v + b11 * us_w - dy * phi,
+                hb + tau * us_w,
+            )
+            phi = th + hw * w
+            s, c = math.sin(phi), math.cos(phi)
+            tx, ty = -tv * v * s, tv * v * c
+            t00, t01, t10, t11 = tv * c, tx * hw, tv * s, ty * hw
+            xt, yt, ht = (
+                xt + tx * ht + t00 * us_v + t01 * us_w + tau * d_x - tx * phi,
+                yt + ty * ht + t10 * us_v + t11 * us_w + tau * d_y - ty * phi,
+                ht + tw * us_w,
+            )
+            c, s = math.cos(th), math.sin(th)
+            lin.append(
+                (
+                    dx, dy, tx, ty,
+                    b00, b01, b10, b11, t00, t01, t10, t11,
+                    k00 * c - k01 * s, k00 * s + k01 * c, k02,
+                    k10 * c - k11 * s, k10 * s + k11 * c, k12,
+                )
+            )  # fmt: skip
+            res_h = (ht - rh + math.pi) % (2.0 * math.pi) - math.pi
+            ref.append((xb, yb, hb, xt, yt, ht, xt - rx, yt - ry, res_h))
+        lin_a, ref_a = np.array(lin), np.array(ref)
+        Phi = self._Ab_template.copy()
+        Phi.reshape(M, 36)[:, _AB_HEADING] = lin_a[:, :4]
+        Bb = self._Bb_template.copy()
+        Bb.reshape(M, 12)[:, _BB_POSITION] = lin_a[:, 4:12]
+        Bb[:, 5, 1] = tw  # B~[2, 1] = tau a_w (B[2, 1] = tau is constant)
+        K = lin_a[:, 12:].reshape(M, 2, 3)
+        Phi[:, :, :3] += Bb @ K
+        return Phi, Bb, K, ref_a[:, :6], ref_a[1:, 6:]
+
+    def _condense(self, d: QpData) -> _Period:
+        """Fill Y's state and input rows: one recursion on the stacked sensitivities,
+        X_1 = Bb_0 E_0, X_{j+1} = Phi_j X_j + Bb_j E_j (only the columns of c_0..c_j are
+        nonzero), and Hu_j = K_j dzbar_j/dc + E_j."""
+        M, n = self.M, 2 * self.M
+        Phi, Bb, K, x0, residual = self._linearize(d)
+        Y = np.zeros(self._Y_shape)
+        X = Y[self._rows_states, :n].reshape(M, 6, n)  # X[j - 1] is X_j
+        X[0, :, :2] = Bb[0]
+        for j in range(1, M):
+            w = 2 * j
+            X[j, :, :w] = Phi[j].dot(X[j - 1, :, :w])
+            X[j, :, w : w + 2] = Bb[j]
+        Y[self._rows_states, n].reshape(M, 6)[:, 3:] = residual
+        Hu = Y[self._rows_inputs, :n].reshape(M, 2, n)
+        Hu[1:] = K[1:] @ X[: M - 1, :3]
+        Hu += self._E
+        return _Period(Y, x0)
+
     def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
         """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs.
 
-        Runs one recursion on the stacked state X_j = [zbar_j; ztil_j] (6 x (2M + 1)), whose last
-        column is the constant part: X_{j+1} = (Ablk + Bblk [K_j 0]) X_j + Bblk (E_j c + u_s,j) + e.
+        Shapes: Sz, St (M + 1, 3, 2M); sz, st (M + 1, 3); Hu (M, 2, 2M), whose constant part
+        is u_s.
         """
-        M, n, tau = self.M, 2 * self.M, self.tau
-        A, B, e = linearize(d.lin_states[:M], d.lin_inputs, NOMINAL_BETA, tau)
-        At, Bt, et = linearize(d.lin_states[:M], d.lin_inputs, d.beta, tau)
-        th = d.lin_states[:M, 2]
-        c, s_ = np.cos(th), np.sin(th)
-        K = np.empty((M, 2, 3))
-        K[:, :, 0] = self.K0[None, :, 0] * c[:, None] - self.K0[None, :, 1] * s_[:, None]
-        K[:, :, 1] = self.K0[None, :, 0] * s_[:, None] + self.K0[None, :, 1] * c[:, None]
-        K[:, :, 2] = self.K0[None, :, 2]
-        Bb = np.concatenate([B, Bt], axis=1)  # (M, 6, 2)
-        Ab = np.zeros((M, 6, 6))
-        Ab[:, :3, :3] = A
-        Ab[:, 3:, 3:] = At
-        Phi = Ab.copy()
-        Phi[:, :, :3] += Bb @ K
-        X = np.zeros((M + 1, 6, n + 1))
-        X[0, :3, n] = X[0, 3:, n] = d.z0  # constant column: the rollout of u_s (zref, c = 0)
-        const = (Bb @ d.u_s[:, :, None])[:, :, 0]
-        const[:, :3] += e
-        const[:, 3:] += et
-        for j in range(M):
-            w = 2 * j
-            Xn = X[j + 1]
-            Xn[:, : w + 2] = Phi[j] @ X[j, :, : w + 2]
-            Xn[:, w : w + 2] += Bb[j]
-            Xn[:, n] = Ab[j] @ X[j, :, n] + const[j]
-        Hu = K @ X[:M, :3, :n] + self._E  # (M, 2, n); the constant part of u_j is u_s,j
-        return X[:, :3, :n], X[:, :3, n], X[:, 3:, :n], X[:, 3:, n], Hu
+        M, n = self.M, 2 * self.M
+        Y, x0 = self._condense(d)
+        S = np.zeros((M + 1, 6, n))
+        S[1:] = Y[self._rows_states, :n].reshape(M, 6, n)
+        Hu = Y[self._rows_inputs, :n].reshape(M, 2, n).copy()
+        return S[:, :3], x0[:, :3].copy(), S[:, 3:], x0[:, 3:].copy(), Hu
 
     def solve(self, d: QpData) -> QpSolution:
         """Build this period's QP values, solve it, and check the answer."""
-        M, n = self.M, 2 * self.M
-        Sz, sz, St, st, Hu = self.condense(d)
-        # Cost.
-        res = st[1:] - d.targets
-        res[:, 2] = (res[:, 2] + np.pi) % (2 * np.pi) - np.pi
-        Wd = np.empty((M - 1, 3))
-        Wd[:, 0] = Wd[:, 1] = d.position_weights[: M - 1]
-        Wd[:, 2] = self.settings.q_heading
-        G = St[1:M]
-        Pt = d.terminal_scale * self.terminal_weight(float(d.targets[-1, 2]))
-        GM = St[M]
-        GW = G * Wd[:, :, None]
-        H = (
-            np.einsum("jin,jim->nm", GW, G)
-            + GM.T @ Pt @ GM
-            + np.einsum("jin,jim->nm", Hu * self._r[None, :, None], Hu)
-        )
-        H = H + H.T  # = 2 * (symmetric H)
-        q = 2.0 * (np.einsum("jin,ji->n", GW, res[: M - 1]) + GM.T @ (Pt @ res[-1]))
+        M, N, n = self.M, self.n_neighbours, 2 * self.M
+        qp = self._qp
+        Y, x0 = self._condense(d)
+        u_s = d.u_s.ravel()
+        # Cost: P = 2 Y' W Y and q = 2 Y' W y over the state and input rows.
+        W = self._W_template.copy()
+        W.ravel()[self._W_position] = np.repeat(d.position_weights[: M - 1], 2)
+        W[self._W_terminal] = d.terminal_scale * self.terminal_weight(float(d.targets[-1, 2]))
+        Yc = Y[: 8 * M]
+        H = Yc.T.dot(W.dot(Yc))  # (n + 1, n + 1): [[P / 2, q / 2], [., .]]
+        Hc = H[:n, :n]
+        np.multiply(H[:n, n], 2.0, out=qp.q)
         # Input constraints: u_j = Hu_j c + u_s,j within the tightened box.
-        A = self._A_dense
-        A[: 2 * M] = Hu.reshape(2 * M, n)
-        self._l[: 2 * M] = (-self._bound - d.u_s).ravel()
-        self._u[: 2 * M] = (self._bound - d.u_s).ravel()
+        np.subtract(self._input_lower, u_s, out=qp.l[: 2 * M])
+        np.subtract(self._input_upper, u_s, out=qp.u[: 2 * M])
         # Separation constraints, one row per neighbour k and step j = 1..M.
-        N = self.n_neighbours
         if N:
             p_k = d.neighbour_positions  # (N, M, 2)
-            away = d.lin_states[None, 1:, :2] - p_k
+            away = d.lin_states[1:, :2] - p_k
             dist = np.hypot(away[..., 0], away[..., 1])
-            fallback_dir = d.z0[None, None, :2] - p_k
             close = dist < 1e-6
-            away = np.where(close[..., None], fallback_dir, away)
-            dist = np.where(close, np.hypot(away[..., 0], away[..., 1]), dist)
+            if close.any():
+                away = np.where(close[..., None], d.z0[:2] - p_k, away)
+                dist = np.where(close, np.hypot(away[..., 0], away[..., 1]), dist)
             nrm = away / np.maximum(dist, 1e-9)[..., None]
             active = np.isfinite(d.neighbour_margins)
-            rows = np.einsum("kji,jin->kjn", nrm, Sz[1:, :2]) * active[..., None]
-            A[2 * M :] = rows.reshape(N * M, n)
-            lower = d.neighbour_margins - np.einsum("kji,kji->kj", nrm, sz[None, 1:, :2] - p_k)
-            self._l[2 * M :] = np.where(active, lower, -np.inf).ravel()
-        Px, Ax = H[self._p_rows, self._p_cols], A[self._a_rows, self._a_cols]
-        if not (
-            np.isfinite(Px).all()
-            and np.isfinite(Ax).all()
-            and np.isfinite(q).all()
-            and not np.isnan(self._l).any()
-            and not np.isnan(self._u).any()
-        ):
+            X = Y[self._rows_states, :n].reshape(M, 6, n)
+            rows = np.matmul(nrm[:, :, None, :], X[:, :2])  # (N, M, 1, n)
+            Y[self._rows_separation, :n] = rows.reshape(N * M, n) * active.reshape(N * M, 1)
+            lower = d.neighbour_margins - (nrm * (x0[1:, :2] - p_k)).sum(axis=2)
+            qp.l[2 * M :] = np.where(active, lower, -INFINITY).ravel()
+        qp.gather(Hc + Hc.T, Y[6 * M :, :n])
+        if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
             self._last_c = None
-            return self._failed(M, "non-finite problem data", sz, st, d)
-        solver = self._solver
-        solver.update(Px=Px, Ax=Ax, q=q, l=self._l, u=self._u)
+            return self._failed("non-finite problem data", x0, d)
+        qp.update()
         if self._last_c is not None:
-            solver.warm_start(x=np.concatenate([self._last_c[2:], np.zeros(2)]))
-        result = solver.solve(raise_error=False)
-        status = str(result.info.status)
-        x = result.x
-        ok = result.info.status_val == osqp.SolverStatus.OSQP_SOLVED
-        if ok and (x is None or not np.all(np.isfinite(x))):
+            self._warm[:-2] = self._last_c[2:]
+            qp.warm_start(self._warm)
+        ok, status, x, iterations = qp.solve()
+        if ok and not math.isfinite(x.dot(x)):
             ok, status = False, "non-finite solution"
         if not ok:
             self._last_c = None
             x = np.zeros(n)
-        inputs = (Hu @ x) + d.u_s
-        if ok and np.any(np.abs(inputs[0]) > self.u_max * (1 + 1e-3) + 1e-6):
+        # Predictions and inputs: the state and input rows of Y at c = x.
+        y = Yc[:, :n].dot(x)
+        inputs = y[self._rows_inputs]
+        inputs += u_s
+        u0, w0 = inputs[:2].tolist()
+        v_lim, w_lim = self._first_input_limit
+        if ok and (abs(u0) > v_lim or abs(w0) > w_lim):
             ok, status = False, "first input outside U"
         if ok:
             self._last_c = x
+        z = x0.copy()
+        z[1:] += y[self._rows_states].reshape(M, 6)
         return QpSolution(
             ok=ok,
             status=status,
             c=x.reshape(M, 2),
-            inputs=inputs,
-            nominal=(Sz @ x) + sz,
-            learned=(St @ x) + st,
-            iterations=int(result.info.iter),
+            inputs=inputs.reshape(M, 2),
+            nominal=z[:, :3],
+            learned=z[:, 3:],
+            iterations=iterations,
         )

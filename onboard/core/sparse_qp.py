@@ -1,0 +1,107 @@
+"""An OSQP problem with a sparsity pattern fixed at setup, updated in place every period.
+
+    minimize  1/2 x'Px + q'x   subject to  l <= Ax <= u,   x in R^n, A in R^(m x n).
+
+The pattern of P (upper triangle) and A is given once as boolean masks; every masked entry is a
+structural nonzero (zeros are kept), so the nonzero count never changes and OSQP accepts every
+update (DESIGN.md). Each period the caller computes P and A densely; `gather` copies the masked
+entries into OSQP's CSC order through flat index maps computed at setup (no scipy.sparse object
+is built per period), and the caller writes q, l and u straight into their views.
+
+All five value arrays live in one buffer, so one `np.isfinite` checks the whole problem before the
+solver sees it. Infinite bounds are written as +-OSQP_INFTY (1e30, what OSQP treats as infinity),
+which keeps the buffer finite; any inf or nan left in it is bad data.
+
+The solver is OSQP's compiled binding (`osqp.ext_builtin.OSQPSolver`), the object that
+`osqp.OSQP` itself wraps, set up with the same settings. The wrapper's `update` and `solve` add
+about 20 us of Python per period (a module look-up of OSQP_INFTY on every update, a namespace of
+every info field on every solve), as much as the solve of this small QP.
+"""
+
+import numpy as np
+import osqp
+import osqp.ext_builtin as _ext
+import scipy.sparse as sp
+
+__all__ = ["INFINITY", "FixedPatternQp"]
+
+INFINITY = float(_ext.OSQP_INFTY)
+"""What OSQP treats as an infinite bound."""
+
+_SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
+
+
+def _csc_pattern(mask: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray]:
+    """Zero CSC matrix holding every entry of `mask`, and each entry's flat (row-major) index."""
+    m = sp.csc_matrix(mask.astype(float))
+    m.sort_indices()
+    cols = np.repeat(np.arange(mask.shape[1]), np.diff(m.indptr))
+    flat = m.indices * mask.shape[1] + cols
+    m.data[:] = 0.0
+    return m, flat.astype(np.intp)
+
+
+class FixedPatternQp:
+    """OSQP on a fixed pattern: write values, `gather`, check, `update`, `solve`."""
+
+    def __init__(
+        self,
+        p_mask: np.ndarray,
+        a_mask: np.ndarray,
+        *,
+        eps: float,
+        max_iter: int,
+    ) -> None:
+        n, m = p_mask.shape[0], a_mask.shape[0]
+        if p_mask.shape != (n, n) or a_mask.shape[1] != n:
+            raise ValueError("p_mask must be (n, n) and a_mask (m, n)")
+        if np.tril(p_mask, -1).any():
+            raise ValueError("p_mask must cover the upper triangle of P only")
+        self.n, self.m = n, m
+        P, self._p_flat = _csc_pattern(p_mask)
+        A, self._a_flat = _csc_pattern(a_mask)
+        n_p, n_a = self._p_flat.size, self._a_flat.size
+        # One buffer, five views: P's and A's CSC values, then q, l, u.
+        self.data = np.zeros(n_p + n_a + n + 2 * m)
+        self.Px = self.data[:n_p]
+        self.Ax = self.data[n_p : n_p + n_a]
+        self.q = self.data[n_p + n_a : n_p + n_a + n]
+        self.l = self.data[n_p + n_a + n : n_p + n_a + n + m]
+        self.u = self.data[n_p + n_a + n + m :]
+        P.data[:] = np.eye(n).ravel()[self._p_flat]  # P = I and A = 0 until the first update
+        settings = _ext.OSQPSettings()
+        _ext.osqp_set_default_settings(settings)
+        settings.verbose = False
+        settings.eps_abs = settings.eps_rel = eps
+        settings.max_iter = max_iter
+        settings.warm_starting = True
+        settings.polishing = False
+        self._solver = _ext.OSQPSolver(
+            _ext.CSC(P), np.zeros(n), _ext.CSC(A), -np.ones(m), np.ones(m), m, n, settings
+        )
+
+    def gather(self, P_dense: np.ndarray, A_dense: np.ndarray) -> None:
+        """Copy the pattern's entries of dense P (n, n) and A (m, n) into Px and Ax."""
+        P_dense.take(self._p_flat, out=self.Px)
+        A_dense.take(self._a_flat, out=self.Ax)
+
+    def finite(self) -> bool:
+        """True when P, A, q, l and u hold no inf or nan (infinite bounds are +-INFINITY)."""
+        return bool(np.isfinite(self.data).all())
+
+    def update(self) -> None:
+        """Hand this period's values to OSQP (it refactors its KKT matrix)."""
+        s = self._solver
+        s.update_data_vec(q=self.q, l=self.l, u=self.u)
+        s.update_data_mat(P_x=self.Px, P_i=None, A_x=self.Ax, A_i=None)
+
+    def warm_start(self, x: np.ndarray) -> None:
+        """Start the next solve's primal iterate at x (the dual keeps its last value)."""
+        self._solver.warm_start(x, None)
+
+    def solve(self) -> tuple[bool, str, np.ndarray, int]:
+        """Solve: (solved, OSQP's status text, x, iterations); x is a fresh array."""
+        s = self._solver
+        s.solve()
+        info = s.info
+        return info.status_val == _SOLVED, info.status, s.solution.x, info.iter
