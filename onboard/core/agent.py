@@ -21,9 +21,11 @@ from onboard.core.formation import Formation
 from onboard.core.lbmpc import QpData, TubeLbmpc
 from onboard.core.plan import Plan
 from onboard.core.target_estimator import TargetEstimator
-from onboard.core.unicycle import rollout, unwrap, wrap_angle
+from onboard.core.unicycle import rollout, wrap_angle
 
 __all__ = ["Agent", "AgentInput", "AgentOutput"]
+
+_TWO_PI = 2.0 * math.pi
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,10 +72,6 @@ class AgentOutput:
     """Neighbours whose formation term entered the cost."""
 
 
-def _unwrap_near(angles: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    return reference + wrap_angle(angles - reference)
-
-
 class Agent:
     """The LBMPC agent of one vehicle."""
 
@@ -105,41 +103,63 @@ class Agent:
         self.formation = Formation(formation)
         self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
         self.u_max = self.mpc.u_max
+        M = controller.horizon
+        self._margin_m = controller.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:]
+        """Separation margin at j = 1..M before the plan-age inflation [m]."""
+        self._position_weights = [
+            np.full(M, controller.q_position + n * controller.q_formation)
+            for n in range(len(self.neighbour_ids) + 1)
+        ]
+        """Stage position weights by number of formation terms (read-only arrays)."""
         self._last_command = np.zeros(2)
         self._last_plan: Plan | None = None
         self.fallbacks = 0
         self.steps = 0
 
     # -- pieces of a period ---------------------------------------------------------------------
+    # Per-horizon quantities (M + 2 points at most) are plain-float lists until they become the
+    # QP's arrays: for a handful of points a float loop is cheaper than numpy calls.
     def _steady_inputs(
-        self, slots: np.ndarray, beta: np.ndarray, yaw: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """u_s (M, 2) and steady headings (M + 1,) keeping the learned model on slots (M + 2, 2)."""
+        self, slots: list[list[float]], beta: tuple[float, ...], yaw: float
+    ) -> tuple[list[tuple[float, float]], list[float]]:
+        """u_s (M pairs) and steady headings (M + 1) keeping the learned model on slots (M + 2).
+
+        The ground velocity between consecutive slots, less the learned drift, gives the speed
+        and heading; a (nearly) still slot keeps the vehicle's heading; headings are unwrapped.
+        """
         tau = self.settings.period_s
-        a_v, a_w, d = beta[0], beta[1], beta[2:]
-        g = (slots[1:] - slots[:-1]) / tau - d[None, :]
-        speed = np.hypot(g[:, 0], g[:, 1])
-        heading = np.arctan2(g[:, 1], g[:, 0])
-        still = speed < 1e-3
-        if still.any():
-            heading[still] = yaw
-        heading = unwrap(heading)
-        u_s = np.empty((self.settings.horizon, 2))
-        u_s[:, 0] = speed[:-1] / a_v
-        u_s[:, 1] = np.diff(heading) / (tau * a_w)
-        return u_s, heading
+        a_v, a_w, d_x, d_y = beta
+        speeds, headings = [], []
+        last = raw_last = 0.0
+        for j, ((x0, y0), (x1, y1)) in enumerate(zip(slots[:-1], slots[1:], strict=False)):
+            gx, gy = (x1 - x0) / tau - d_x, (y1 - y0) / tau - d_y
+            speed = math.hypot(gx, gy)
+            raw = math.atan2(gy, gx) if speed >= 1e-3 else yaw
+            last = raw if j == 0 else last + (raw - raw_last + math.pi) % _TWO_PI - math.pi
+            raw_last = raw
+            speeds.append(speed)
+            headings.append(last)
+        u_s = [
+            (speeds[j] / a_v, (headings[j + 1] - headings[j]) / (tau * a_w))
+            for j in range(self.settings.horizon)
+        ]
+        return u_s, headings
 
     def _pursuit_inputs(
-        self, z0: np.ndarray, slots: np.ndarray, slot_vel: np.ndarray, beta: np.ndarray
-    ) -> np.ndarray:
+        self,
+        z0: tuple[float, float, float],
+        slots: list[list[float]],
+        slot_vel: tuple[float, float],
+        beta: tuple[float, ...],
+    ) -> list[tuple[float, float]]:
         """Inputs of a simple pursuit of the slot, to seed the linearization from far away."""
         s, tau = self.settings, self.settings.period_s
-        a_v, a_w, d_x, d_y = (float(b) for b in beta)
-        x, y, th = (float(v) for v in z0)
-        vx, vy = float(slot_vel[0]), float(slot_vel[1])
+        a_v, a_w, d_x, d_y = beta
+        x, y, th = z0
+        vx, vy = slot_vel
         v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
         out = []
-        for sx, sy in slots[1 : s.horizon + 1].tolist():
+        for sx, sy in slots[1 : s.horizon + 1]:
             gx, gy = vx + 0.5 * (sx - x) - d_x, vy + 0.5 * (sy - y) - d_y
             err = math.remainder(math.atan2(gy, gx) - th, 2 * math.pi)
             v = min(math.hypot(gx, gy) / a_v * max(math.cos(err), 0.0), v_max)
@@ -149,26 +169,42 @@ class Agent:
             x += tau * (a_v * v * math.cos(phi) + d_x)
             y += tau * (a_v * v * math.sin(phi) + d_y)
             th += tau * a_w * w
-        return np.array(out)
+        return out
 
     def _seed(
-        self, z0: np.ndarray, candidates: list[np.ndarray], beta: np.ndarray, goal: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The candidate input sequence whose learned rollout ends closest to the goal."""
+        self,
+        z0: tuple[float, float, float],
+        candidates: list[list[tuple[float, float]]],
+        beta: tuple[float, ...],
+        goal: list[list[float]],
+    ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float]]]:
+        """The candidate input sequence whose learned rollout ends closest to the goal.
+
+        Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s
+        from 0 (in its own direction), rolled out with the learned model and scored by the
+        squared distance of its positions to the goal (M points); returns (states, inputs).
+        """
         s = self.settings
-        best, best_cost = None, np.inf
-        for u in candidates:
-            u = np.clip(u, -self.u_max, self.u_max)
-            v = u[:, 0]
-            u[:, 0] = np.where(
-                v < 0,
-                np.minimum(v, -s.min_linearization_speed_m_s),
-                np.maximum(v, s.min_linearization_speed_m_s),
-            )
-            z = rollout(z0, u, beta, s.period_s)
-            cost = float(np.sum((z[1:, :2] - goal) ** 2))
+        tau = s.period_s
+        a_v, a_w, d_x, d_y = beta
+        v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
+        v_min = s.min_linearization_speed_m_s
+        best, best_cost = None, math.inf
+        for candidate in candidates:
+            x, y, th = z0
+            states, inputs, cost = [z0], [], 0.0
+            for (v, w), (gx, gy) in zip(candidate, goal, strict=True):
+                v, w = min(max(v, -v_max), v_max), min(max(w, -w_max), w_max)
+                v = min(v, -v_min) if v < 0 else max(v, v_min)
+                phi = th + 0.5 * tau * a_w * w
+                x += tau * (a_v * v * math.cos(phi) + d_x)
+                y += tau * (a_v * v * math.sin(phi) + d_y)
+                th += tau * a_w * w
+                states.append((x, y, th))
+                inputs.append((v, w))
+                cost += (x - gx) ** 2 + (y - gy) ** 2
             if cost < best_cost:
-                best, best_cost = (z, u), cost
+                best, best_cost = (states, inputs), cost
         assert best is not None
         return best
 
@@ -198,8 +234,9 @@ class Agent:
             if inp.applied_input is None
             else np.asarray(inp.applied_input, float)
         )
-        if inp.measurement is not None and np.all(np.isfinite(inp.measurement)):
-            self.dekf.step(np.asarray(inp.measurement, float), applied)
+        y = None if inp.measurement is None else np.asarray(inp.measurement, float)
+        if y is not None and all(map(math.isfinite, y.tolist())):
+            self.dekf.step(y, applied)
         elif self.dekf.initialized:
             self.dekf.propagate(applied)
         if inp.target_observation is not None:
@@ -218,16 +255,19 @@ class Agent:
             )
         z0 = self.dekf.z.copy()
         beta = self.dekf.beta.copy()
+        z0_f = tuple(z0.tolist())
+        beta_f = tuple(beta.tolist())
         # Target and slots over j = 0..M+1.
         tgt, tgt_vel = self.target.predict(inp.stamp_ns, s.period_ns, M + 2)
         slots_all = self.formation.slots(tgt, tgt_vel)  # (M+2, N, 2)
         mine = slots_all[:, self.index]
-        u_s, heading_s = self._steady_inputs(mine, beta, float(z0[2]))
+        mine_f = mine.tolist()
+        u_s, heading_s = self._steady_inputs(mine_f, beta_f, z0_f[2])
         # Neighbours.
         N = len(self.neighbour_ids)
         nb_pos = np.zeros((N, M, 2))
         nb_margin = np.full((N, M), np.inf)
-        pull = np.zeros((M, 2))
+        pull = None
         n_terms = 0
         for k, nid in enumerate(self.neighbour_ids):
             plan = inp.neighbour_plans.get(nid)
@@ -237,54 +277,65 @@ class Agent:
             nb_pos[k] = plan.positions_at(
                 inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
             )
-            nb_margin[k] = s.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:] + s.speed_max_m_s * age
+            nb_margin[k] = self._margin_m + s.speed_max_m_s * age
             if age <= s.plan_stale_s:
                 kidx = self.fleet_ids.index(nid)
-                pull += nb_pos[k] - slots_all[1 : M + 1, kidx]
+                term = nb_pos[k] - slots_all[1 : M + 1, kidx]
+                pull = term if pull is None else pull + term
                 n_terms += 1
         weight = s.q_position + n_terms * s.q_formation
+        # Cost targets: the slot pulled toward where the neighbours' slots say it should be.
+        mine_h = mine[1 : M + 1]
         targets = np.empty((M, 3))
-        targets[:, :2] = (
-            s.q_position * mine[1 : M + 1] + s.q_formation * (n_terms * mine[1 : M + 1] + pull)
-        ) / weight
+        if pull is None:
+            targets[:, :2] = s.q_position * mine_h / weight
+        else:
+            targets[:, :2] = (
+                s.q_position * mine_h + s.q_formation * (n_terms * mine_h + pull)
+            ) / weight
+        goal = targets[:, :2].tolist()
         # Linearization trajectory.
-        candidates = [
-            u_s.copy(),
-            self._pursuit_inputs(z0, mine, (mine[-1] - mine[0]) / ((M + 1) * tau), beta),
-        ]
+        (sx0, sy0), (sx1, sy1) = mine_f[0], mine_f[-1]
+        slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))
+        candidates = [u_s, self._pursuit_inputs(z0_f, mine_f, slot_vel, beta_f)]
         if self._last_plan is not None:
-            candidates.append(np.vstack([self._last_plan.inputs[1:], self._last_plan.inputs[-1:]]))
-        lin_states, lin_inputs = self._seed(z0, candidates, beta, targets[:, :2])
-        lin_states[:, 2] = unwrap(lin_states[:, 2])
-        targets[:, 2] = _unwrap_near(heading_s[1 : M + 1], lin_states[1:, 2])
+            shifted = self._last_plan.inputs.tolist()
+            candidates.append(shifted[1:] + shifted[-1:])
+        lin_states, lin_inputs = self._seed(z0_f, candidates, beta_f, goal)
+        # (The rollout's headings are continuous from z0's: no unwrapping needed.)
+        # Target headings: the steady headings, unwrapped near the linearization's.
+        targets[:, 2] = [
+            ref + (h - ref + math.pi) % _TWO_PI - math.pi
+            for h, (_, _, ref) in zip(heading_s[1 : M + 1], lin_states[1:], strict=True)
+        ]
         n_full = len(self.neighbour_ids)
+        u_s_a = np.array(u_s)
         data = QpData(
             z0=z0,
-            lin_states=lin_states,
-            lin_inputs=lin_inputs,
+            lin_states=np.array(lin_states),
+            lin_inputs=np.array(lin_inputs),
             beta=beta,
-            u_s=u_s,
+            u_s=u_s_a,
             targets=targets,
-            position_weights=np.full(M, weight),
+            position_weights=self._position_weights[n_terms],
             terminal_scale=weight / (s.q_position + n_full * s.q_formation),
             neighbour_positions=nb_pos,
             neighbour_margins=nb_margin,
         )
         sol = self.mpc.solve(data)
         if sol.ok:
-            inputs = np.clip(sol.inputs, -self.u_max, self.u_max)
-            states, c, status = sol.learned, sol.c, "solved"
+            inputs = np.minimum(np.maximum(sol.inputs, -self.u_max), self.u_max)
+            states, c, status = sol.learned.copy(), sol.c, "solved"
         else:
             self.fallbacks += 1
-            ref = np.array([mine[0, 0], mine[0, 1], heading_s[0]])
-            u = self._safe_stop(z0, self.mpc.fallback_input(z0, ref, u_s[0]), nb_pos, nb_margin)
+            ref = np.array([mine_f[0][0], mine_f[0][1], heading_s[0]])
+            u = self._safe_stop(z0, self.mpc.fallback_input(z0, ref, u_s_a[0]), nb_pos, nb_margin)
             inputs = np.repeat(u[None, :], M, axis=0)
             states, c, status = (
                 rollout(z0, inputs, beta, tau),
                 np.zeros((M, 2)),
                 f"fallback: {sol.status}",
             )
-        states = states.copy()
         states[:, 2] = wrap_angle(states[:, 2])
         plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, states, inputs)
         self._last_plan = plan

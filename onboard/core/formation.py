@@ -5,6 +5,8 @@ frame whose x axis is the target's course (the direction of its velocity); with 
 is the positive rotation, so a course-frame offset o maps to Rot(course) o.
 """
 
+import math
+
 import numpy as np
 
 from onboard.core.config import FormationSettings
@@ -27,21 +29,22 @@ class Formation:
 
     def course(self, target_velocity_m_s: np.ndarray) -> float:
         """Target course [rad]; the last known course while the target is (nearly) still."""
-        v = np.asarray(target_velocity_m_s, dtype=float)
-        if np.hypot(v[0], v[1]) >= self._min_speed:
-            self._course = float(np.arctan2(v[1], v[0]))
+        vx, vy = (float(v) for v in target_velocity_m_s)
+        if math.hypot(vx, vy) >= self._min_speed:
+            self._course = math.atan2(vy, vx)
         return self._course
 
     def slots(self, target_positions_m: np.ndarray, target_velocity_m_s: np.ndarray) -> np.ndarray:
         """Slots (K, N, 2) for target positions (K, 2) moving with one velocity (2,)."""
         c = self.course(target_velocity_m_s)
-        u = np.array([np.cos(c), np.sin(c)])
-        centre = np.asarray(target_positions_m, dtype=float) - self.settings.trail_m * u
+        ux, uy = math.cos(c), math.sin(c)
+        trail = self.settings.trail_m
+        centre = np.asarray(target_positions_m, dtype=float) - np.array([trail * ux, trail * uy])
         offsets = self._offsets
         if self.settings.frame == "course":
-            rot = np.array([[u[0], -u[1]], [u[1], u[0]]])
+            rot = np.array([[ux, -uy], [uy, ux]])
             offsets = offsets @ rot.T
-        return centre[:, None, :] + offsets[None, :, :]
+        return centre[:, None, :] + offsets
 
     def desired_distances(self) -> np.ndarray:
         """Desired distance between every pair of slots (N, N) [m]."""

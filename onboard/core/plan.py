@@ -36,14 +36,25 @@ class Plan:
         Interpolates linearly inside the plan and extrapolates at the last planned velocity
         beyond its end, for at most `max_extrapolation_s` past the last state (held after that).
         """
-        k = (stamp_ns - self.stamp_ns) / self.period_ns + np.arange(count)  # in periods
+        k0 = (stamp_ns - self.stamp_ns) / self.period_ns  # in periods
         M = self.horizon
-        pos = self.states[:, :2]
-        inside = np.clip(k, 0.0, float(M))
-        i = np.minimum(inside.astype(int), M - 1)
-        frac = (inside - i)[:, None]
-        out = pos[i] * (1.0 - frac) + pos[i + 1] * frac
         period_s = self.period_ns * 1e-9
-        beyond_s = np.clip(k - M, 0.0, max_extrapolation_s / period_s) * period_s
-        vel = (pos[M] - pos[M - 1]) / period_s
-        return out + beyond_s[:, None] * vel[None, :]
+        pos = self.states[:, :2].tolist()
+        (x_a, y_a), (x_b, y_b) = pos[M - 1], pos[M]
+        vx, vy = (x_b - x_a) / period_s, (y_b - y_a) / period_s
+        max_periods = max_extrapolation_s / period_s
+        out = []
+        for j in range(count):  # plain floats: count is a horizon, a handful of points
+            k = k0 + j
+            inside = min(max(k, 0.0), float(M))
+            i = min(int(inside), M - 1)
+            frac = inside - i
+            (x0, y0), (x1, y1) = pos[i], pos[i + 1]
+            beyond_s = min(max(k - M, 0.0), max_periods) * period_s
+            out.append(
+                (
+                    x0 * (1.0 - frac) + x1 * frac + beyond_s * vx,
+                    y0 * (1.0 - frac) + y1 * frac + beyond_s * vy,
+                )
+            )
+        return np.array(out).reshape(count, 2)

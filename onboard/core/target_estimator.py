@@ -1,6 +1,8 @@
 """Constant-velocity Kalman filter on noisy target observations, predicting over the horizon.
 
-State (x, y, vx, vy) in the world frame [m, m/s]; white-acceleration process noise.
+State (x, y, vx, vy) in the world frame [m, m/s]; white-acceleration process noise. The
+transition and process noise depend only on the time step, which is one control period almost
+always: they are cached by step (in integer nanoseconds), as are the prediction offsets.
 """
 
 import numpy as np
@@ -19,30 +21,42 @@ class TargetEstimator:
         self._q = accel_std_m_s2**2
         self._stamp_ns: int | None = None
         self.observations = 0
+        self._models: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._offsets: dict[tuple[int, int], np.ndarray] = {}
 
     @property
     def ready(self) -> bool:
         """True once at least one observation has been fused."""
         return self._stamp_ns is not None
 
+    def _model(self, dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """F and Q over a step of dt_ns nanoseconds (cached; a handful of distinct steps)."""
+        model = self._models.get(dt_ns)
+        if model is None:
+            dt = dt_ns * 1e-9
+            F = np.eye(4)
+            F[0, 2] = F[1, 3] = dt
+            q = self._q
+            Q1 = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]]) * q
+            Q = np.zeros((4, 4))
+            Q[np.ix_([0, 2], [0, 2])] = Q1
+            Q[np.ix_([1, 3], [1, 3])] = Q1
+            if len(self._models) >= 64:  # irregular stamps: do not grow without bound
+                self._models.clear()
+            model = self._models[dt_ns] = (F, Q)
+        return model
+
     def _predict_to(self, stamp_ns: int) -> None:
         if self._stamp_ns is None or stamp_ns <= self._stamp_ns:
             return
-        dt = (stamp_ns - self._stamp_ns) * 1e-9
-        F = np.eye(4)
-        F[0, 2] = F[1, 3] = dt
-        q = self._q
-        Q1 = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]]) * q
-        Q = np.zeros((4, 4))
-        Q[np.ix_([0, 2], [0, 2])] = Q1
-        Q[np.ix_([1, 3], [1, 3])] = Q1
+        F, Q = self._model(stamp_ns - self._stamp_ns)
         self._kf.predict(F=F, Q=Q)
         self._stamp_ns = stamp_ns
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
         """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
         p = np.asarray(position_m, dtype=float)
-        if p.shape != (2,) or not np.all(np.isfinite(p)):
+        if p.shape != (2,) or not np.isfinite(p).all():
             return False
         if self._stamp_ns is None:
             self._kf.x = np.array([p[0], p[1], 0.0, 0.0])
@@ -62,7 +76,9 @@ class TargetEstimator:
         if self._stamp_ns is None:
             raise RuntimeError("no target observation yet")
         x = self._kf.x
-        dt0 = (stamp_ns - self._stamp_ns) * 1e-9
-        t = dt0 + period_ns * 1e-9 * np.arange(count)
-        pos = x[:2][None, :] + t[:, None] * x[2:][None, :]
+        offsets = self._offsets.get((period_ns, count))
+        if offsets is None:
+            offsets = self._offsets[period_ns, count] = period_ns * 1e-9 * np.arange(count)
+        t = (stamp_ns - self._stamp_ns) * 1e-9 + offsets
+        pos = x[:2] + t[:, None] * x[2:]
         return pos, x[2:].copy()
