@@ -6,6 +6,7 @@ fly the commands for one period of plant ticks. Deterministic for a seed.
 """
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 
@@ -78,6 +79,7 @@ def run_lockstep(
     log: dict[str, list] = {k: [] for k in keys}
     plans: dict[int, object] = {}
     min_sep = np.inf
+    pairs = [(plants[a], plants[b]) for a in range(n) for b in range(a + 1, n)]
     for k in range(periods):
         t_ns = k * period_ns
         t_s = t_ns * 1e-9
@@ -131,10 +133,10 @@ def run_lockstep(
         for _ in range(ticks):
             for plant in plants:
                 plant.advance(tick_ns, 1)
-            if n > 1:
-                p = np.array([pl.state[:2] for pl in plants])
-                d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
-                min_sep = min(min_sep, float(np.min(d[np.triu_indices(n, 1)])))
+            for a, b in pairs:  # the closest approach, checked at every plant tick
+                (xa, ya), (xb, yb) = a.position_m, b.position_m
+                dx, dy = xa - xb, ya - yb
+                min_sep = min(min_sep, math.sqrt(dx * dx + dy * dy))
         if progress is not None:
             progress((k + 1) * period_ns * 1e-9, duration_s)
     return FlightRecord(

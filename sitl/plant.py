@@ -102,6 +102,11 @@ class TruthPlant:
         return np.array([x, y, math.atan2(math.sin(th), math.cos(th))])
 
     @property
+    def position_m(self) -> tuple[float, float]:
+        """True (x_m, y_m) as plain floats."""
+        return self._s[0], self._s[1]
+
+    @property
     def achieved_input(self) -> tuple[float, float]:
         """Achieved (speed_m_s, yaw_rate_rad_s) after effectiveness and lag."""
         return self._s[3], self._s[4]
@@ -126,42 +131,59 @@ class TruthPlant:
             min(max(yaw_rate_rad_s, -p.yaw_rate_limit_rad_s), p.yaw_rate_limit_rad_s),
         )
 
-    def _deriv(self, s: list[float], wind: tuple[float, float]) -> list[float]:
-        p = self.params
-        v_target = p.speed_effectiveness * self._cmd[0]
-        w_target = p.yaw_rate_effectiveness * self._cmd[1]
-        lag = p.actuator_lag_s
-        dv = (v_target - s[3]) / lag if lag > 0 else 0.0
-        dw = (w_target - s[4]) / lag if lag > 0 else 0.0
-        return [s[3] * math.cos(s[2]) + wind[0], s[3] * math.sin(s[2]) + wind[1], s[4], dv, dw]
-
     def advance(self, tick_ns: int, ticks: int = 1) -> None:
-        """Integrate `ticks` RK4 steps of `tick_ns` nanoseconds each."""
+        """Integrate `ticks` RK4 steps of `tick_ns` nanoseconds each.
+
+        State derivative: (v cos th + wind_x, v sin th + wind_y, w, (a_V V_cmd - v) / lag,
+        (a_w w_cmd - w) / lag); without lag (v, w) jump to the commanded values at each tick.
+        Unrolled on plain floats (this runs ten times per control period per vehicle).
+        """
         p = self.params
         h = tick_ns * 1e-9
+        h2, h6 = h / 2, h / 6
+        wind = p.wind
+        steady_wind = wind.gust_amplitude_m_s == 0.0
+        wx0, wy0 = wxm, wym = wx1, wy1 = wind.mean_m_s
+        v_cmd = p.speed_effectiveness * self._cmd[0]
+        w_cmd = p.yaw_rate_effectiveness * self._cmd[1]
+        lag = p.actuator_lag_s
+        x, y, th, v, w = self._s
         for _ in range(ticks):
-            if p.actuator_lag_s == 0:
-                self._s[3] = p.speed_effectiveness * self._cmd[0]
-                self._s[4] = p.yaw_rate_effectiveness * self._cmd[1]
-            t0 = self.time_ns * 1e-9
-            w0, wm, w1 = p.wind.at(t0), p.wind.at(t0 + h / 2), p.wind.at(t0 + h)
-            s = self._s
-            k1 = self._deriv(s, w0)
-            k2 = self._deriv([a + h / 2 * b for a, b in zip(s, k1, strict=True)], wm)
-            k3 = self._deriv([a + h / 2 * b for a, b in zip(s, k2, strict=True)], wm)
-            k4 = self._deriv([a + h * b for a, b in zip(s, k3, strict=True)], w1)
-            self._s = [
-                a + h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
-                for a, b1, b2, b3, b4 in zip(s, k1, k2, k3, k4, strict=True)
-            ]
+            if lag == 0:
+                v, w = v_cmd, w_cmd
+            if not steady_wind:
+                t0 = self.time_ns * 1e-9
+                (wx0, wy0), (wxm, wym), (wx1, wy1) = wind.at(t0), wind.at(t0 + h2), wind.at(t0 + h)
+            # k1 .. k4: derivatives at the start, twice at the midpoint, at the end.
+            x1, y1, th1 = v * math.cos(th) + wx0, v * math.sin(th) + wy0, w
+            v1, w1 = ((v_cmd - v) / lag, (w_cmd - w) / lag) if lag > 0 else (0.0, 0.0)
+            th_, v_, w_ = th + h2 * th1, v + h2 * v1, w + h2 * w1
+            x2, y2, th2 = v_ * math.cos(th_) + wxm, v_ * math.sin(th_) + wym, w_
+            v2, w2 = ((v_cmd - v_) / lag, (w_cmd - w_) / lag) if lag > 0 else (0.0, 0.0)
+            th_, v_, w_ = th + h2 * th2, v + h2 * v2, w + h2 * w2
+            x3, y3, th3 = v_ * math.cos(th_) + wxm, v_ * math.sin(th_) + wym, w_
+            v3, w3 = ((v_cmd - v_) / lag, (w_cmd - w_) / lag) if lag > 0 else (0.0, 0.0)
+            th_, v_, w_ = th + h * th3, v + h * v3, w + h * w3
+            x4, y4, th4 = v_ * math.cos(th_) + wx1, v_ * math.sin(th_) + wy1, w_
+            v4, w4 = ((v_cmd - v_) / lag, (w_cmd - w_) / lag) if lag > 0 else (0.0, 0.0)
+            x += h6 * (x1 + 2 * x2 + 2 * x3 + x4)
+            y += h6 * (y1 + 2 * y2 + 2 * y3 + y4)
+            th += h6 * (th1 + 2 * th2 + 2 * th3 + th4)
+            v += h6 * (v1 + 2 * v2 + 2 * v3 + v4)
+            w += h6 * (w1 + 2 * w2 + 2 * w3 + w4)
             self.time_ns += tick_ns
+        self._s = [x, y, th, v, w]
 
     def measure(self, rng: np.random.Generator) -> np.ndarray:
         """A noisy measurement of (x_m, y_m, yaw_rad); noise is Gaussian truncated at 3 sigma."""
         p = self.params
-        n = np.clip(rng.standard_normal(3), -3.0, 3.0)
-        z = self.state
-        z[:2] += p.position_noise_m * n[:2]
-        th = z[2] + p.heading_noise_rad * n[2]
-        z[2] = math.atan2(math.sin(th), math.cos(th))
-        return z
+        nx, ny, nh = (min(max(n, -3.0), 3.0) for n in rng.standard_normal(3).tolist())
+        x, y, th = self._s[0], self._s[1], self._s[2]
+        th = math.atan2(math.sin(th), math.cos(th)) + p.heading_noise_rad * nh
+        return np.array(
+            [
+                x + p.position_noise_m * nx,
+                y + p.position_noise_m * ny,
+                math.atan2(math.sin(th), math.cos(th)),
+            ]
+        )

@@ -31,7 +31,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from onboard.core.config import LearningSettings
-from onboard.core.unicycle import step, step_jacobians, wrap_angle
+from onboard.core.unicycle import step, step_jacobians, step_with_jacobians, wrap_angle
 
 __all__ = ["DekfState", "DualEkf", "dekf_step", "initial_dekf_state"]
 
@@ -42,8 +42,10 @@ def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return r
 
 
-def _identity_jacobian(_x: np.ndarray) -> np.ndarray:
-    return np.eye(3)
+def _all_finite(*arrays: np.ndarray) -> bool:
+    """No inf or nan in any of the arrays (a sum propagates both; only a sum beyond 1e308 of
+    finite entries could also read as non-finite, which is divergence all the same)."""
+    return math.isfinite(sum(float(a.sum()) for a in arrays))
 
 
 def _identity(x: np.ndarray) -> np.ndarray:
@@ -61,6 +63,15 @@ class _Noise:
     gate: float
     learn: bool
     excitation: np.ndarray
+    beta_min_list: tuple[float, ...] = ()
+    beta_max_list: tuple[float, ...] = ()
+    P_p_cap_list: tuple[float, ...] = ()
+    excitation_list: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        # Plain-float copies for the per-period bounds and excitation checks.
+        for name in ("beta_min", "beta_max", "P_p_cap", "excitation"):
+            object.__setattr__(self, f"{name}_list", tuple(getattr(self, name).tolist()))
 
     @classmethod
     def from_settings(cls, s: LearningSettings, tau: float) -> "_Noise":
@@ -83,17 +94,30 @@ class _Noise:
 
 
 def _bound(beta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray, np.ndarray]:
-    beta = np.minimum(np.maximum(beta, noise.beta_min), noise.beta_max)
+    beta = np.array(
+        [
+            min(max(b, lo), hi)
+            for b, lo, hi in zip(
+                beta.tolist(), noise.beta_min_list, noise.beta_max_list, strict=True
+            )
+        ]
+    )
     d = P_p.diagonal()
-    if (d > noise.P_p_cap).any():
+    if any(v > cap for v, cap in zip(d.tolist(), noise.P_p_cap_list, strict=True)):
         scale = np.sqrt(np.minimum(1.0, noise.P_p_cap / np.maximum(d, 1e-300)))
         P_p = P_p * np.outer(scale, scale)
     return beta, 0.5 * (P_p + P_p.T)
 
 
-def _unexcited(H_p: np.ndarray, noise: _Noise) -> np.ndarray:
-    """Mask of parameters whose Jacobian column is too small to learn from."""
-    return np.sqrt((H_p * H_p).sum(axis=0)) < noise.excitation
+def _unexcited(H_p: np.ndarray, noise: _Noise) -> list[int]:
+    """Parameters whose Jacobian column is too small to learn from."""
+    return [
+        i
+        for i, ((a, b, c), floor) in enumerate(
+            zip(H_p.T.tolist(), noise.excitation_list, strict=True)
+        )
+        if math.sqrt(a * a + b * b + c * c) < floor
+    ]
 
 
 def _consider_update(
@@ -103,13 +127,13 @@ def _consider_update(
     H: np.ndarray,
     R: np.ndarray,
     innov: np.ndarray,
-    hold: np.ndarray,
+    hold: list[int],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with the gain rows of the held parameters zeroed (Joseph form)."""
     K = K.copy()
     K[hold] = 0.0
-    I_K = np.eye(len(beta_m)) - K @ H
-    return beta_m + K @ innov, I_K @ P_m @ I_K.T + K @ R @ K.T
+    I_K = np.eye(len(beta_m)) - K.dot(H)
+    return beta_m + K.dot(innov), I_K.dot(P_m).dot(I_K.T) + K.dot(R).dot(K.T)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,7 +199,12 @@ def dekf_step(
 
 
 class DualEkf:
-    """The DEKF as two filterpy ExtendedKalmanFilters (state and parameters)."""
+    """The DEKF as two filterpy ExtendedKalmanFilters (state and parameters).
+
+    Each period runs filterpy's predict of the parameter filter and update of both filters; the
+    model step and its Jacobians come from one plain-float call, and the state filter's
+    measurement Jacobian (the identity) is a cached array.
+    """
 
     def __init__(self, settings: LearningSettings, *, tau: float) -> None:
         self.settings = settings
@@ -188,6 +217,8 @@ class DualEkf:
         self.state_filter.R = self._noise.R_s
         self.param_filter.F = np.eye(4)
         self.param_filter.Q = self._noise.Q_p
+        self._H_s = np.eye(3)
+        self._gate_sq = self._noise.gate**2
         self._initialized = False
 
     @property
@@ -223,37 +254,38 @@ class DualEkf:
             self.resets,
         )
 
+    def _state_jacobian(self, _z: np.ndarray) -> np.ndarray:
+        return self._H_s
+
     def step(self, y: np.ndarray, u: np.ndarray) -> None:
         """Advance one period: input u was applied over the last tau; y is the new measurement."""
         y = np.asarray(y, dtype=float)
         if not self._initialized:
             self.reset(y)
             return
-        sf, pf, n, tau = self.state_filter, self.param_filter, self._noise, self.tau
+        sf, pf, n = self.state_filter, self.param_filter, self._noise
         if n.learn:
             pf.predict()  # beta^- = beta, P_p^- = P_p + Q_p  (F = I)
-        beta_m = pf.x
-        z_prev = sf.x
-        J_s, _, H_p = step_jacobians(z_prev, u, beta_m, tau)
-        z_m = step(z_prev, u, beta_m, tau)
+        z_m, J_s, H_p = step_with_jacobians(sf.x, u, pf.x, self.tau)
         sf.x = z_m
-        sf.P = J_s @ sf.P @ J_s.T + n.Q_s
+        sf.P = J_s.dot(sf.P).dot(J_s.T) + n.Q_s
         P_s_m = sf.P
-        sf.update(y, _identity_jacobian, _identity, residual=_residual)
+        sf.update(y, self._state_jacobian, _identity, residual=_residual)
         if n.learn:
-            beta_prior, P_p_prior = pf.x.copy(), pf.P.copy()
+            beta_prior, P_p_prior = pf.x, pf.P
             R_p = P_s_m + n.R_s
             pf.update(y, lambda _b: H_p, lambda _b: z_m, R=R_p, residual=_residual)
             hold = _unexcited(H_p, n)
-            if hold.any():
+            if hold:
                 pf.x, pf.P = _consider_update(beta_prior, P_p_prior, pf.K, H_p, R_p, pf.y, hold)
             pf.x, pf.P = _bound(pf.x, pf.P, n)
-        sf.x[2] = (sf.x[2] + math.pi) % (2.0 * math.pi) - math.pi
-        nis = float(sf.y @ sf.SI @ sf.y)  # innovation and its inverse covariance, from the update
-        if not (np.all(np.isfinite(sf.x)) and np.all(np.isfinite(sf.P)) and nis <= n.gate**2):
+        x = sf.x
+        x[2] = (x[2] + math.pi) % (2.0 * math.pi) - math.pi
+        nis = float(sf.y.dot(sf.SI).dot(sf.y))  # innovation and its inverse covariance
+        if not (_all_finite(x, sf.P) and nis <= self._gate_sq):
             self.resets += 1
-            finite_beta = np.all(np.isfinite(pf.x)) and np.all(np.isfinite(pf.P))
-            self.reset(y, keep_beta=bool(finite_beta))
+            finite_beta = _all_finite(pf.x, pf.P)
+            self.reset(y, keep_beta=finite_beta)
             if not finite_beta:
                 s = initial_dekf_state(y, self.settings)
                 pf.x, pf.P = s.beta, s.P_p
@@ -261,6 +293,5 @@ class DualEkf:
     def propagate(self, u: np.ndarray) -> None:
         """Predict one period without a measurement (telemetry missed this period)."""
         sf = self.state_filter
-        J_s, _, _ = step_jacobians(sf.x, u, self.beta, self.tau)
-        sf.x = step(sf.x, u, self.beta, self.tau)
-        sf.P = J_s @ sf.P @ J_s.T + self._noise.Q_s
+        sf.x, J_s, _ = step_with_jacobians(sf.x, u, self.beta, self.tau)
+        sf.P = J_s.dot(sf.P).dot(J_s.T) + self._noise.Q_s
