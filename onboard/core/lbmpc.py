@@ -48,6 +48,18 @@ _AB_HEADING = np.array([0 * 6 + 2, 1 * 6 + 2, 3 * 6 + 5, 4 * 6 + 5])
 """dx+/dth and dy+/dth of A, then of A~."""
 _BB_POSITION = np.array([0, 1, 2, 3, 6, 7, 8, 9])
 """B[0:2, 0:2] then B~[0:2, 0:2], row-major."""
+# Columns of the per-step row the linearization's float loop writes.
+_LIN_A = slice(0, 4)
+"""dx/dth, dy/dth of A, then of A~ (to _AB_HEADING)."""
+_LIN_B = slice(4, 12)
+"""B[0:2, 0:2], then B~[0:2, 0:2] (to _BB_POSITION)."""
+_LIN_K = slice(12, 18)
+"""K_j row-major."""
+_LIN_X0 = slice(18, 24)
+"""[zref; ztil] at c = 0, at step j + 1."""
+_LIN_RESIDUAL = slice(24, 27)
+"""ztil_{j+1}(c = 0) - r_{j+1}, heading wrapped."""
+_LIN_WIDTH = 27
 
 
 @dataclass(frozen=True, eq=False)
@@ -174,8 +186,15 @@ class TubeLbmpc:
         inputs = np.arange(6 * M, 8 * M)
         W[inputs, inputs] = np.tile([s.r_speed, s.r_yaw_rate], M)
         self._W_template = W
-        self._W_position = (learned[:-1, :2] * (8 * M + 1)).ravel()  # flat (row = col) entries
-        self._W_terminal = (slice(6 * M - 3, 6 * M), slice(6 * M - 3, 6 * M))
+        terminal = learned[-1]
+        self._W_variable = np.concatenate(
+            [
+                (learned[:-1, :2] * (8 * M + 1)).ravel(),  # position weights, j = 1..M-1
+                (terminal[:, None] * (8 * M) + terminal[None, :]).ravel(),  # P block, row-major
+            ]
+        )
+        """Flat entries of W written each period: stage position weights, then the terminal P."""
+        self._P0_entries = tuple(self.P0.ravel().tolist())
         bound = (self.u_max[None, :] - self.tightening).ravel()
         self._input_lower, self._input_upper = -bound, bound
         self._first_input_limit = tuple(float(u) * (1 + 1e-3) + 1e-6 for u in self.u_max)
@@ -194,6 +213,7 @@ class TubeLbmpc:
         )
         self._qp.u[2 * M :] = INFINITY
         self._warm = np.zeros(n)
+        self._x_ext = np.zeros(n + 1)  # [c; 0]: Y's rows at c, constant column ignored
 
     # -- small maps -----------------------------------------------------------------------------
     def feedback_gain(self, yaw: float) -> np.ndarray:
@@ -206,9 +226,7 @@ class TubeLbmpc:
 
     def terminal_weight(self, yaw: float) -> np.ndarray:
         """P at heading `yaw` (3, 3): T P0 T'."""
-        c, s_ = math.cos(yaw), math.sin(yaw)
-        T = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-        return T.dot(self.P0).dot(T.T)
+        return np.array(self._terminal_entries(yaw, 1.0)).reshape(3, 3)
 
     def fallback_input(self, z: np.ndarray, reference: np.ndarray, u_s: np.ndarray) -> np.ndarray:
         """The tube feedback law u = u_s + K (z - z_ref), clipped to U (used when a solve fails)."""
@@ -253,9 +271,10 @@ class TubeLbmpc:
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
         k00, k01, k02, k10, k11, k12 = self._K0_entries
+        sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
         xb, yb, hb = (float(v) for v in d.z0)
         xt, yt, ht = xb, yb, hb
-        lin, ref = [], [(xb, yb, hb, xt, yt, ht, 0.0, 0.0, 0.0)]
+        out: list[float] = []  # per step: the _LIN_COLUMNS
         steps = zip(
             d.lin_states[:M, 2].tolist(),
             d.lin_inputs.tolist(),
@@ -265,7 +284,7 @@ class TubeLbmpc:
         )
         for th, (v, w), (us_v, us_w), (rx, ry, rh) in steps:
             phi = th + hn * w
-            s, c = math.sin(phi), math.cos(phi)
+            s, c = sin(phi), cos(phi)
             dx, dy = -tau * v * s, tau * v * c
             b00, b01, b10, b11 = tau * c, dx * hn, tau * s, dy * hn
             xb, yb, hb = (
@@ -274,7 +293,7 @@ class TubeLbmpc:
                 hb + tau * us_w,
             )
             phi = th + hw * w
-            s, c = math.sin(phi), math.cos(phi)
+            s, c = sin(phi), cos(phi)
             tx, ty = -tv * v * s, tv * v * c
             t00, t01, t10, t11 = tv * c, tx * hw, tv * s, ty * hw
             xt, yt, ht = (
@@ -282,26 +301,27 @@ class TubeLbmpc:
                 yt + ty * ht + t10 * us_v + t11 * us_w + tau * d_y - ty * phi,
                 ht + tw * us_w,
             )
-            c, s = math.cos(th), math.sin(th)
-            lin.append(
-                (
-                    dx, dy, tx, ty,
-                    b00, b01, b10, b11, t00, t01, t10, t11,
-                    k00 * c - k01 * s, k00 * s + k01 * c, k02,
-                    k10 * c - k11 * s, k10 * s + k11 * c, k12,
-                )
+            c, s = cos(th), sin(th)
+            out += (
+                dx, dy, tx, ty,
+                b00, b01, b10, b11, t00, t01, t10, t11,
+                k00 * c - k01 * s, k00 * s + k01 * c, k02,
+                k10 * c - k11 * s, k10 * s + k11 * c, k12,
+                xb, yb, hb, xt, yt, ht,
+                xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,
             )  # fmt: skip
-            res_h = (ht - rh + math.pi) % (2.0 * math.pi) - math.pi
-            ref.append((xb, yb, hb, xt, yt, ht, xt - rx, yt - ry, res_h))
-        lin_a, ref_a = np.array(lin), np.array(ref)
+        lin = np.fromiter(out, float, len(out)).reshape(M, _LIN_WIDTH)
         Phi = self._Ab_template.copy()
-        Phi.reshape(M, 36)[:, _AB_HEADING] = lin_a[:, :4]
+        Phi.reshape(M, 36)[:, _AB_HEADING] = lin[:, _LIN_A]
         Bb = self._Bb_template.copy()
-        Bb.reshape(M, 12)[:, _BB_POSITION] = lin_a[:, 4:12]
+        Bb.reshape(M, 12)[:, _BB_POSITION] = lin[:, _LIN_B]
         Bb[:, 5, 1] = tw  # B~[2, 1] = tau a_w (B[2, 1] = tau is constant)
-        K = lin_a[:, 12:].reshape(M, 2, 3)
+        K = lin[:, _LIN_K].reshape(M, 2, 3)
         Phi[:, :, :3] += Bb @ K
-        return Phi, Bb, K, ref_a[:, :6], ref_a[1:, 6:]
+        x0 = np.empty((M + 1, 6))
+        x0[0, :3] = x0[0, 3:] = d.z0
+        x0[1:] = lin[:, _LIN_X0]
+        return Phi, Bb, K, x0, lin[:, _LIN_RESIDUAL]
 
     def _condense(self, d: QpData) -> _Period:
         """Fill Y's state and input rows: one recursion on the stacked sensitivities,
@@ -343,8 +363,10 @@ class TubeLbmpc:
         u_s = d.u_s.ravel()
         # Cost: P = 2 Y' W Y and q = 2 Y' W y over the state and input rows.
         W = self._W_template.copy()
-        W.ravel()[self._W_position] = np.repeat(d.position_weights[: M - 1], 2)
-        W[self._W_terminal] = d.terminal_scale * self.terminal_weight(float(d.targets[-1, 2]))
+        W.ravel()[self._W_variable] = [
+            *np.repeat(d.position_weights[: M - 1], 2).tolist(),
+            *self._terminal_entries(float(d.targets[-1, 2]), float(d.terminal_scale)),
+        ]
         Yc = Y[: 8 * M]
         H = Yc.T.dot(W.dot(Yc))  # (n + 1, n + 1): [[P / 2, q / 2], [., .]]
         Hc = H[:n, :n]
@@ -354,20 +376,10 @@ class TubeLbmpc:
         np.subtract(self._input_upper, u_s, out=qp.u[: 2 * M])
         # Separation constraints, one row per neighbour k and step j = 1..M.
         if N:
-            p_k = d.neighbour_positions  # (N, M, 2)
-            away = d.lin_states[1:, :2] - p_k
-            dist = np.hypot(away[..., 0], away[..., 1])
-            close = dist < 1e-6
-            if close.any():
-                away = np.where(close[..., None], d.z0[:2] - p_k, away)
-                dist = np.where(close, np.hypot(away[..., 0], away[..., 1]), dist)
-            nrm = away / np.maximum(dist, 1e-9)[..., None]
-            active = np.isfinite(d.neighbour_margins)
+            normals, qp.l[2 * M :] = self._separation(d, x0)
             X = Y[self._rows_states, :n].reshape(M, 6, n)
-            rows = np.matmul(nrm[:, :, None, :], X[:, :2])  # (N, M, 1, n)
-            Y[self._rows_separation, :n] = rows.reshape(N * M, n) * active.reshape(N * M, 1)
-            lower = d.neighbour_margins - (nrm * (x0[1:, :2] - p_k)).sum(axis=2)
-            qp.l[2 * M :] = np.where(active, lower, -INFINITY).ravel()
+            rows = np.matmul(normals, X[:, :2])  # (N, M, 1, n)
+            Y[self._rows_separation, :n] = rows.reshape(N * M, n)
         qp.gather(Hc + Hc.T, Y[6 * M :, :n])
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
@@ -383,8 +395,9 @@ class TubeLbmpc:
         if not ok:
             self._last_c = None
             x = np.zeros(n)
-        # Predictions and inputs: the state and input rows of Y at c = x.
-        y = Yc[:, :n].dot(x)
+        # Predictions and inputs: the state and input rows of Y at c = x (constant column x 0).
+        self._x_ext[:n] = x
+        y = Yc.dot(self._x_ext)
         inputs = y[self._rows_inputs]
         inputs += u_s
         u0, w0 = inputs[:2].tolist()
@@ -404,3 +417,48 @@ class TubeLbmpc:
             learned=z[:, 3:],
             iterations=iterations,
         )
+
+    def _separation(self, d: QpData, x0: np.ndarray) -> tuple[np.ndarray, list[float]]:
+        """Unit normals (N, M, 1, 2) and lower bounds (N M) of the separation rows.
+
+        The normal n_kj points from neighbour k's predicted position to the linearization point
+        at step j (from z0 when the two coincide); the row is n_kj' pbar_j(c) >= margin_kj, i.e.
+        n_kj' dpbar_j/dc c >= margin_kj - n_kj' (zref_j - p_kj). A row whose margin is not finite
+        is off: zero normal, lower bound -infinity. Plain floats: N M is a handful of pairs.
+        """
+        M, N = self.M, self.n_neighbours
+        lin = d.lin_states[1:, :2].tolist()
+        ref = x0[1:, :2].tolist()
+        x_0, y_0 = (float(v) for v in d.z0[:2])
+        normals, lower = [], []
+        for p_k, margins in zip(
+            d.neighbour_positions.tolist(), d.neighbour_margins.tolist(), strict=True
+        ):
+            for (px, py), margin, (lx, ly), (rx, ry) in zip(p_k, margins, lin, ref, strict=True):
+                if not math.isfinite(margin):
+                    normals += (0.0, 0.0)
+                    lower.append(-INFINITY)
+                    continue
+                ax, ay = lx - px, ly - py
+                dist = math.hypot(ax, ay)
+                if dist < 1e-6:
+                    ax, ay = x_0 - px, y_0 - py
+                    dist = math.hypot(ax, ay)
+                dist = max(dist, 1e-9)
+                nx, ny = ax / dist, ay / dist
+                normals += (nx, ny)
+                lower.append(margin - (nx * (rx - px) + ny * (ry - py)))
+        return np.array(normals).reshape(N, M, 1, 2), lower
+
+    def _terminal_entries(self, yaw: float, scale: float) -> tuple[float, ...]:
+        """The 9 entries (row-major) of scale T(yaw) P0 T(yaw)', from P0's entries."""
+        a, b, d, _, e, f, _, _, g = self._P0_entries  # P0 is symmetric
+        c, s = math.cos(yaw), math.sin(yaw)
+        r0 = (c * a - s * b, c * b - s * e)  # row 0 of T P0, position columns
+        r1 = (s * a + c * b, s * b + c * e)
+        p00 = scale * (r0[0] * c - r0[1] * s)
+        p01 = scale * (r0[0] * s + r0[1] * c)
+        p11 = scale * (r1[0] * s + r1[1] * c)
+        p02 = scale * (c * d - s * f)
+        p12 = scale * (s * d + c * f)
+        return p00, p01, p02, p01, p11, p12, p02, p12, scale * g
