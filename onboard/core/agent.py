@@ -21,7 +21,7 @@ from onboard.core.formation import Formation
 from onboard.core.lbmpc import QpData, TubeLbmpc
 from onboard.core.plan import Plan
 from onboard.core.target_estimator import TargetEstimator
-from onboard.core.unicycle import rollout, wrap_angle
+from onboard.core.unicycle import rollout
 
 __all__ = ["Agent", "AgentInput", "AgentOutput"]
 
@@ -104,7 +104,11 @@ class Agent:
         self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
         self.u_max = self.mpc.u_max
         M = controller.horizon
-        self._margin_m = controller.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:]
+        self._u_min = -self.u_max
+        self._no_positions = [0.0] * (2 * M)
+        """An absent neighbour's positions (ignored: its margins are infinite)."""
+        self._no_margins = [math.inf] * M
+        self._margin_m = (controller.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:]).tolist()
         """Separation margin at j = 1..M before the plan-age inflation [m]."""
         self._position_weights = [
             np.full(M, controller.q_position + n * controller.q_formation)
@@ -257,86 +261,106 @@ class Agent:
         beta = self.dekf.beta.copy()
         z0_f = tuple(z0.tolist())
         beta_f = tuple(beta.tolist())
-        # Target and slots over j = 0..M+1.
-        tgt, tgt_vel = self.target.predict(inp.stamp_ns, s.period_ns, M + 2)
-        slots_all = self.formation.slots(tgt, tgt_vel)  # (M+2, N, 2)
-        mine = slots_all[:, self.index]
-        mine_f = mine.tolist()
-        u_s, heading_s = self._steady_inputs(mine_f, beta_f, z0_f[2])
-        # Neighbours.
+        # Target and slots over j = 0..M+1: slot i = target - trail + offsets[i].
+        track, tgt_vel = self.target.predicted_track(inp.stamp_ns, s.period_ns, M + 2)
+        trail_x, trail_y, offsets = self.formation.placement(tgt_vel)
+        centres = [(x - trail_x, y - trail_y) for x, y in track]
+        ox, oy = offsets[self.index]
+        mine = [(cx + ox, cy + oy) for cx, cy in centres]
+        u_s, heading_s = self._steady_inputs(mine, beta_f, z0_f[2])
+        # Neighbours: predicted positions, separation margins and the formation pull.
         N = len(self.neighbour_ids)
-        nb_pos = np.zeros((N, M, 2))
-        nb_margin = np.full((N, M), np.inf)
-        pull = None
+        nb_pos: list[float] = []
+        nb_margin: list[float] = []
+        pull: list[tuple[float, float]] | None = None
         n_terms = 0
-        for k, nid in enumerate(self.neighbour_ids):
+        for nid in self.neighbour_ids:
             plan = inp.neighbour_plans.get(nid)
             if plan is None or ages[nid] > s.plan_forget_s or ages[nid] < -s.period_s:
+                nb_pos += self._no_positions
+                nb_margin += self._no_margins
                 continue
             age = max(ages[nid], 0.0)
-            nb_pos[k] = plan.positions_at(
+            positions = plan.position_list(
                 inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
             )
-            nb_margin[k] = self._margin_m + s.speed_max_m_s * age
+            for xy in positions:
+                nb_pos += xy
+            nb_margin += [m + s.speed_max_m_s * age for m in self._margin_m]
             if age <= s.plan_stale_s:
-                kidx = self.fleet_ids.index(nid)
-                term = nb_pos[k] - slots_all[1 : M + 1, kidx]
-                pull = term if pull is None else pull + term
+                kx, ky = offsets[self.fleet_ids.index(nid)]
+                terms = [
+                    (px - (cx + kx), py - (cy + ky))
+                    for (px, py), (cx, cy) in zip(positions, centres[1 : M + 1], strict=True)
+                ]
+                pull = (
+                    terms
+                    if pull is None
+                    else [(a + c, b + d) for (a, b), (c, d) in zip(pull, terms, strict=True)]
+                )
                 n_terms += 1
         weight = s.q_position + n_terms * s.q_formation
         # Cost targets: the slot pulled toward where the neighbours' slots say it should be.
-        mine_h = mine[1 : M + 1]
-        targets = np.empty((M, 3))
+        q_p, q_f = s.q_position, s.q_formation
         if pull is None:
-            targets[:, :2] = s.q_position * mine_h / weight
+            goal = [(q_p * x / weight, q_p * y / weight) for x, y in mine[1 : M + 1]]
         else:
-            targets[:, :2] = (
-                s.q_position * mine_h + s.q_formation * (n_terms * mine_h + pull)
-            ) / weight
-        goal = targets[:, :2].tolist()
+            goal = [
+                (
+                    (q_p * x + q_f * (n_terms * x + px)) / weight,
+                    (q_p * y + q_f * (n_terms * y + py)) / weight,
+                )
+                for (x, y), (px, py) in zip(mine[1 : M + 1], pull, strict=True)
+            ]
         # Linearization trajectory.
-        (sx0, sy0), (sx1, sy1) = mine_f[0], mine_f[-1]
+        (sx0, sy0), (sx1, sy1) = mine[0], mine[-1]
         slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))
-        candidates = [u_s, self._pursuit_inputs(z0_f, mine_f, slot_vel, beta_f)]
+        candidates = [u_s, self._pursuit_inputs(z0_f, mine, slot_vel, beta_f)]
         if self._last_plan is not None:
             shifted = self._last_plan.inputs.tolist()
             candidates.append(shifted[1:] + shifted[-1:])
         lin_states, lin_inputs = self._seed(z0_f, candidates, beta_f, goal)
         # (The rollout's headings are continuous from z0's: no unwrapping needed.)
         # Target headings: the steady headings, unwrapped near the linearization's.
-        targets[:, 2] = [
-            ref + (h - ref + math.pi) % _TWO_PI - math.pi
-            for h, (_, _, ref) in zip(heading_s[1 : M + 1], lin_states[1:], strict=True)
-        ]
+        targets = []
+        for (gx, gy), h, (_, _, ref) in zip(
+            goal, heading_s[1 : M + 1], lin_states[1:], strict=True
+        ):
+            targets += (gx, gy, ref + (h - ref + math.pi) % _TWO_PI - math.pi)
         n_full = len(self.neighbour_ids)
-        u_s_a = np.array(u_s)
+        u_s_a = np.array([u for pair in u_s for u in pair]).reshape(M, 2)
+        nb_pos_a = np.array(nb_pos).reshape(N, M, 2)
+        nb_margin_a = np.array(nb_margin).reshape(N, M)
         data = QpData(
             z0=z0,
-            lin_states=np.array(lin_states),
-            lin_inputs=np.array(lin_inputs),
+            lin_states=np.array([v for st in lin_states for v in st]).reshape(M + 1, 3),
+            lin_inputs=np.array([v for ui in lin_inputs for v in ui]).reshape(M, 2),
             beta=beta,
             u_s=u_s_a,
-            targets=targets,
+            targets=np.array(targets).reshape(M, 3),
             position_weights=self._position_weights[n_terms],
             terminal_scale=weight / (s.q_position + n_full * s.q_formation),
-            neighbour_positions=nb_pos,
-            neighbour_margins=nb_margin,
+            neighbour_positions=nb_pos_a,
+            neighbour_margins=nb_margin_a,
         )
         sol = self.mpc.solve(data)
         if sol.ok:
-            inputs = np.minimum(np.maximum(sol.inputs, -self.u_max), self.u_max)
+            inputs = np.minimum(np.maximum(sol.inputs, self._u_min), self.u_max)
             states, c, status = sol.learned.copy(), sol.c, "solved"
         else:
             self.fallbacks += 1
-            ref = np.array([mine_f[0][0], mine_f[0][1], heading_s[0]])
-            u = self._safe_stop(z0, self.mpc.fallback_input(z0, ref, u_s_a[0]), nb_pos, nb_margin)
+            ref = np.array([mine[0][0], mine[0][1], heading_s[0]])
+            u = self.mpc.fallback_input(z0, ref, u_s_a[0])
+            u = self._safe_stop(z0, u, nb_pos_a, nb_margin_a)
             inputs = np.repeat(u[None, :], M, axis=0)
             states, c, status = (
                 rollout(z0, inputs, beta, tau),
                 np.zeros((M, 2)),
                 f"fallback: {sol.status}",
             )
-        states[:, 2] = wrap_angle(states[:, 2])
+        heading = states[:, 2]
+        np.remainder(heading + math.pi, _TWO_PI, out=heading)  # wrap to [-pi, pi)
+        heading -= math.pi
         plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, states, inputs)
         self._last_plan = plan
         self._last_command = inputs[0].copy()
@@ -348,7 +372,7 @@ class Agent:
             status=status,
             state_estimate=z0,
             beta=beta,
-            slot_m=mine[0].copy(),
+            slot_m=np.array(mine[0]),
             neighbour_ages_s=ages,
             formation_terms=n_terms,
         )

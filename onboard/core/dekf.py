@@ -43,9 +43,9 @@ def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:
-    """No inf or nan in any of the arrays (a sum propagates both; only a sum beyond 1e308 of
-    finite entries could also read as non-finite, which is divergence all the same)."""
-    return math.isfinite(sum(float(a.sum()) for a in arrays))
+    """No inf or nan in any of the arrays: both propagate into the sum of squares (entries
+    beyond 1e150 would overflow it too, which is divergence all the same)."""
+    return math.isfinite(sum(float(a.ravel().dot(a.ravel())) for a in arrays))
 
 
 def _identity(x: np.ndarray) -> np.ndarray:

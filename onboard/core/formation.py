@@ -20,6 +20,7 @@ class Formation:
     def __init__(self, settings: FormationSettings, *, min_course_speed_m_s: float = 0.05) -> None:
         self.settings = settings
         self._offsets = np.array(settings.slots_m)
+        self._offsets_list = [(float(x), float(y)) for x, y in settings.slots_m]
         self._min_speed = min_course_speed_m_s
         self._course = 0.0
 
@@ -34,17 +35,27 @@ class Formation:
             self._course = math.atan2(vy, vx)
         return self._course
 
-    def slots(self, target_positions_m: np.ndarray, target_velocity_m_s: np.ndarray) -> np.ndarray:
-        """Slots (K, N, 2) for target positions (K, 2) moving with one velocity (2,)."""
+    def placement(
+        self, target_velocity_m_s: np.ndarray | tuple[float, float]
+    ) -> tuple[float, float, list[tuple[float, float]]]:
+        """Where the slots sit around the target, in the world frame, as plain floats.
+
+        Returns (trail_x, trail_y, offsets): the centre is the target position less
+        (trail_x, trail_y), and slot i is the centre plus offsets[i].
+        """
         c = self.course(target_velocity_m_s)
         ux, uy = math.cos(c), math.sin(c)
         trail = self.settings.trail_m
-        centre = np.asarray(target_positions_m, dtype=float) - np.array([trail * ux, trail * uy])
-        offsets = self._offsets
-        if self.settings.frame == "course":
-            rot = np.array([[ux, -uy], [uy, ux]])
-            offsets = offsets @ rot.T
-        return centre[:, None, :] + offsets
+        offsets = self._offsets_list
+        if self.settings.frame == "course":  # (forward, right) rotated by the course
+            offsets = [(ox * ux - oy * uy, ox * uy + oy * ux) for ox, oy in offsets]
+        return trail * ux, trail * uy, offsets
+
+    def slots(self, target_positions_m: np.ndarray, target_velocity_m_s: np.ndarray) -> np.ndarray:
+        """Slots (K, N, 2) for target positions (K, 2) moving with one velocity (2,)."""
+        trail_x, trail_y, offsets = self.placement(target_velocity_m_s)
+        centre = np.asarray(target_positions_m, dtype=float) - np.array([trail_x, trail_y])
+        return centre[:, None, :] + np.array(offsets)
 
     def desired_distances(self) -> np.ndarray:
         """Desired distance between every pair of slots (N, N) [m]."""

@@ -162,7 +162,8 @@ class TubeLbmpc:
         last two blocks: both are read from Y through flat index maps.
 
         Cached: the K0 entries as floats; Ab and Bb with their constant entries (identity, tau);
-        E_j, which injects c_j into u_j; W with its constant entries (heading and input weights);
+        E_j, which injects c_j into u_j; W with its constant entries (heading and input weights;
+        the position weights and the terminal block are rewritten every period);
         the input-bound rows of l and u (the separation rows' u is +infinity); the index maps;
         and the OSQP problem with its fixed pattern.
         """
@@ -185,7 +186,7 @@ class TubeLbmpc:
         W[learned[:-1, 2], learned[:-1, 2]] = s.q_heading
         inputs = np.arange(6 * M, 8 * M)
         W[inputs, inputs] = np.tile([s.r_speed, s.r_yaw_rate], M)
-        self._W_template = W
+        self._W = W
         terminal = learned[-1]
         self._W_variable = np.concatenate(
             [
@@ -362,9 +363,9 @@ class TubeLbmpc:
         Y, x0 = self._condense(d)
         u_s = d.u_s.ravel()
         # Cost: P = 2 Y' W Y and q = 2 Y' W y over the state and input rows.
-        W = self._W_template.copy()
+        W = self._W  # every entry that varies is written here
         W.ravel()[self._W_variable] = [
-            *np.repeat(d.position_weights[: M - 1], 2).tolist(),
+            *(w for w in d.position_weights[: M - 1].tolist() for _ in "xy"),
             *self._terminal_entries(float(d.targets[-1, 2]), float(d.terminal_scale)),
         ]
         Yc = Y[: 8 * M]

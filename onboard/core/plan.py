@@ -36,6 +36,13 @@ class Plan:
         Interpolates linearly inside the plan and extrapolates at the last planned velocity
         beyond its end, for at most `max_extrapolation_s` past the last state (held after that).
         """
+        out = self.position_list(stamp_ns, count, max_extrapolation_s=max_extrapolation_s)
+        return np.array(out).reshape(count, 2)
+
+    def position_list(
+        self, stamp_ns: int, count: int, *, max_extrapolation_s: float
+    ) -> list[tuple[float, float]]:
+        """`positions_at` as (x, y) pairs of plain floats."""
         k0 = (stamp_ns - self.stamp_ns) / self.period_ns  # in periods
         M = self.horizon
         period_s = self.period_ns * 1e-9
@@ -57,4 +64,4 @@ class Plan:
                     y0 * (1.0 - frac) + y1 * frac + beyond_s * vy,
                 )
             )
-        return np.array(out).reshape(count, 2)
+        return out

@@ -5,6 +5,8 @@ transition and process noise depend only on the time step, which is one control 
 always: they are cached by step (in integer nanoseconds), as are the prediction offsets.
 """
 
+import math
+
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
@@ -22,7 +24,8 @@ class TargetEstimator:
         self._stamp_ns: int | None = None
         self.observations = 0
         self._models: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._offsets: dict[tuple[int, int], np.ndarray] = {}
+        self._offsets: dict[tuple[int, int], list[float]] = {}
+        self._kf.inv = _inverse_2x2
 
     @property
     def ready(self) -> bool:
@@ -56,7 +59,7 @@ class TargetEstimator:
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
         """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
         p = np.asarray(position_m, dtype=float)
-        if p.shape != (2,) or not np.isfinite(p).all():
+        if p.shape != (2,) or not all(map(math.isfinite, p.tolist())):
             return False
         if self._stamp_ns is None:
             self._kf.x = np.array([p[0], p[1], 0.0, 0.0])
@@ -71,14 +74,28 @@ class TargetEstimator:
         self.observations += 1
         return True
 
-    def predict(self, stamp_ns: int, period_ns: int, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted positions (count, 2) at stamp_ns + k period_ns, and the velocity (2,)."""
+    def predicted_track(
+        self, stamp_ns: int, period_ns: int, count: int
+    ) -> tuple[list[tuple[float, float]], tuple[float, float]]:
+        """Positions at stamp_ns + k period_ns (count pairs) and the velocity, as plain floats."""
         if self._stamp_ns is None:
             raise RuntimeError("no target observation yet")
-        x = self._kf.x
+        px, py, vx, vy = self._kf.x.tolist()
         offsets = self._offsets.get((period_ns, count))
         if offsets is None:
-            offsets = self._offsets[period_ns, count] = period_ns * 1e-9 * np.arange(count)
-        t = (stamp_ns - self._stamp_ns) * 1e-9 + offsets
-        pos = x[:2] + t[:, None] * x[2:]
-        return pos, x[2:].copy()
+            offsets = (period_ns * 1e-9 * np.arange(count)).tolist()
+            self._offsets[period_ns, count] = offsets
+        dt0 = (stamp_ns - self._stamp_ns) * 1e-9
+        return [(px + (dt0 + t) * vx, py + (dt0 + t) * vy) for t in offsets], (vx, vy)
+
+    def predict(self, stamp_ns: int, period_ns: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted positions (count, 2) at stamp_ns + k period_ns, and the velocity (2,)."""
+        positions, velocity = self.predicted_track(stamp_ns, period_ns, count)
+        return np.array(positions).reshape(count, 2), np.array(velocity)
+
+
+def _inverse_2x2(S: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of the 2 x 2 innovation covariance (filterpy's `inv` hook)."""
+    (a, b), (c, d) = S.tolist()
+    det = a * d - b * c
+    return np.array((d / det, -b / det, -c / det, a / det)).reshape(2, 2)

@@ -39,6 +39,8 @@ __all__ = [
 NOMINAL_BETA = np.array([1.0, 1.0, 0.0, 0.0])
 """beta of the nominal model: unit effectiveness, no drift."""
 
+_EYE3 = np.eye(3)
+
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     """Wrap angles to [-pi, pi)."""
@@ -125,16 +127,17 @@ def step_with_jacobians(
     dx_dth, dy_dth = -tau * a_v * v * s, tau * a_v * v * c
     half_w = 0.5 * tau * w
     z_next = np.array(
-        [x + tau * (a_v * v * c + d_x), y + tau * (a_v * v * s + d_y), th + tau * a_w * w]
+        (x + tau * (a_v * v * c + d_x), y + tau * (a_v * v * s + d_y), th + tau * a_w * w)
     )
-    A = np.array([[1.0, 0.0, dx_dth], [0.0, 1.0, dy_dth], [0.0, 0.0, 1.0]])
+    A = _EYE3.copy()
+    A[0, 2], A[1, 2] = dx_dth, dy_dth
     G = np.array(
-        [
-            [tau * v * c, dx_dth * half_w, tau, 0.0],
-            [tau * v * s, dy_dth * half_w, 0.0, tau],
-            [0.0, tau * w, 0.0, 0.0],
-        ]
-    )
+        (
+            tau * v * c, dx_dth * half_w, tau, 0.0,
+            tau * v * s, dy_dth * half_w, 0.0, tau,
+            0.0, tau * w, 0.0, 0.0,
+        )
+    ).reshape(3, 4)  # fmt: skip
     return z_next, A, G
 
 

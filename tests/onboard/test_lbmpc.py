@@ -4,7 +4,7 @@ import pytest
 
 from onboard.core.config import ControllerSettings
 from onboard.core.lbmpc import QpData, TubeLbmpc
-from onboard.core.unicycle import rollout
+from onboard.core.unicycle import NOMINAL_BETA, linearize, rollout
 
 SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)
 
@@ -116,3 +116,32 @@ def test_infeasible_separation_gives_failure_and_fallback_stays_in_u():
     assert np.all(np.abs(u) <= mpc.u_max)
     u = mpc.fallback_input(d.z0, np.array([np.nan, 0.0, 0.0]), np.array([0.5, 0.0]))
     assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= mpc.u_max)
+
+
+def test_terminal_weight_is_the_rotated_dare_solution():
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    for yaw in np.linspace(-4.0, 4.0, 9):
+        c, s = np.cos(yaw), np.sin(yaw)
+        T = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        np.testing.assert_allclose(mpc.terminal_weight(yaw), T @ mpc.P0 @ T.T, atol=1e-12)
+
+
+def test_condensed_maps_match_the_linearized_closed_loop():
+    """Sz, St, Hu against a step-by-step simulation of both linearized models for a random c."""
+    rng = np.random.default_rng(3)
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    d = _random_data(rng, mpc)
+    Sz, sz, St, st, Hu = mpc.condense(d)
+    c = rng.normal(0.0, 0.3, 2 * mpc.M)
+    zbar, ztil = d.z0.copy(), d.z0.copy()
+    zref = d.z0.copy()
+    for j in range(mpc.M):
+        A, B, e = linearize(d.lin_states[j : j + 1], d.lin_inputs[j : j + 1], NOMINAL_BETA, mpc.tau)
+        At, Bt, et = linearize(d.lin_states[j : j + 1], d.lin_inputs[j : j + 1], d.beta, mpc.tau)
+        u = mpc.feedback_gain(d.lin_states[j, 2]) @ (zbar - zref) + d.u_s[j] + c[2 * j : 2 * j + 2]
+        np.testing.assert_allclose(Hu[j] @ c + d.u_s[j], u, atol=1e-12)
+        zbar = A[0] @ zbar + B[0] @ u + e[0]
+        ztil = At[0] @ ztil + Bt[0] @ u + et[0]
+        zref = A[0] @ zref + B[0] @ d.u_s[j] + e[0]
+        np.testing.assert_allclose(Sz[j + 1] @ c + sz[j + 1], zbar, atol=1e-12)
+        np.testing.assert_allclose(St[j + 1] @ c + st[j + 1], ztil, atol=1e-12)

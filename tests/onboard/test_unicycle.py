@@ -10,6 +10,7 @@ from onboard.core.unicycle import (
     rollout,
     step,
     step_jacobians,
+    step_with_jacobians,
     wrap_angle,
 )
 
@@ -53,6 +54,15 @@ def test_discrete_jacobians_match_finite_differences(z, u, beta):
     np.testing.assert_allclose(A, _fd(lambda x: step(x, u, beta, tau), z), atol=1e-6)
     np.testing.assert_allclose(B, _fd(lambda x: step(z, x, beta, tau), u), atol=1e-6)
     np.testing.assert_allclose(G, _fd(lambda x: step(z, u, x, tau), beta), atol=1e-6)
+
+
+@given(states, inputs, betas)
+def test_float_step_with_jacobians_is_step_and_its_jacobians_exactly(z, u, beta):
+    z_next, A, G = step_with_jacobians(z, u, beta, 0.2)
+    A2, _, G2 = step_jacobians(z, u, beta, 0.2)
+    np.testing.assert_array_equal(z_next, step(z, u, beta, 0.2))
+    np.testing.assert_array_equal(A, A2)
+    np.testing.assert_array_equal(G, G2)
 
 
 @settings(max_examples=50)
