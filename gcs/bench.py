@@ -7,7 +7,8 @@
    of their own): DEKF (DualEkf.step or .propagate), QP (OSQP's update + solve of the
    period's values, FixedPatternQp.update + .solve) and model build (the rest of the step:
    target estimate, slots, seeding, linearization, condensing, cost and constraint assembly,
-   checks).
+   checks). Also the time spent inside filterpy's predict and update calls (DEKF and target
+   filter) and, with OSQP's, the part of the step that is library calls.
 3. Side by side on the QPs recorded in that run, vehicle by vehicle in flight order: our QP path
    (TubeLbmpc.solve: condense, assemble the values, update OSQP, solve with warm start, check)
    against the same QP re-built from scratch with cvxpy every step (condense with the same code,
@@ -182,12 +183,17 @@ def run(args: argparse.Namespace) -> int:
         captured.setdefault(id(self), []).append(d)
         return original_solve(self, d)
 
+    from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
+
     from onboard.core.agent import Agent
 
+    filterpy_calls: list[tuple[int, int]] = []
     with (
         _timed(Agent, ("step",), step_calls),
         _timed(DualEkf, ("step", "propagate"), dekf_calls),
         _timed(FixedPatternQp, ("update", "solve"), qp_calls),
+        _timed(ExtendedKalmanFilter, ("predict", "update"), filterpy_calls),
+        _timed(KalmanFilter, ("predict", "update"), filterpy_calls),
     ):
         TubeLbmpc.solve = capturing
         try:
@@ -197,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
     split_steps = np.array([d for _, d in step_calls], dtype=float)
     dekf = _per_step(dekf_calls, step_calls)
     qp = _per_step(qp_calls, step_calls)
+    filterpy = _per_step(filterpy_calls, step_calls)
     solved = qp > 0
     build = (split_steps - dekf - qp)[solved]
     # 3. Our QP path against a cvxpy rebuild, on the same recorded QPs.
@@ -237,6 +244,8 @@ def run(args: argparse.Namespace) -> int:
         "dekf": _stats(dekf),
         "model_build": _stats(build),
         "qp_osqp": _stats(qp[solved]),
+        "filterpy_calls": _stats(filterpy[solved]),
+        "library_calls": _stats((filterpy + qp)[solved]),
         "qp_path_ours": _stats(ours_ns),
         "qp_path_cvxpy_rebuild": _stats(cvx_ns),
         "cvxpy_over_ours_median": float(np.median(cvx_ns) / np.median(ours_ns)),
@@ -265,6 +274,8 @@ def run(args: argparse.Namespace) -> int:
         row("  DEKF", "dekf"),
         row("  model build", "model_build"),
         row("  QP (OSQP update + solve)", "qp_osqp"),
+        row("  filterpy calls (DEKF, target)", "filterpy_calls"),
+        row("  filterpy + OSQP calls", "library_calls"),
         row("QP path, ours", "qp_path_ours"),
         row("QP path, cvxpy rebuild", "qp_path_cvxpy_rebuild"),
         ("cvxpy rebuild / ours (medians)", f"{result['cvxpy_over_ours_median']:.0f}x", ""),

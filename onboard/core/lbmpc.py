@@ -172,6 +172,9 @@ class TubeLbmpc:
         self._Ab_template = np.tile(np.eye(6), (M, 1, 1))
         self._Bb_template = np.zeros((M, 6, 2))
         self._Bb_template[:, 2, 1] = self.tau
+        steps = np.arange(M)[:, None]
+        self._Ab_heading = (36 * steps + _AB_HEADING).ravel()  # flat, over all M steps
+        self._Bb_position = (12 * steps + _BB_POSITION).ravel()
         self._E = np.zeros((M, 2, n))
         for j in range(M):
             self._E[j, :, 2 * j : 2 * j + 2] = np.eye(2)
@@ -268,12 +271,12 @@ class TubeLbmpc:
         (M,)-arrays.
         """
         M, tau = self.M, self.tau
-        a_v, a_w, d_x, d_y = (float(b) for b in d.beta)
+        a_v, a_w, d_x, d_y = np.asarray(d.beta, dtype=float).tolist()
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
         k00, k01, k02, k10, k11, k12 = self._K0_entries
         sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
-        xb, yb, hb = (float(v) for v in d.z0)
+        xb, yb, hb = np.asarray(d.z0, dtype=float).tolist()
         xt, yt, ht = xb, yb, hb
         out: list[float] = []  # per step: the _LIN_COLUMNS
         steps = zip(
@@ -313,9 +316,9 @@ class TubeLbmpc:
             )  # fmt: skip
         lin = np.fromiter(out, float, len(out)).reshape(M, _LIN_WIDTH)
         Phi = self._Ab_template.copy()
-        Phi.reshape(M, 36)[:, _AB_HEADING] = lin[:, _LIN_A]
+        Phi.ravel()[self._Ab_heading] = lin[:, _LIN_A].ravel()
         Bb = self._Bb_template.copy()
-        Bb.reshape(M, 12)[:, _BB_POSITION] = lin[:, _LIN_B]
+        Bb.ravel()[self._Bb_position] = lin[:, _LIN_B].ravel()
         Bb[:, 5, 1] = tw  # B~[2, 1] = tau a_w (B[2, 1] = tau is constant)
         K = lin[:, _LIN_K].reshape(M, 2, 3)
         Phi[:, :, :3] += Bb @ K
