@@ -79,7 +79,7 @@ def run_lockstep(
     log: dict[str, list] = {k: [] for k in keys}
     plans: dict[int, object] = {}
     min_sep = np.inf
-    pairs = [(plants[a], plants[b]) for a in range(n) for b in range(a + 1, n)]
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
     for k in range(periods):
         t_ns = k * period_ns
         t_s = t_ns * 1e-9
@@ -130,11 +130,11 @@ def run_lockstep(
             break
         for (out, _), plant in zip(outs, plants, strict=True):
             plant.command(float(out.command[0]), float(out.command[1]))
-        for _ in range(ticks):
-            for plant in plants:
-                plant.advance(tick_ns, 1)
-            for a, b in pairs:  # the closest approach, checked at every plant tick
-                (xa, ya), (xb, yb) = a.position_m, b.position_m
+        tracks: list[list[tuple[float, float]]] = [[] for _ in plants]
+        for plant, track in zip(plants, tracks, strict=True):  # the plants are independent
+            plant.advance(tick_ns, ticks, track=track)
+        for a, b in pairs:  # the closest approach, checked at every plant tick
+            for (xa, ya), (xb, yb) in zip(tracks[a], tracks[b], strict=True):
                 dx, dy = xa - xb, ya - yb
                 min_sep = min(min_sep, math.sqrt(dx * dx + dy * dy))
         if progress is not None:

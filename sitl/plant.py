@@ -131,8 +131,12 @@ class TruthPlant:
             min(max(yaw_rate_rad_s, -p.yaw_rate_limit_rad_s), p.yaw_rate_limit_rad_s),
         )
 
-    def advance(self, tick_ns: int, ticks: int = 1) -> None:
+    def advance(
+        self, tick_ns: int, ticks: int = 1, *, track: list[tuple[float, float]] | None = None
+    ) -> None:
         """Integrate `ticks` RK4 steps of `tick_ns` nanoseconds each.
+
+        With `track`, the (x_m, y_m) after every tick is appended to it.
 
         State derivative: (v cos th + wind_x, v sin th + wind_y, w, (a_V V_cmd - v) / lag,
         (a_w w_cmd - w) / lag); without lag (v, w) jump to the commanded values at each tick.
@@ -172,6 +176,8 @@ class TruthPlant:
             v += h6 * (v1 + 2 * v2 + 2 * v3 + v4)
             w += h6 * (w1 + 2 * w2 + 2 * w3 + w4)
             self.time_ns += tick_ns
+            if track is not None:
+                track.append((x, y))
         self._s = [x, y, th, v, w]
 
     def measure(self, rng: np.random.Generator) -> np.ndarray:

@@ -76,12 +76,25 @@ def robust_input_tightening(
     *,
     headings: int = 72,
 ) -> np.ndarray:
-    """Largest input tightening over `headings` evenly spaced headings (world-frame box W)."""
-    out = np.zeros((horizon, K0.shape[0]))
-    for th in np.linspace(0.0, 2.0 * np.pi, headings, endpoint=False):
-        T = heading_rotation(th)
-        out = np.maximum(out, input_tightening(T @ A0 @ T.T, T @ B0, K0 @ T.T, w_bar, horizon))
-    return out
+    """Largest input tightening over `headings` evenly spaced headings (world-frame box W).
+
+    `input_tightening` at every heading at once: the rotated A, B, K are stacked over headings.
+    """
+    th = np.linspace(0.0, 2.0 * np.pi, headings, endpoint=False)
+    c, s = np.cos(th), np.sin(th)
+    T = np.zeros((headings, 3, 3))
+    T[:, 0, 0] = T[:, 1, 1] = c
+    T[:, 0, 1], T[:, 1, 0] = -s, s
+    T[:, 2, 2] = 1.0
+    Tt = T.transpose(0, 2, 1)
+    K = K0 @ Tt
+    Phi = T @ A0 @ Tt + (T @ B0) @ K
+    out = np.zeros((headings, horizon, K0.shape[0]))
+    KPhi = K
+    for j in range(1, horizon):
+        out[:, j] = out[:, j - 1] + np.abs(KPhi) @ w_bar
+        KPhi = KPhi @ Phi
+    return out.max(axis=0)
 
 
 def position_tube_radius(
