@@ -159,20 +159,23 @@ class Agent:
         """Inputs of a simple pursuit of the slot, to seed the linearization from far away."""
         s, tau = self.settings, self.settings.period_s
         a_v, a_w, d_x, d_y = beta
+        hw, tw = 0.5 * tau * a_w, tau * a_w
+        cos, sin, atan2, remainder = math.cos, math.sin, math.atan2, math.remainder
         x, y, th = z0
         vx, vy = slot_vel
         v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
         out = []
         for sx, sy in slots[1 : s.horizon + 1]:
             gx, gy = vx + 0.5 * (sx - x) - d_x, vy + 0.5 * (sy - y) - d_y
-            err = math.remainder(math.atan2(gy, gx) - th, 2 * math.pi)
-            v = min(math.hypot(gx, gy) / a_v * max(math.cos(err), 0.0), v_max)
-            w = min(max(err / (tau * a_w), -w_max), w_max)
+            err = remainder(atan2(gy, gx) - th, _TWO_PI)
+            v = min(math.hypot(gx, gy) / a_v * max(cos(err), 0.0), v_max)
+            w = err / tw
+            w = -w_max if w < -w_max else w_max if w > w_max else w
             out.append((v, w))
-            phi = th + 0.5 * tau * a_w * w
-            x += tau * (a_v * v * math.cos(phi) + d_x)
-            y += tau * (a_v * v * math.sin(phi) + d_y)
-            th += tau * a_w * w
+            phi = th + hw * w
+            x += tau * (a_v * v * cos(phi) + d_x)
+            y += tau * (a_v * v * sin(phi) + d_y)
+            th += tw * w
         return out
 
     def _seed(
@@ -191,6 +194,8 @@ class Agent:
         s = self.settings
         tau = s.period_s
         a_v, a_w, d_x, d_y = beta
+        hw, tw = 0.5 * tau * a_w, tau * a_w
+        cos, sin = math.cos, math.sin
         v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
         v_min = s.min_linearization_speed_m_s
         best, best_cost = None, math.inf
@@ -198,12 +203,17 @@ class Agent:
             x, y, th = z0
             states, inputs, cost = [z0], [], 0.0
             for (v, w), (gx, gy) in zip(candidate, goal, strict=True):
-                v, w = min(max(v, -v_max), v_max), min(max(w, -w_max), w_max)
-                v = min(v, -v_min) if v < 0 else max(v, v_min)
-                phi = th + 0.5 * tau * a_w * w
-                x += tau * (a_v * v * math.cos(phi) + d_x)
-                y += tau * (a_v * v * math.sin(phi) + d_y)
-                th += tau * a_w * w
+                # Clip to U (nan passes through), then keep |v| >= v_min in v's direction.
+                v = -v_max if v < -v_max else v_max if v > v_max else v
+                w = -w_max if w < -w_max else w_max if w > w_max else w
+                if v < 0:
+                    v = -v_min if -v_min < v else v
+                else:
+                    v = v_min if v_min > v else v
+                phi = th + hw * w
+                x += tau * (a_v * v * cos(phi) + d_x)
+                y += tau * (a_v * v * sin(phi) + d_y)
+                th += tw * w
                 states.append((x, y, th))
                 inputs.append((v, w))
                 cost += (x - gx) ** 2 + (y - gy) ** 2

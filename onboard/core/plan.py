@@ -50,14 +50,19 @@ class Plan:
         (x_a, y_a), (x_b, y_b) = pos[M - 1], pos[M]
         vx, vy = (x_b - x_a) / period_s, (y_b - y_a) / period_s
         max_periods = max_extrapolation_s / period_s
+        end = float(M)
         out = []
         for j in range(count):  # plain floats: count is a horizon, a handful of points
             k = k0 + j
-            inside = min(max(k, 0.0), float(M))
-            i = min(int(inside), M - 1)
+            inside = 0.0 if k < 0.0 else end if k > end else k  # clip to [0, M]
+            i = int(inside)
+            i = M - 1 if i > M - 1 else i
             frac = inside - i
             (x0, y0), (x1, y1) = pos[i], pos[i + 1]
-            beyond_s = min(max(k - M, 0.0), max_periods) * period_s
+            beyond = k - M
+            beyond_s = (
+                0.0 if beyond < 0.0 else max_periods if beyond > max_periods else beyond
+            ) * period_s
             out.append(
                 (
                     x0 * (1.0 - frac) + x1 * frac + beyond_s * vx,
