@@ -222,6 +222,72 @@ class Agent:
         assert best is not None
         return best
 
+    def _neighbours(
+        self,
+        inp: AgentInput,
+        ages: dict[int, float],
+        centres: list[tuple[float, float]],
+        offsets: list[tuple[float, float]],
+    ) -> tuple[list[float], list[float], list[tuple[float, float]] | None, int]:
+        """Neighbours' predicted positions and separation margins at j = 1..M, and the pull.
+
+        Returns the positions flat (N M 2; zeros for an absent neighbour), the margins flat
+        (N M; infinite for an absent neighbour, inflated by v_max x age otherwise), the pull
+        sum_k (p_kj - slot_kj) over the neighbours whose plan is fresh (None if there is none)
+        and their count. `centres` are the formation centres at j = 0..M+1.
+        """
+        s, M = self.settings, self.settings.horizon
+        nb_pos: list[float] = []
+        nb_margin: list[float] = []
+        pull: list[tuple[float, float]] | None = None
+        n_terms = 0
+        for nid in self.neighbour_ids:
+            plan = inp.neighbour_plans.get(nid)
+            if plan is None or ages[nid] > s.plan_forget_s or ages[nid] < -s.period_s:
+                nb_pos += self._no_positions
+                nb_margin += self._no_margins
+                continue
+            age = max(ages[nid], 0.0)
+            positions = plan.position_list(
+                inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
+            )
+            for xy in positions:
+                nb_pos += xy
+            nb_margin += [m + s.speed_max_m_s * age for m in self._margin_m]
+            if age <= s.plan_stale_s:
+                kx, ky = offsets[self.fleet_ids.index(nid)]
+                terms = [
+                    (px - (cx + kx), py - (cy + ky))
+                    for (px, py), (cx, cy) in zip(positions, centres[1 : M + 1], strict=True)
+                ]
+                pull = (
+                    terms
+                    if pull is None
+                    else [(a + c, b + d) for (a, b), (c, d) in zip(pull, terms, strict=True)]
+                )
+                n_terms += 1
+        return nb_pos, nb_margin, pull, n_terms
+
+    def _goal(
+        self,
+        slots: list[tuple[float, float]],
+        pull: list[tuple[float, float]] | None,
+        n_terms: int,
+        weight: float,
+    ) -> list[tuple[float, float]]:
+        """Position targets at j = 1..M: the slot pulled toward where the neighbours' plans put
+        it, (q_p slot + q_f (n slot + pull)) / (q_p + n q_f)."""
+        q_p, q_f = self.settings.q_position, self.settings.q_formation
+        if pull is None:
+            return [(q_p * x / weight, q_p * y / weight) for x, y in slots]
+        return [
+            (
+                (q_p * x + q_f * (n_terms * x + px)) / weight,
+                (q_p * y + q_f * (n_terms * y + py)) / weight,
+            )
+            for (x, y), (px, py) in zip(slots, pull, strict=True)
+        ]
+
     @staticmethod
     def _safe_stop(
         z0: np.ndarray, u: np.ndarray, nb_pos: np.ndarray, nb_margin: np.ndarray
@@ -278,50 +344,10 @@ class Agent:
         ox, oy = offsets[self.index]
         mine = [(cx + ox, cy + oy) for cx, cy in centres]
         u_s, heading_s = self._steady_inputs(mine, beta_f, z0_f[2])
-        # Neighbours: predicted positions, separation margins and the formation pull.
         N = len(self.neighbour_ids)
-        nb_pos: list[float] = []
-        nb_margin: list[float] = []
-        pull: list[tuple[float, float]] | None = None
-        n_terms = 0
-        for nid in self.neighbour_ids:
-            plan = inp.neighbour_plans.get(nid)
-            if plan is None or ages[nid] > s.plan_forget_s or ages[nid] < -s.period_s:
-                nb_pos += self._no_positions
-                nb_margin += self._no_margins
-                continue
-            age = max(ages[nid], 0.0)
-            positions = plan.position_list(
-                inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
-            )
-            for xy in positions:
-                nb_pos += xy
-            nb_margin += [m + s.speed_max_m_s * age for m in self._margin_m]
-            if age <= s.plan_stale_s:
-                kx, ky = offsets[self.fleet_ids.index(nid)]
-                terms = [
-                    (px - (cx + kx), py - (cy + ky))
-                    for (px, py), (cx, cy) in zip(positions, centres[1 : M + 1], strict=True)
-                ]
-                pull = (
-                    terms
-                    if pull is None
-                    else [(a + c, b + d) for (a, b), (c, d) in zip(pull, terms, strict=True)]
-                )
-                n_terms += 1
+        nb_pos, nb_margin, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
         weight = s.q_position + n_terms * s.q_formation
-        # Cost targets: the slot pulled toward where the neighbours' slots say it should be.
-        q_p, q_f = s.q_position, s.q_formation
-        if pull is None:
-            goal = [(q_p * x / weight, q_p * y / weight) for x, y in mine[1 : M + 1]]
-        else:
-            goal = [
-                (
-                    (q_p * x + q_f * (n_terms * x + px)) / weight,
-                    (q_p * y + q_f * (n_terms * y + py)) / weight,
-                )
-                for (x, y), (px, py) in zip(mine[1 : M + 1], pull, strict=True)
-            ]
+        goal = self._goal(mine[1 : M + 1], pull, n_terms, weight)
         # Linearization trajectory.
         (sx0, sy0), (sx1, sy1) = mine[0], mine[-1]
         slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))
