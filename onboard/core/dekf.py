@@ -45,7 +45,11 @@ def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _all_finite(*arrays: np.ndarray) -> bool:
     """No inf or nan in any of the arrays: both propagate into the sum of squares (entries
     beyond 1e150 would overflow it too, which is divergence all the same)."""
-    return math.isfinite(sum(float(a.ravel().dot(a.ravel())) for a in arrays))
+    total = 0.0
+    for a in arrays:
+        flat = a.ravel()
+        total += flat.dot(flat)
+    return math.isfinite(total)
 
 
 def _identity(x: np.ndarray) -> np.ndarray:

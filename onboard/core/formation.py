@@ -30,7 +30,7 @@ class Formation:
 
     def course(self, target_velocity_m_s: np.ndarray) -> float:
         """Target course [rad]; the last known course while the target is (nearly) still."""
-        vx, vy = (float(v) for v in target_velocity_m_s)
+        vx, vy = np.asarray(target_velocity_m_s, dtype=float).tolist()
         if math.hypot(vx, vy) >= self._min_speed:
             self._course = math.atan2(vy, vx)
         return self._course

@@ -433,7 +433,7 @@ class TubeLbmpc:
         M, N = self.M, self.n_neighbours
         lin = d.lin_states[1:, :2].tolist()
         ref = x0[1:, :2].tolist()
-        x_0, y_0 = (float(v) for v in d.z0[:2])
+        x_0, y_0 = np.asarray(d.z0[:2], dtype=float).tolist()
         normals, lower = [], []
         for p_k, margins in zip(
             d.neighbour_positions.tolist(), d.neighbour_margins.tolist(), strict=True

@@ -42,6 +42,11 @@ NOMINAL_BETA = np.array([1.0, 1.0, 0.0, 0.0])
 _EYE3 = np.eye(3)
 
 
+def _floats(a: np.ndarray | tuple[float, ...]) -> list[float]:
+    """The entries of a short vector as Python floats."""
+    return np.asarray(a, dtype=float).tolist()
+
+
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     """Wrap angles to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
@@ -119,9 +124,9 @@ def step_with_jacobians(
     The same numbers as `step` and `step_jacobians` (same operations in the same order), for the
     DEKF's once-per-period call, where a dozen numpy calls on 3-vectors cost more than the maths.
     """
-    a_v, a_w, d_x, d_y = (float(b) for b in beta)
-    x, y, th = (float(v) for v in z)
-    v, w = (float(v) for v in u)
+    a_v, a_w, d_x, d_y = _floats(beta)
+    x, y, th = _floats(z)
+    v, w = _floats(u)
     phi = th + 0.5 * tau * a_w * w
     s, c = math.sin(phi), math.cos(phi)
     dx_dth, dy_dth = -tau * a_v * v * s, tau * a_v * v * c
@@ -174,8 +179,8 @@ def rollout(z0: np.ndarray, inputs: np.ndarray, beta: np.ndarray, tau: float) ->
 
     A plain-float loop: for a handful of steps it is several times faster than numpy calls.
     """
-    a_v, a_w, d_x, d_y = (float(b) for b in beta)
-    x, y, th = (float(v) for v in z0)
+    a_v, a_w, d_x, d_y = _floats(beta)
+    x, y, th = _floats(z0)
     out = [(x, y, th)]
     for v, w in np.asarray(inputs, dtype=float).tolist():
         phi = th + 0.5 * tau * a_w * w
