@@ -99,15 +99,14 @@ def run_lockstep(
             t0 = time.perf_counter_ns()
             out = agent.step(inp)
             outs.append((out, (time.perf_counter_ns() - t0) * 1e-6))
-        slots = truth_formation.slots(tgt_pos[None, :], tgt_vel)[0]
-        centre = tgt_pos - sc.formation.trail_m * np.array(
-            [np.cos(truth_formation.course(tgt_vel)), np.sin(truth_formation.course(tgt_vel))]
-        )
-        log["truth"].append(np.array([p.state for p in plants]))
+        trail_x, trail_y, offsets = truth_formation.placement(tgt_vel)
+        cx, cy = float(tgt_pos[0]) - trail_x, float(tgt_pos[1]) - trail_y
+        slots = np.array([(cx + ox, cy + oy) for ox, oy in offsets])
+        log["truth"].append(np.array([p.pose for p in plants]))
         log["target"].append(tgt_pos)
         log["target_velocity"].append(tgt_vel)
         log["slots"].append(slots)
-        log["offsets"].append(slots - centre[None, :])
+        log["offsets"].append(slots - np.array((cx, cy)))
         log["command"].append(np.array([o.command for o, _ in outs]))
         log["c"].append(np.array([o.c[0] for o, _ in outs]))
         log["beta"].append(np.array([o.beta for o, _ in outs]))

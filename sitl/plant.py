@@ -98,8 +98,13 @@ class TruthPlant:
     @property
     def state(self) -> np.ndarray:
         """True (x_m, y_m, yaw_rad), yaw wrapped to (-pi, pi]."""
+        return np.array(self.pose)
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """`state` as plain floats."""
         x, y, th = self._s[0], self._s[1], self._s[2]
-        return np.array([x, y, math.atan2(math.sin(th), math.cos(th))])
+        return x, y, math.atan2(math.sin(th), math.cos(th))
 
     @property
     def position_m(self) -> tuple[float, float]:
@@ -148,6 +153,7 @@ class TruthPlant:
         wind = p.wind
         steady_wind = wind.gust_amplitude_m_s == 0.0
         wx0, wy0 = wxm, wym = wx1, wy1 = wind.mean_m_s
+        cos, sin = math.cos, math.sin
         v_cmd = p.speed_effectiveness * self._cmd[0]
         w_cmd = p.yaw_rate_effectiveness * self._cmd[1]
         lag = p.actuator_lag_s
@@ -159,16 +165,16 @@ class TruthPlant:
                 t0 = self.time_ns * 1e-9
                 (wx0, wy0), (wxm, wym), (wx1, wy1) = wind.at(t0), wind.at(t0 + h2), wind.at(t0 + h)
             # k1 .. k4: derivatives at the start, twice at the midpoint, at the end.
-            x1, y1, th1 = v * math.cos(th) + wx0, v * math.sin(th) + wy0, w
+            x1, y1, th1 = v * cos(th) + wx0, v * sin(th) + wy0, w
             v1, w1 = ((v_cmd - v) / lag, (w_cmd - w) / lag) if lag > 0 else (0.0, 0.0)
             th_, v_, w_ = th + h2 * th1, v + h2 * v1, w + h2 * w1
-            x2, y2, th2 = v_ * math.cos(th_) + wxm, v_ * math.sin(th_) + wym, w_
+            x2, y2, th2 = v_ * cos(th_) + wxm, v_ * sin(th_) + wym, w_
             v2, w2 = ((v_cmd - v_) / lag, (w_cmd - w_) / lag) if lag > 0 else (0.0, 0.0)
             th_, v_, w_ = th + h2 * th2, v + h2 * v2, w + h2 * w2
-            x3, y3, th3 = v_ * math.cos(th_) + wxm, v_ * math.sin(th_) + wym, w_
+            x3, y3, th3 = v_ * cos(th_) + wxm, v_ * sin(th_) + wym, w_
             v3, w3 = ((v_cmd - v_) / lag, (w_cmd - w_) / lag) if lag > 0 else (0.0, 0.0)
             th_, v_, w_ = th + h * th3, v + h * v3, w + h * w3
-            x4, y4, th4 = v_ * math.cos(th_) + wx1, v_ * math.sin(th_) + wy1, w_
+            x4, y4, th4 = v_ * cos(th_) + wx1, v_ * sin(th_) + wy1, w_
             v4, w4 = ((v_cmd - v_) / lag, (w_cmd - w_) / lag) if lag > 0 else (0.0, 0.0)
             x += h6 * (x1 + 2 * x2 + 2 * x3 + x4)
             y += h6 * (y1 + 2 * y2 + 2 * y3 + y4)

@@ -65,18 +65,25 @@ class TargetScript:
 
     def state_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """True position and velocity (North, East) at time t_s [m], [m/s]."""
+        if self.kind == "waypoints":
+            return self._waypoint_state(t_s)
+        (x, y), (vx, vy) = self.state_floats(t_s)
+        return np.array((x, y)), np.array((vx, vy))
+
+    def state_floats(self, t_s: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """`state_at` as plain floats ((x, y), (vx, vy))."""
         if self.kind == "line":
-            v = np.array(self.velocity_m_s)
-            return np.array(self.start_m) + v * t_s, v
+            (x0, y0), (vx, vy) = self.start_m, self.velocity_m_s
+            return (x0 + vx * t_s, y0 + vy * t_s), (vx, vy)
         if self.kind == "circle":
             sign = 1.0 if self.clockwise else -1.0
             w = sign * self.speed_m_s / self.radius_m
             a = self.start_angle_rad + w * t_s
-            c = np.array(self.center_m)
-            pos = c + self.radius_m * np.array([math.cos(a), math.sin(a)])
-            vel = self.radius_m * w * np.array([-math.sin(a), math.cos(a)])
-            return pos, vel
-        return self._waypoint_state(t_s)
+            r, (cx, cy) = self.radius_m, self.center_m
+            c, s = math.cos(a), math.sin(a)
+            return (cx + r * c, cy + r * s), (r * w * -s, r * w * c)
+        pos, vel = self._waypoint_state(t_s)
+        return (float(pos[0]), float(pos[1])), (float(vel[0]), float(vel[1]))
 
     def _waypoint_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         pts = np.array(self.waypoints_m)
@@ -93,5 +100,9 @@ class TargetScript:
 
     def observe(self, t_s: float, rng: np.random.Generator) -> np.ndarray:
         """A noisy observation of the target's position at t_s [m]."""
-        pos, _ = self.state_at(t_s)
-        return pos + self.observation_noise_m * np.clip(rng.standard_normal(2), -3.0, 3.0)
+        (x, y), _ = self.state_floats(t_s)
+        nx, ny = (
+            -3.0 if n < -3.0 else 3.0 if n > 3.0 else n for n in rng.standard_normal(2).tolist()
+        )
+        sigma = self.observation_noise_m
+        return np.array((x + sigma * nx, y + sigma * ny))
