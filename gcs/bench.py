@@ -3,18 +3,20 @@
 1. Lockstep real-time factor: simulated seconds per wall second of `run_lockstep` on the scenario
    (`--repeats` uninstrumented runs; the median is reported). The per-agent step figures (median,
    p99) are pooled over the agent steps of those same uninstrumented runs.
-2. The step split, from one more run with timers around the pieces (they add a little overhead
-   of their own): DEKF (DualEkf.step or .propagate), QP (OSQP's update + solve of the
-   period's values, FixedPatternQp.update + .solve) and model build (the rest of the step:
-   target estimate, slots, seeding, linearization, condensing, cost and constraint assembly,
-   checks). Also the time spent inside filterpy's predict and update calls (DEKF and target
-   filter) and, with OSQP's, the part of the step that is library calls.
-3. Side by side on the QPs recorded in that run, vehicle by vehicle in flight order: our QP path
-   (TubeLbmpc.solve: condense, assemble the values, update OSQP, solve with warm start, check)
-   against the same QP re-built from scratch with cvxpy every step (condense with the same code,
-   build the cvxpy problem, solve with OSQP through cvxpy at the same eps and max_iter, no
-   polishing, as ours). Both sides start from the same QpData and return c; the ratio is of the
-   medians over the same sampled steps, and the largest difference in c is reported.
+2. The step split, from as many runs with timers around the pieces, each right after an
+   uninstrumented one (the timers add a little overhead of their own): DEKF (DualEkf.step or
+   .propagate), QP (OSQP's update + solve of the period's values, FixedPatternQp.update +
+   .solve) and model build (the rest of the step: target estimate, slots, seeding,
+   linearization, condensing, cost and constraint assembly, checks). Also the time spent inside
+   filterpy's predict and update calls (DEKF and target filter) and, with OSQP's, the part of
+   the step that is library calls.
+3. Side by side on the QPs recorded in the first timed run, vehicle by vehicle in flight order:
+   our QP path (TubeLbmpc.solve: condense, assemble the values, update OSQP, solve with warm
+   start, check) against the same QP re-built from scratch with cvxpy every step (condense with
+   the same code, build the cvxpy problem, solve with OSQP through cvxpy at the same eps and
+   max_iter, no polishing, as ours). Both sides start from the same QpData and return c; the
+   ratio is of the medians over the same sampled steps, and the largest difference in c is
+   reported.
 Figures are wall-clock times on this machine, whose load is reported with them; nothing here is
 asserted (speed targets belong to the benchmark, not to unit tests).
 """
@@ -164,18 +166,18 @@ def _load() -> list[float]:
 def run(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     load_before = _load()
-    # 1. Real-time factor and the agent step, uninstrumented.
+    # 1 and 2, alternately (so both see the same machine): uninstrumented runs for the real-time
+    # factor and the agent step; runs with timers for the split. The first timed run records
+    # each vehicle's QPs in flight order.
+    from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
+
+    from onboard.core.agent import Agent
+
     factors, step_ms = [], []
-    for _ in range(max(args.repeats, 1)):
-        t0 = time.perf_counter()
-        rec = run_lockstep(sc)
-        factors.append(sc.duration_s / (time.perf_counter() - t0))
-        step_ms.append(rec.step_time_ms.ravel())
-    steps_ns = np.concatenate(step_ms) * 1e6
-    # 2. The split, with timers; record each vehicle's QPs in flight order.
     step_calls: list[tuple[int, int]] = []
     dekf_calls: list[tuple[int, int]] = []
     qp_calls: list[tuple[int, int]] = []
+    filterpy_calls: list[tuple[int, int]] = []
     captured: dict[int, list[QpData]] = {}
     original_solve = TubeLbmpc.solve
 
@@ -183,23 +185,25 @@ def run(args: argparse.Namespace) -> int:
         captured.setdefault(id(self), []).append(d)
         return original_solve(self, d)
 
-    from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
-
-    from onboard.core.agent import Agent
-
-    filterpy_calls: list[tuple[int, int]] = []
-    with (
-        _timed(Agent, ("step",), step_calls),
-        _timed(DualEkf, ("step", "propagate"), dekf_calls),
-        _timed(FixedPatternQp, ("update", "solve"), qp_calls),
-        _timed(ExtendedKalmanFilter, ("predict", "update"), filterpy_calls),
-        _timed(KalmanFilter, ("predict", "update"), filterpy_calls),
-    ):
-        TubeLbmpc.solve = capturing
-        try:
-            run_lockstep(sc)
-        finally:
-            TubeLbmpc.solve = original_solve
+    for repeat in range(max(args.repeats, 1)):
+        t0 = time.perf_counter()
+        rec = run_lockstep(sc)
+        factors.append(sc.duration_s / (time.perf_counter() - t0))
+        step_ms.append(rec.step_time_ms.ravel())
+        with (
+            _timed(Agent, ("step",), step_calls),
+            _timed(DualEkf, ("step", "propagate"), dekf_calls),
+            _timed(FixedPatternQp, ("update", "solve"), qp_calls),
+            _timed(ExtendedKalmanFilter, ("predict", "update"), filterpy_calls),
+            _timed(KalmanFilter, ("predict", "update"), filterpy_calls),
+        ):
+            if repeat == 0:
+                TubeLbmpc.solve = capturing
+            try:
+                run_lockstep(sc)
+            finally:
+                TubeLbmpc.solve = original_solve
+    steps_ns = np.concatenate(step_ms) * 1e6
     split_steps = np.array([d for _, d in step_calls], dtype=float)
     dekf = _per_step(dekf_calls, step_calls)
     qp = _per_step(qp_calls, step_calls)
@@ -289,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
     for name, med, p99 in rows:
         print(f"  {name:32s} {med:>10s} {p99:>10s}")
     print(
-        f"  (split from an instrumented run: step median "
+        f"  (split from the timed runs: step median "
         f"{result['split_run_agent_step']['median_ms']:.3f} ms; "
         f"{len(cvx_ns)} QPs side by side"
         + (f", ours and cvxpy agree on c within {max(diffs):.1e})" if diffs else ")")
