@@ -8,9 +8,9 @@ update (DESIGN.md). Each period the caller computes P and A densely; `gather` co
 entries into OSQP's CSC order through flat index maps computed at setup (no scipy.sparse object
 is built per period), and the caller writes q, l and u straight into their views.
 
-All five value arrays live in one buffer, so one `np.isfinite` checks the whole problem before the
-solver sees it. Infinite bounds are written as +-OSQP_INFTY (1e30, what OSQP treats as infinity),
-which keeps the buffer finite; any inf or nan left in it is bad data.
+All five value arrays live in one buffer, so one check (`finite`) covers the whole problem before
+the solver sees it. Infinite bounds are written as +-OSQP_INFTY (1e30, what OSQP treats as
+infinity), which keeps the buffer finite; any inf or nan left in it is bad data.
 
 The solver is OSQP's compiled binding (`osqp.ext_builtin.OSQPSolver`), the object that
 `osqp.OSQP` itself wraps, set up with the same settings. The wrapper's `update` and `solve` add
