@@ -1,0 +1,229 @@
+"""`fleetmpc up`: the whole fleet as OS processes, its gates, its recording and its shutdown.
+
+Each test flies the paper fleet from a copy of `scenarios/paper.toml` whose ``[network]`` ports
+are free ones, so it never meets another fleet on this machine. "Nothing left running" is
+checked by looking for any process whose command line names that copy (every process `up`
+starts is given it), which also catches grandchildren.
+"""
+
+import contextlib
+import json
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import rerun as rr
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = ROOT / "scenarios" / "paper.toml"
+SPEED = 4.0
+FIGURES = (
+    "fig1_paths.png",
+    "fig2_c.png",
+    "fig3_separation.png",
+    "fig4_centre_distance.png",
+    "fig5_beta.png",
+)
+
+
+def _bindable(port: int, kind: int) -> bool:
+    with socket.socket(socket.AF_INET, kind) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _free_block(kind: int, ports: list[int]) -> int:
+    """A base port b such that b + p is free for every p in `ports`."""
+    for _ in range(200):
+        base = random.randrange(20000, 60000)
+        if all(_bindable(base + p, kind) for p in ports):
+            return base
+    raise AssertionError("no free ports")
+
+
+@pytest.fixture
+def scenario(tmp_path) -> Path:
+    """paper.toml with its own free ports, in tmp_path."""
+    udp = socket.SOCK_DGRAM
+    network = {
+        "offboard_base_port": _free_block(udp, [0, 1, 2]),
+        "gcs_port": _free_block(udp, [0]),
+        "ardupilot_tcp_base_port": _free_block(socket.SOCK_STREAM, [0, 10, 20]),
+        "zenoh_port": _free_block(socket.SOCK_STREAM, [0]),
+    }
+    table = "\n".join(f"{k} = {v}" for k, v in network.items())
+    path = tmp_path / "paper-up.toml"
+    path.write_text(f"{PAPER.read_text()}\n[network]\n{table}\n")
+    return path
+
+
+def _processes_naming(text: str) -> list[tuple[int, str]]:
+    """(pid, command line) of every live process whose command line contains `text`."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if text in cmdline and state != "Z":
+            found.append((int(entry.name), cmdline))
+    return found
+
+
+class Up:
+    """One `fleetmpc up` run in the background; killed (with its fleet) if a test fails."""
+
+    def __init__(self, scenario: Path, run_dir: Path, *extra: str) -> None:
+        self.scenario = scenario
+        self.run_dir = run_dir
+        self.out_path = run_dir.parent / f"{run_dir.name}.out"
+        self.err_path = run_dir.parent / f"{run_dir.name}.err"
+        argv = [
+            sys.executable, "-m", "gcs.cli", "up", str(scenario),
+            "--speed", f"{SPEED:g}", "--viewer", "none", "--quiet", "--run-dir", str(run_dir),
+            *extra,
+        ]  # fmt: skip
+        with open(self.out_path, "w") as out, open(self.err_path, "w") as err:
+            self.proc = subprocess.Popen(argv, stdout=out, stderr=err, cwd=ROOT)
+
+    def wait(self, timeout_s: float) -> int:
+        return self.proc.wait(timeout=timeout_s)
+
+    def text(self) -> str:
+        return self.out_path.read_text() + self.err_path.read_text()
+
+    def wait_flying(self, *, fleet_s: float, timeout_s: float = 60.0) -> None:
+        """Until the ground station's status file shows the fleet flying past `fleet_s`."""
+        status = self.run_dir / "status.json"
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            assert self.proc.poll() is None, self.text()
+            try:
+                snap = json.loads(status.read_text())
+            except (OSError, ValueError):
+                snap = {}
+            if snap.get("phase") == "flying" and (snap.get("fleet_s") or 0.0) >= fleet_s:
+                return
+            time.sleep(0.1)
+        raise AssertionError(f"fleet not flying past {fleet_s} s:\n{self.text()}")
+
+    def kill_all(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10.0)
+        for pid, _ in _processes_naming(str(self.scenario)):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+@pytest.fixture
+def launch():
+    runs: list[Up] = []
+
+    def start(scenario: Path, run_dir: Path, *extra: str) -> Up:
+        up = Up(scenario, run_dir, *extra)
+        runs.append(up)
+        return up
+
+    yield start
+    for up in runs:
+        up.kill_all()
+
+
+def _rrd_entities(path: Path) -> set[str]:
+    return {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream()}
+
+
+def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
+    run_dir, rrd, metrics = tmp_path / "run", tmp_path / "run.rrd", tmp_path / "metrics.json"
+    up = launch(scenario, run_dir, "--duration", "30", "--rrd", str(rrd), "--metrics", str(metrics))
+    rc = up.wait(timeout_s=180.0)
+    leftover = _processes_naming(str(scenario))
+    assert rc == 0, up.text()
+    assert leftover == [], leftover
+    m = json.loads(metrics.read_text())
+    assert m["source"] == "live" and m["periods_recorded"] == m["periods_expected"] == 151, m
+    assert all(e <= 0.1 for e in m["separation_error_m"]), m["separation_error_m"]
+    assert m["centre_distance_error_m"] <= 0.1, m
+    assert m["min_separation_m"] >= 2.0, m
+    assert "separation error 1-2" in up.text()  # the summary table of `fleetmpc sim`
+    for name in ("zenoh-router", "target", "sitl-1", "agent-3", "gcs"):
+        assert (run_dir / "logs" / f"{name}.log").is_file(), name
+
+    # The recording holds every entity family the ground station logs.
+    entities = _rrd_entities(rrd)
+    expected = {"/map/target", "/map/target_prediction", "/map/formation_links"}
+    expected |= {"/series/centre_distance", "/events", "/flight_record", "/meta"}
+    expected |= {f"/series/separation/{p}" for p in ("1-2", "1-3", "2-3")}
+    for v in (1, 2, 3):
+        for family in ("map/vehicles", "map/trails", "map/slots", "map/plans"):
+            expected.add(f"/{family}/{v}")
+        for family in ("formation_error", "c_norm", "solve_time_ms", "setpoint_rate"):
+            expected.add(f"/series/{family}/{v}")
+        expected.add(f"/series/beta/{v}/speed_effectiveness")
+        expected.add(f"/series/beta_truth/{v}/drift_east_m_s")
+        expected |= {f"/series/plan_age/{v}/{n}" for n in (1, 2, 3) if n != v}
+    assert expected <= entities, sorted(expected - entities)
+    assert rr.chunk.RrdReader(rrd).blueprints(), "no blueprint in the recording"
+
+    # `report` regenerates the figures and the metrics from the recording alone.
+    out = tmp_path / "report"
+    done = subprocess.run(
+        [sys.executable, "-m", "gcs.cli", "report", str(rrd), "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    for name in FIGURES:
+        assert (out / name).stat().st_size > 1000, name
+    again = json.loads((out / "metrics.json").read_text())
+    for key in ("centre_distance_error_m", "formation_rms_m", "min_separation_m"):
+        assert again[key] == pytest.approx(m[key], abs=1e-9), key
+    assert again["separation_error_m"] == pytest.approx(m["separation_error_m"], abs=1e-9)
+
+
+def test_sigint_brings_everything_down_and_keeps_the_recording(scenario, launch, tmp_path):
+    rrd = tmp_path / "cut.rrd"
+    up = launch(scenario, tmp_path / "cut", "--duration", "120", "--rrd", str(rrd))
+    up.wait_flying(fleet_s=6.0)
+    t0 = time.monotonic()
+    up.proc.send_signal(signal.SIGINT)
+    rc = up.wait(timeout_s=30.0)
+    down_s = time.monotonic() - t0
+    leftover = _processes_naming(str(scenario))
+    assert rc == 130, up.text()
+    assert down_s <= 5.0, f"shutdown took {down_s:.1f} s"
+    assert leftover == [], leftover
+    assert "interrupted" in up.text()
+    entities = _rrd_entities(rrd)  # readable, and it holds the flight so far
+    assert {"/flight_record", "/map/vehicles/1", "/series/separation/1-2"} <= entities
+
+
+def test_a_dead_sitl_is_named_and_up_fails(scenario, launch, tmp_path):
+    up = launch(scenario, tmp_path / "dead", "--duration", "120")
+    up.wait_flying(fleet_s=4.0)
+    (victim,) = [
+        pid
+        for pid, cmd in _processes_naming(str(scenario))
+        if " sitl " in cmd and "--vehicle 2 " in cmd
+    ]
+    os.kill(victim, signal.SIGKILL)
+    rc = up.wait(timeout_s=60.0)
+    text = up.text()
+    assert rc == 1, text
+    assert "FAILED: sitl-2" in text, text
+    assert _processes_naming(str(scenario)) == []
