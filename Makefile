@@ -15,8 +15,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# The paper's fleet as separate processes (router, target, 3 SITL, 3 agents, ground station),
+# then the paper's figures from its recording.
 demo: $(STAMP)
-	$(BIN)/fleetmpc sim scenarios/paper.toml --plots runs/demo --metrics runs/demo/metrics.json
+	rm -rf runs/demo
+	$(BIN)/fleetmpc up scenarios/paper.toml --run-dir runs/demo
+	$(BIN)/fleetmpc report runs/demo/run.rrd --out runs/demo
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
