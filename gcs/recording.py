@@ -1,7 +1,10 @@
 """A flight record as a Rerun recording (`.rrd`): a map, time series, events and a blueprint.
 
-Everything is logged column-wise (`send_columns`) on the `sim_time` timeline, a duration in
-integer nanoseconds. Entity layout (a live ground station logs the same paths):
+Everything is logged column-wise on the `sim_time` timeline, a duration in integer nanoseconds:
+the component columns of every entity that shares a time index are built straight as Arrow arrays
+into one record batch, which Rerun splits into one chunk per entity, and all the chunks of a call
+go out in one `rr.send_chunks` (one call per flush instead of one `send_columns` per entity, and
+no archetype conversions). Entity layout (a live ground station logs the same paths):
 
 - `map/vehicles/<id>`: position (Points2D) and heading (Arrows2D);
 - `map/trails/<id>`: the last `trail_window_s` of the path (LineStrips2D);
@@ -26,6 +29,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -129,17 +133,96 @@ def fleet_blueprint(*, vehicle_ids: tuple[int, ...]) -> rrb.Blueprint:
     )
 
 
-def _scalars(
-    stream: rr.RecordingStream, path: str, *, t_ns: np.ndarray, values: np.ndarray
-) -> None:
-    keep = np.isfinite(values)
-    if not keep.any():
-        return
-    stream.send_columns(
-        path,
-        indexes=[rr.TimeColumn(TIMELINE, duration=t_ns[keep].astype("timedelta64[ns]"))],
-        columns=rr.Scalars.columns(scalars=values[keep]),
-    )
+_F32_XY = pa.list_(pa.field("item", pa.float32(), nullable=False), 2)
+"""Arrow type of one 2-D position or vector (rerun.datatypes.Vec2D)."""
+_STRIP = pa.list_(pa.field("item", _F32_XY, nullable=False))
+"""Arrow type of one line strip (rerun.components.LineStrip2D)."""
+_INDEX = pa.field(
+    TIMELINE, pa.duration("ns"), metadata={"rerun:kind": "index", "rerun:index_name": TIMELINE}
+)
+
+
+def _offsets(lengths: np.ndarray) -> pa.Array:
+    return pa.array(np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32))
+
+
+def _xy(points: np.ndarray) -> pa.Array:
+    """(M, 2) -> M Vec2D (float32)."""
+    flat = pa.array(np.ascontiguousarray(points, dtype=np.float32).ravel())
+    return pa.FixedSizeListArray.from_arrays(flat, type=_F32_XY)
+
+
+class _Columns:
+    """Component columns of many entities on one `sim_time` index, sent as one record batch.
+
+    Each column is a list array with one row per time; its `rerun:entity_path` metadata names its
+    entity, so `rr.chunk.Chunk.from_record_batch` makes one chunk per entity of it.
+    """
+
+    def __init__(self, t_ns: np.ndarray) -> None:
+        self.t_ns = np.asarray(t_ns, dtype=np.int64)
+        self.rows = len(self.t_ns)
+        self._fields = [_INDEX]
+        self._arrays = [pa.array(self.t_ns.astype("timedelta64[ns]"))]
+
+    def add(self, path: str, descriptor: rr.ComponentDescriptor | str, column: pa.Array) -> None:
+        """A list array of `rows` rows (an archetype's descriptor, or a bare name: AnyValues)."""
+        meta = {"rerun:kind": "data", "rerun:entity_path": path}
+        if isinstance(descriptor, str):
+            meta["rerun:component"] = descriptor
+        else:
+            meta["rerun:component"] = descriptor.component
+            meta["rerun:archetype"] = descriptor.archetype
+            meta["rerun:component_type"] = descriptor.component_type
+        self._fields.append(
+            pa.field(f"{path}:{meta['rerun:component']}", column.type, metadata=meta)
+        )
+        self._arrays.append(column)
+
+    def scalars(self, path: str, values: np.ndarray) -> None:
+        """One Scalars value per row; rows that are not finite stay empty (null), and a series
+        with no finite value is not logged."""
+        values = np.asarray(values, dtype=np.float64)
+        missing = ~np.isfinite(values)
+        if missing.all():
+            return
+        column = pa.ListArray.from_arrays(
+            _offsets(np.ones(self.rows, dtype=np.int64)),
+            pa.array(values),
+            mask=pa.array(missing) if missing.any() else None,
+        )
+        self.add(path, rr.Scalars.descriptor_scalars(), column)
+
+    def xy(self, path: str, descriptor: rr.ComponentDescriptor, points: np.ndarray) -> None:
+        """(rows, 2) one position / vector per row."""
+        lengths = np.ones(self.rows, dtype=np.int64)
+        self.add(path, descriptor, pa.ListArray.from_arrays(_offsets(lengths), _xy(points)))
+
+    def strips(self, path: str, points: np.ndarray, strip_lengths: np.ndarray, per_row: int):
+        """LineStrips2D: `per_row` strips in every row, of `strip_lengths` points of `points`."""
+        strips = pa.ListArray.from_arrays(_offsets(strip_lengths), _xy(points), type=_STRIP)
+        lengths = np.full(self.rows, per_row, dtype=np.int64)
+        column = pa.ListArray.from_arrays(_offsets(lengths), strips)
+        self.add(path, rr.LineStrips2D.descriptor_strips(), column)
+
+    def values(self, path: str, name: str, rows: np.ndarray) -> None:
+        """AnyValues component `name`: (rows, m) float64 or bool, one list of m per row."""
+        m = rows.shape[1]
+        flat = pa.array(np.ascontiguousarray(rows).ravel())
+        lengths = np.full(self.rows, m, dtype=np.int64)
+        self.add(path, name, pa.ListArray.from_arrays(_offsets(lengths), flat))
+
+    def chunks(self) -> list:
+        if len(self._arrays) == 1:
+            return []
+        batch = pa.RecordBatch.from_arrays(self._arrays, schema=pa.schema(self._fields))
+        return rr.chunk.Chunk.from_record_batch(batch)
+
+
+def _send(stream: rr.RecordingStream, groups: list[_Columns]) -> None:
+    chunks = [c for group in groups for c in group.chunks()]
+    if chunks:
+        rr.send_chunks(chunks, recording=stream)
 
 
 def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) -> None:
@@ -160,21 +243,11 @@ def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) 
     )
 
 
-def _log_record_arrays(
-    stream: rr.RecordingStream, rec: FlightRecord, *, time: rr.TimeColumn, start: int
-) -> None:
-    k = len(rec.t_s) - start
-    arrays = {}
+def _record_arrays(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
     for name in RECORD_ARRAYS:
         a = np.asarray(getattr(rec, name))[start:]
         a = a.astype(np.bool_) if name == "qp_ok" else a.astype(np.float64)
-        arrays[name] = a.reshape(k, -1)
-    columns = [
-        column
-        for name, a in arrays.items()
-        for column in rr.AnyValues.columns(**{name: a.ravel()}).partition(np.full(k, a.shape[1]))
-    ]
-    stream.send_columns("flight_record", indexes=[time], columns=columns)
+        columns.values("flight_record", name, a.reshape(columns.rows, -1))
 
 
 def _log_map_styles(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) -> None:
@@ -196,86 +269,69 @@ def _log_map_styles(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) ->
     )
 
 
-def _log_map(
-    stream: rr.RecordingStream,
+def _trail_points(pos: np.ndarray, *, first: np.ndarray, start: int) -> tuple:
+    """Points of the trails of rows start.. (each row: pos[first[j] .. j]) and their lengths."""
+    rows = np.arange(start, len(pos))
+    lengths = rows + 1 - first[rows]
+    begin = np.repeat(np.cumsum(lengths) - lengths, lengths)
+    index = np.arange(lengths.sum()) - begin + np.repeat(first[rows], lengths)
+    return pos[index], lengths
+
+
+def _map(
+    columns: _Columns,
     rec: FlightRecord,
     *,
     t_ns: np.ndarray,
-    time: rr.TimeColumn,
     trail_window_s: float,
     start: int,
 ) -> None:
     k, n = rec.truth.shape[:2]
     pos = map_from_ned(rec.truth[:, :, :2])
-    yaw = rec.truth[:, :, 2]
+    rows = slice(start, k)
+    yaw = rec.truth[rows, :, 2]
     heading = map_from_ned(_HEADING_ARROW_M * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1))
-    slots = map_from_ned(rec.slots)
+    slots = map_from_ned(rec.slots[rows])
     step_ns = np.median(np.diff(t_ns)) if k > 1 else 1
     window = max(1, int(round(trail_window_s * 1e9 / max(step_ns, 1))))
     first = np.maximum(np.arange(k) - window + 1, 0)
-    rows = slice(start, k)
     for i, vid in enumerate(rec.vehicle_ids):
-        stream.send_columns(
-            f"map/vehicles/{vid}",
-            indexes=[time],
-            columns=[
-                *rr.Points2D.columns(positions=pos[rows, i]),
-                *rr.Arrows2D.columns(origins=pos[rows, i], vectors=heading[rows, i]),
-            ],
-        )
-        stream.send_columns(
-            f"map/trails/{vid}",
-            indexes=[time],
-            columns=rr.LineStrips2D.columns(
-                strips=[pos[first[j] : j + 1, i] for j in range(start, k)]
-            ),
-        )
-        stream.send_columns(
-            f"map/slots/{vid}",
-            indexes=[time],
-            columns=rr.Points2D.columns(positions=slots[rows, i]),
-        )
-    stream.send_columns(
-        "map/target",
-        indexes=[time],
-        columns=rr.Points2D.columns(positions=map_from_ned(rec.target[rows])),
-    )
+        path = f"map/vehicles/{vid}"
+        columns.xy(path, rr.Points2D.descriptor_positions(), pos[rows, i])
+        columns.xy(path, rr.Arrows2D.descriptor_origins(), pos[rows, i])
+        columns.xy(path, rr.Arrows2D.descriptor_vectors(), heading[:, i])
+        trail, lengths = _trail_points(pos[:, i], first=first, start=start)
+        columns.strips(f"map/trails/{vid}", trail, lengths, per_row=1)
+        columns.xy(f"map/slots/{vid}", rr.Points2D.descriptor_positions(), slots[:, i])
+    columns.xy("map/target", rr.Points2D.descriptor_positions(), map_from_ned(rec.target[rows]))
     pairs = pair_indices(n)
     if pairs:
         links = np.stack([pos[rows][:, [a, b]] for a, b in pairs], axis=1)  # (K, P, 2, 2)
-        stream.send_columns(
+        columns.strips(
             "map/formation_links",
-            indexes=[time],
-            columns=rr.LineStrips2D.columns(strips=links.reshape(-1, 2, 2)).partition(
-                np.full(k - start, len(pairs))
-            ),
+            links.reshape(-1, 2),
+            np.full(links.shape[0] * len(pairs), 2),
+            per_row=len(pairs),
         )
 
 
-def _log_series(
-    stream: rr.RecordingStream, rec: FlightRecord, *, t_ns: np.ndarray, start: int
-) -> None:
+def _series(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
     ids = rec.vehicle_ids
-    pos = rec.truth[:, :, :2]
-    t_ns = t_ns[start:]
-
-    def scalars(path: str, values: np.ndarray) -> None:
-        _scalars(stream, path, t_ns=t_ns, values=values[start:])
-
+    pos = rec.truth[start:, :, :2]
     for a, b in pair_indices(len(ids)):
         d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
-        scalars(f"series/separation/{ids[a]}-{ids[b]}", d)
-    centre = np.mean(pos - rec.slot_offsets_world, axis=1)
-    scalars("series/centre_distance", np.linalg.norm(centre - rec.target, axis=1))
-    formation_error = np.linalg.norm(pos - rec.slots, axis=2)
-    c_norm = np.linalg.norm(rec.c, axis=2)
+        columns.scalars(f"series/separation/{ids[a]}-{ids[b]}", d)
+    centre = np.mean(pos - rec.slot_offsets_world[start:], axis=1)
+    columns.scalars("series/centre_distance", np.linalg.norm(centre - rec.target[start:], axis=1))
+    formation_error = np.linalg.norm(pos - rec.slots[start:], axis=2)
+    c_norm = np.linalg.norm(rec.c[start:], axis=2)
     for i, vid in enumerate(ids):
-        scalars(f"series/formation_error/{vid}", formation_error[:, i])
-        scalars(f"series/c_norm/{vid}", c_norm[:, i])
-        scalars(f"series/solve_time_ms/{vid}", rec.step_time_ms[:, i])
+        columns.scalars(f"series/formation_error/{vid}", formation_error[:, i])
+        columns.scalars(f"series/c_norm/{vid}", c_norm[:, i])
+        columns.scalars(f"series/solve_time_ms/{vid}", rec.step_time_ms[start:, i])
         for p, param in enumerate(BETA_PARAMS):
-            scalars(f"series/beta/{vid}/{param}", rec.beta[:, i, p])
-            scalars(f"series/beta_truth/{vid}/{param}", rec.beta_truth[:, i, p])
+            columns.scalars(f"series/beta/{vid}/{param}", rec.beta[start:, i, p])
+            columns.scalars(f"series/beta_truth/{vid}/{param}", rec.beta_truth[start:, i, p])
 
 
 def log_events(
@@ -332,22 +388,17 @@ def log_flight_record(
     earlier periods still draw the trails). The static `meta` is logged every time.
     """
     t_ns = sim_time_ns(rec.t_s)
-    time = rr.TimeColumn(TIMELINE, duration=t_ns[start:].astype("timedelta64[ns]"))
     _log_meta(stream, rec, run_info=run_info or {})
     if start == 0:
         _log_map_styles(stream, rec.vehicle_ids)
     if start >= len(t_ns):
         return
-    _log_record_arrays(stream, rec, time=time, start=start)
-    _log_map(stream, rec, t_ns=t_ns, time=time, trail_window_s=trail_window_s, start=start)
-    _log_series(stream, rec, t_ns=t_ns, start=start)
+    columns = _Columns(t_ns[start:])
+    _record_arrays(columns, rec, start=start)
+    _map(columns, rec, t_ns=t_ns, trail_window_s=trail_window_s, start=start)
+    _series(columns, rec, start=start)
+    _send(stream, [columns])
     log_events(stream, _qp_events(rec, t_ns=t_ns, start=start))
-
-
-def _time(stamps_ns) -> rr.TimeColumn:
-    return rr.TimeColumn(
-        TIMELINE, duration=np.asarray(stamps_ns, dtype=np.int64).astype("timedelta64[ns]")
-    )
 
 
 def log_plans(stream: rr.RecordingStream, plans: list[PlanMessage]) -> None:
@@ -355,14 +406,18 @@ def log_plans(stream: rr.RecordingStream, plans: list[PlanMessage]) -> None:
     by_vehicle: dict[int, list[PlanMessage]] = defaultdict(list)
     for m in plans:
         by_vehicle[m.sender_id].append(m)
+    groups = []
     for vid, items in by_vehicle.items():
-        stream.send_columns(
+        columns = _Columns([m.stamp_ns for m in items])
+        states = [m.plan.states[:, :2] for m in items]
+        columns.strips(
             f"map/plans/{vid}",
-            indexes=[_time([m.stamp_ns for m in items])],
-            columns=rr.LineStrips2D.columns(
-                strips=[map_from_ned(m.plan.states[:, :2]) for m in items]
-            ),
+            map_from_ned(np.concatenate(states)),
+            np.array([len(x) for x in states]),
+            per_row=1,
         )
+        groups.append(columns)
+    _send(stream, groups)
 
 
 def log_target_predictions(
@@ -371,26 +426,35 @@ def log_target_predictions(
     """(sim_time ns, predicted positions (M + 1, 2) North/East) as `map/target_prediction`."""
     if predictions:
         stamps, paths = zip(*predictions, strict=True)
-        stream.send_columns(
+        columns = _Columns(stamps)
+        columns.strips(
             "map/target_prediction",
-            indexes=[_time(stamps)],
-            columns=rr.LineStrips2D.columns(strips=[map_from_ned(p) for p in paths]),
+            map_from_ned(np.concatenate(paths)),
+            np.array([len(p) for p in paths]),
+            per_row=1,
         )
+        _send(stream, [columns])
 
 
 def log_status_series(stream: rr.RecordingStream, statuses: list[StatusMessage]) -> None:
-    """Setpoint rates and neighbour plan ages from vehicle statuses, one batch per series."""
-    rates: dict[int, list[tuple[int, float]]] = defaultdict(list)
-    ages: dict[tuple[int, int], list[tuple[int, float]]] = defaultdict(list)
+    """Setpoint rates and neighbour plan ages from vehicle statuses, one batch per vehicle."""
+    by_vehicle: dict[int, list[StatusMessage]] = defaultdict(list)
     for m in statuses:
-        rates[m.sender_id].append((m.stamp_ns, m.status.setpoint_rate_hz))
-        for a in m.status.neighbour_plan_ages:
-            ages[(m.sender_id, a.vehicle_id)].append((m.stamp_ns, a.age_ns * 1e-9))
-    series = {f"series/setpoint_rate/{vid}": rows for vid, rows in rates.items()}
-    series |= {f"series/plan_age/{vid}/{nbr}": rows for (vid, nbr), rows in ages.items()}
-    for path, rows in series.items():
-        t, v = zip(*rows, strict=True)
-        _scalars(stream, path, t_ns=np.asarray(t, dtype=np.int64), values=np.asarray(v))
+        by_vehicle[m.sender_id].append(m)
+    groups = []
+    for vid, items in by_vehicle.items():
+        columns = _Columns([m.stamp_ns for m in items])
+        columns.scalars(
+            f"series/setpoint_rate/{vid}", np.array([m.status.setpoint_rate_hz for m in items])
+        )
+        ages: dict[int, np.ndarray] = {}
+        for j, m in enumerate(items):
+            for a in m.status.neighbour_plan_ages:
+                ages.setdefault(a.vehicle_id, np.full(len(items), np.nan))[j] = a.age_ns * 1e-9
+        for nbr, values in ages.items():
+            columns.scalars(f"series/plan_age/{vid}/{nbr}", values)
+        groups.append(columns)
+    _send(stream, groups)
 
 
 def open_recording(
