@@ -35,13 +35,40 @@ __all__ = ["LiveRecord", "formation_reference"]
 
 
 def formation_reference(
-    formation: Formation, trail_m: float, target_m: np.ndarray, target_velocity_m_s: np.ndarray
+    formation: Formation, target_m: np.ndarray, target_velocity_m_s: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Slots (N, 2) of the true target and each slot's offset from the formation centre (N, 2)."""
-    slots = formation.slots(np.asarray(target_m)[None, :], target_velocity_m_s)[0]
-    course = formation.course(target_velocity_m_s)
-    centre = target_m - trail_m * np.array([math.cos(course), math.sin(course)])
-    return slots, slots - centre[None, :]
+    """Slots (K, N, 2) of the true target over K periods and each slot's offset from the
+    formation centre (K, N, 2), for target positions and velocities (K, 2).
+
+    The course is stateful (the last known course holds while the target is nearly still), so
+    the periods go through `formation.placement` in order; the rest is array arithmetic with the
+    same float operations, period by period, as a scalar computation.
+    """
+    placements = [formation.placement(v) for v in np.asarray(target_velocity_m_s).tolist()]
+    trail = np.array([(x, y) for x, y, _ in placements]).reshape(-1, 2)
+    offsets = np.array([o for _, _, o in placements]).reshape(len(placements), formation.size, 2)
+    centre = np.asarray(target_m, dtype=float).reshape(-1, 2) - trail
+    slots = centre[:, None, :] + offsets
+    return slots, slots - centre[:, None, :]
+
+
+def _unwrap_tail(raw: np.ndarray, *, previous_raw: float | None, correction: float) -> tuple:
+    """`np.unwrap` of a sequence continued by `raw`, given the last raw value before it and the
+    correction accumulated so far; returns (unwrapped raw, new accumulated correction). Same
+    operations, in the same order, as one `np.unwrap` over the whole sequence."""
+    if previous_raw is None:
+        first, raw_rest = raw[:1], raw[1:]
+        unwrapped, correction = _unwrap_tail(raw_rest, previous_raw=raw[0], correction=0.0)
+        return np.concatenate([first, unwrapped]), correction
+    if len(raw) == 0:
+        return raw, correction
+    dd = np.diff(np.concatenate([[previous_raw], raw]))
+    ddmod = np.mod(dd + np.pi, 2 * np.pi) - np.pi
+    ddmod[(ddmod == -np.pi) & (dd > 0)] = np.pi
+    ph_correct = ddmod - dd
+    ph_correct[abs(dd) < np.pi] = 0
+    cumulative = np.cumsum(np.concatenate([[correction], ph_correct]))[1:]
+    return raw + cumulative, float(cumulative[-1])
 
 
 @dataclass
@@ -54,10 +81,25 @@ class _Track:
     """Plans by period index."""
     status_t_s: list[float] = field(default_factory=list)
     statuses: list[StatusMessage] = field(default_factory=list)
+    arrays: np.ndarray = field(default_factory=lambda: np.empty((4, 0)))
+    """t_s, north, east and unwrapped yaw of the first samples, as arrays (filled on demand)."""
+    yaw_correction: float = 0.0
+
+
+_SCENARIO_FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", "beta_truth")
+"""Per-period fields that depend only on the scenario (computed once per period)."""
+_RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta", "separation_min")
+"""Per-period fields built from what was received (recomputed if late input changes them)."""
 
 
 class LiveRecord:
-    """Collects a live run; `record(periods)` gives the FlightRecord of its first periods."""
+    """Collects a live run; `record(periods)` gives the FlightRecord of its first periods.
+
+    Periods already built are cached, so a growing record costs only its new periods: the
+    scenario's fields are computed once per period, and the received fields are rebuilt from
+    the first period a late input (a plan, a status, or a position sample that moves the
+    interpolation) can change.
+    """
 
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
@@ -70,6 +112,13 @@ class LiveRecord:
             accel_std_m_s2=scenario.controller.target_accel_std_m_s2,
         )
         self.target_observations = 0
+        self._scenario_rows = {name: np.empty((0,)) for name in _SCENARIO_FIELDS}
+        self._received_rows = {name: np.empty((0,)) for name in _RECEIVED_FIELDS}
+        self._valid = 0
+        """Periods whose received fields in the cache are current."""
+
+    def _invalidate(self, period: int) -> None:
+        self._valid = max(0, min(self._valid, period))
 
     # -- inputs -----------------------------------------------------------------------------------
     def add_pose(self, vehicle_id: int, t_s: float, north_m: float, east_m: float, yaw_rad: float):
@@ -79,6 +128,9 @@ class LiveRecord:
             return
         if track.t_s and t_s <= track.t_s[-1]:
             return
+        # Periods after the previous newest sample were interpolated to it (or, without any
+        # sample, taken from the plans): they change.
+        self._invalidate(int(track.t_s[-1] * 1e9 // self.period_ns) if track.t_s else 0)
         track.t_s.append(t_s)
         track.pose.append((north_m, east_m, yaw_rad))
 
@@ -86,6 +138,7 @@ class LiveRecord:
         track = self._tracks.get(message.sender_id)
         if track is not None and message.stamp_ns % self.period_ns == 0:
             track.plans[message.stamp_ns // self.period_ns] = message
+            self._invalidate(message.stamp_ns // self.period_ns)
 
     def add_status(self, message: StatusMessage) -> None:
         track = self._tracks.get(message.sender_id)
@@ -93,6 +146,7 @@ class LiveRecord:
         if track is not None and (not track.status_t_s or t_s > track.status_t_s[-1]):
             track.status_t_s.append(t_s)
             track.statuses.append(message)
+            self._invalidate(message.stamp_ns // self.period_ns)
 
     def add_target(self, message: TargetObservation) -> None:
         if self._target.observe(message.stamp_ns, np.array([message.north_m, message.east_m])):
@@ -133,13 +187,25 @@ class LiveRecord:
         return pos
 
     # -- the record -------------------------------------------------------------------------------
+    def _samples(self, track: _Track) -> np.ndarray:
+        """(4, S) t_s, north, east, unwrapped yaw of every sample (converted incrementally)."""
+        done = track.arrays.shape[1]
+        if done < len(track.t_s):
+            new = np.asarray(track.pose[done:], dtype=float)
+            yaw, track.yaw_correction = _unwrap_tail(
+                new[:, 2],
+                previous_raw=track.pose[done - 1][2] if done else None,
+                correction=track.yaw_correction,
+            )
+            rows = np.stack([np.asarray(track.t_s[done:]), new[:, 0], new[:, 1], yaw])
+            track.arrays = np.concatenate([track.arrays, rows], axis=1)
+        return track.arrays
+
     def _poses(self, vehicle_id: int, t_s: np.ndarray) -> np.ndarray:
         track = self._tracks[vehicle_id]
         if track.t_s:
-            ts = np.asarray(track.t_s)
-            pose = np.asarray(track.pose)
-            yaw = np.unwrap(pose[:, 2])
-            cols = [np.interp(t_s, ts, pose[:, 0]), np.interp(t_s, ts, pose[:, 1])]
+            ts, north, east, yaw = self._samples(track)
+            cols = [np.interp(t_s, ts, north), np.interp(t_s, ts, east)]
             return np.stack([*cols, np.interp(t_s, ts, yaw)], axis=-1)
         out = np.full((len(t_s), 3), np.nan)
         ks = sorted(track.plans)
@@ -149,80 +215,129 @@ class LiveRecord:
                 out[j] = track.plans[ks[i]].plan.states[0]
         return out
 
+    def _scenario_periods(self, k_n: int) -> None:
+        """Extend the scenario's per-period fields to `k_n` periods."""
+        sc = self.scenario
+        k0 = len(self._scenario_rows["target"])
+        if k_n <= k0:
+            return
+        t_s = np.arange(k0, k_n) * self.period_ns * 1e-9
+        states = [sc.target.state_at(float(t)) for t in t_s]
+        target = np.array([p for p, _ in states], dtype=float).reshape(-1, 2)
+        target_vel = np.array([v for _, v in states], dtype=float).reshape(-1, 2)
+        slots, offsets = formation_reference(self._formation, target, target_vel)
+        beta_truth = np.empty((len(t_s), len(self.ids), 4))
+        for i, vid in enumerate(self.ids):
+            truth = sc.vehicle(vid).truth
+            for j, t in enumerate(t_s):
+                beta_truth[j, i] = (
+                    truth.speed_effectiveness,
+                    truth.yaw_rate_effectiveness,
+                    *truth.wind.at(float(t)),
+                )
+        new = {
+            "target": target,
+            "target_velocity": target_vel,
+            "slots": slots,
+            "slot_offsets_world": offsets,
+            "beta_truth": beta_truth,
+        }
+        for name, rows in new.items():
+            old = self._scenario_rows[name]
+            self._scenario_rows[name] = np.concatenate([old, rows]) if k0 else rows
+
+    def _received_periods(self, k0: int, k_n: int) -> dict[str, np.ndarray]:
+        """The received fields of periods k0 .. k_n - 1."""
+        n = len(self.ids)
+        k = k_n - k0
+        t_s = np.arange(k0, k_n) * self.period_ns * 1e-9
+        truth = np.stack([self._poses(vid, t_s) for vid in self.ids], axis=1)
+        command = np.full((k, n, 2), np.nan)
+        c = np.full((k, n, 2), np.nan)
+        qp_ok = np.ones((k, n), dtype=bool)
+        step_ms = np.full((k, n), np.nan)
+        beta = np.full((k, n, 4), np.nan)
+        for i, vid in enumerate(self.ids):
+            track = self._tracks[vid]
+            earlier = [p for p in track.plans if p < k0]
+            held = track.plans[max(earlier)] if earlier else None
+            for j in range(k):
+                msg = track.plans.get(k0 + j)
+                if msg is not None:
+                    held = msg
+                    step_ms[j, i] = msg.status.solve_time_us * 1e-3
+                    qp_ok[j, i] = not msg.status.qp_fallback
+                if held is not None:
+                    command[j, i] = held.plan.inputs[0]
+                    c[j, i] = (held.status.first_c_norm, 0.0)
+                s = bisect_right(track.status_t_s, t_s[j] + 1e-9) - 1
+                if s >= 0:
+                    beta[j, i] = track.statuses[s].status.beta.as_tuple()
+        return {
+            "truth": truth,
+            "command": command,
+            "c": c,
+            "qp_ok": qp_ok,
+            "step_time_ms": step_ms,
+            "beta": beta,
+            "separation_min": self._separation_minima(k0, k_n),
+        }
+
+    def _separation_minima(self, k0: int, k_n: int) -> np.ndarray:
+        """Per period k0 .. k_n - 1, the closest approach over the plant ticks since the previous
+        period (period k covers the ticks up to t_k; period 0 the tick at 0)."""
+        n = len(self.ids)
+        if n < 2:
+            return np.full(k_n - k0, math.inf)
+        tick_s = self.scenario.tick_ns * 1e-9
+        # Ticks up to period k: the length of np.arange(0.0, t_k + 1e-9, tick_s).
+        t_s = np.arange(k0 - 1 if k0 else 0, k_n) * self.period_ns * 1e-9
+        ends = np.ceil((t_s + 1e-9) / tick_s).astype(np.int64)
+        first = ends[0] if k0 else 0
+        ends = ends[1:] if k0 else ends
+        grid = np.arange(first, ends[-1]) * tick_s
+        pos = np.stack([self._poses(vid, grid)[:, :2] for vid in self.ids], axis=1)
+        a, b = np.triu_indices(n, 1)
+        d = np.linalg.norm(pos[:, a, :] - pos[:, b, :], axis=-1)  # (ticks, pairs)
+        starts = np.concatenate([[first], ends[:-1]]) - first
+        out = np.full(len(ends), np.nan)
+        has_ticks = ends - first > starts
+        if has_ticks.any():
+            per_tick = np.fmin.reduce(d, axis=1)
+            out[has_ticks] = np.fmin.reduceat(per_tick, starts[has_ticks])
+        return out
+
+    def _update_cache(self, k_n: int) -> None:
+        k0 = min(self._valid, len(self._received_rows["truth"]))
+        if k_n <= k0:
+            return
+        new = self._received_periods(k0, k_n)
+        for name, rows in new.items():
+            old = self._received_rows[name][:k0]
+            self._received_rows[name] = np.concatenate([old, rows]) if k0 else rows
+        self._valid = k_n
+
     def record(self, periods: int | None = None) -> FlightRecord:
         """The FlightRecord of periods 0 .. `periods` - 1 (default: every complete period)."""
         sc = self.scenario
         k_n = self.complete_periods() if periods is None else periods
         if k_n < 1:
             raise ValueError("no complete control period yet")
-        n = len(self.ids)
-        t_s = np.arange(k_n) * self.period_ns * 1e-9
-        truth = np.stack([self._poses(vid, t_s) for vid in self.ids], axis=1)
-        target = np.empty((k_n, 2))
-        target_vel = np.empty((k_n, 2))
-        slots = np.empty((k_n, n, 2))
-        offsets = np.empty((k_n, n, 2))
-        for k, t in enumerate(t_s):
-            target[k], target_vel[k] = sc.target.state_at(float(t))
-            slots[k], offsets[k] = formation_reference(
-                self._formation, sc.formation.trail_m, target[k], target_vel[k]
-            )
-        command = np.full((k_n, n, 2), np.nan)
-        c = np.full((k_n, n, 2), np.nan)
-        qp_ok = np.ones((k_n, n), dtype=bool)
-        step_ms = np.full((k_n, n), np.nan)
-        beta = np.full((k_n, n, 4), np.nan)
-        beta_truth = np.empty((k_n, n, 4))
-        for i, vid in enumerate(self.ids):
-            track = self._tracks[vid]
-            truth_params = sc.vehicle(vid).truth
-            held = None
-            for k in range(k_n):
-                msg = track.plans.get(k)
-                if msg is not None:
-                    held = msg
-                    step_ms[k, i] = msg.status.solve_time_us * 1e-3
-                    qp_ok[k, i] = not msg.status.qp_fallback
-                if held is not None:
-                    command[k, i] = held.plan.inputs[0]
-                    c[k, i] = (held.status.first_c_norm, 0.0)
-                j = bisect_right(track.status_t_s, t_s[k] + 1e-9) - 1
-                if j >= 0:
-                    beta[k, i] = track.statuses[j].status.beta.as_tuple()
-                beta_truth[k, i] = (
-                    truth_params.speed_effectiveness,
-                    truth_params.yaw_rate_effectiveness,
-                    *truth_params.wind.at(float(t_s[k])),
-                )
+        self._scenario_periods(k_n)
+        self._update_cache(k_n)
+        got = self._scenario_rows | self._received_rows
+        rows = {name: values[:k_n].copy() for name, values in got.items()}
+        with np.errstate(invalid="ignore"):
+            min_separation = np.fmin.reduce(rows.pop("separation_min"))
         return FlightRecord(
             scenario=sc.name,
             vehicle_ids=self.ids,
-            t_s=t_s,
-            truth=truth,
-            target=target,
-            target_velocity=target_vel,
-            slots=slots,
-            command=command,
-            c=c,
-            beta=beta,
-            beta_truth=beta_truth,
-            qp_ok=qp_ok,
-            step_time_ms=step_ms,
+            t_s=np.arange(k_n) * self.period_ns * 1e-9,
+            **rows,
             desired_distance_m=self._formation.desired_distances(),
             trail_m=sc.formation.trail_m,
-            slot_offsets_world=offsets,
-            min_separation_m=self._min_separation(float(t_s[-1])),
+            min_separation_m=float(min_separation),
             speed_max_m_s=sc.controller.speed_max_m_s,
             yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
             d_safe_m=sc.controller.d_safe_m,
         )
-
-    def _min_separation(self, end_s: float) -> float:
-        n = len(self.ids)
-        if n < 2:
-            return math.inf
-        grid = np.arange(0.0, end_s + 1e-9, self.scenario.tick_ns * 1e-9)
-        pos = np.stack([self._poses(vid, grid)[:, :2] for vid in self.ids], axis=1)
-        d = np.linalg.norm(pos[:, :, None, :] - pos[:, None, :, :], axis=-1)
-        a, b = np.triu_indices(n, 1)
-        return float(np.nanmin(d[:, a, b]))

@@ -29,11 +29,13 @@ def lockstep(paper):
     return run_lockstep(paper, duration_s=DURATION_S)
 
 
-def _feed(live: LiveRecord, rec, *, poses: bool = True) -> None:
-    """What a ground station would receive from a run that flew exactly `rec`."""
+def _feed(live: LiveRecord, rec, *, poses: bool = True, start: int = 0) -> None:
+    """What a ground station would receive from a run that flew exactly `rec` (from period
+    `start` on)."""
     period_ns = live.period_ns
     m = live.scenario.controller.horizon
-    for k, t in enumerate(rec.t_s):
+    for k in range(start, len(rec.t_s)):
+        t = rec.t_s[k]
         stamp = k * period_ns
         for i, vid in enumerate(rec.vehicle_ids):
             if poses:
@@ -143,3 +145,56 @@ def test_a_record_logged_in_slices_reads_back_whole(lockstep, tmp_path) -> None:
     back = read_recording(path).record
     for name in ("t_s", "truth", "command", "c", "beta", "slots", "qp_ok"):
         np.testing.assert_array_equal(getattr(back, name), getattr(lockstep, name), err_msg=name)
+
+
+def _assert_same_record(got, want) -> None:
+    for f in dataclasses.fields(want):
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        if isinstance(b, np.ndarray):
+            assert a.dtype == b.dtype and a.shape == b.shape, f.name
+            assert np.array_equal(a, b, equal_nan=b.dtype.kind == "f"), f.name
+        else:
+            assert a == b, f.name
+
+
+def test_a_growing_record_is_the_record_built_at_once(paper, lockstep) -> None:
+    """Records built period slice by slice, while the input still arrives (and some of it late),
+    are bit for bit the record a fresh LiveRecord builds from everything at the end."""
+    whole = LiveRecord(paper)
+    _feed(whole, lockstep)
+    growing = LiveRecord(paper)
+    k = len(lockstep.t_s)
+    start = 0
+    for end in (1, 4, 5, 12, 20, k):
+        _feed(growing, _first_periods(lockstep, end), start=start)
+        _assert_same_record(growing.record(end), whole.record(end))
+        start = end
+    # A late plan for an early period changes that period and the commands held after it.
+    late = growing.latest_plan(lockstep.vehicle_ids[1])
+    plan = dataclasses.replace(late.plan, stamp_ns=3 * growing.period_ns)
+    status = dataclasses.replace(late.status, qp_fallback=True)
+    for live in (growing, whole):
+        live.add_plan(PlanMessage(seq=999, plan=plan, status=status))
+    rec = growing.record()
+    assert not rec.qp_ok[3, 1]
+    _assert_same_record(rec, whole.record())
+    fresh = LiveRecord(paper)
+    _feed(fresh, lockstep)
+    fresh.add_plan(PlanMessage(seq=999, plan=plan, status=status))
+    _assert_same_record(rec, fresh.record())
+
+
+def test_yaw_wraps_like_one_unwrap_of_every_sample(paper) -> None:
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.05, 0.3, 200))
+    yaw = np.angle(np.exp(1j * np.cumsum(rng.normal(0.0, 1.5, 200))))  # wraps often
+    live = LiveRecord(paper)
+    for j, (ts, y) in enumerate(zip(t, yaw, strict=True)):
+        for vid in paper.vehicle_ids:
+            live.add_pose(vid, float(ts), 0.0, float(vid), float(y))
+        if j % 17 == 0:
+            live.record()
+    k = live.complete_periods()
+    grid = np.arange(k) * live.period_ns * 1e-9
+    want = np.interp(grid, t, np.unwrap(yaw))
+    np.testing.assert_array_equal(live.record().truth[:, 0, 2], want)
