@@ -154,6 +154,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--cvxpy-samples", type=int, default=150, help="QP instances for the cvxpy comparison"
     )
     parser.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    parser.add_argument(
+        "--gcs-logging",
+        action="store_true",
+        help="instead: the ground station logging cost per vehicle-period (gcs.bench_logging)",
+    )
 
 
 def _load() -> list[float]:
@@ -164,6 +169,10 @@ def _load() -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.gcs_logging:
+        from gcs import bench_logging
+
+        return bench_logging.run(args)
     sc = load_scenario(args.scenario)
     load_before = _load()
     # 1 and 2, alternately (so both see the same machine): uninstrumented runs for the real-time

@@ -1,0 +1,135 @@
+"""`fleetmpc bench --gcs-logging`: what the ground station's Rerun logging costs per control step.
+
+One process, side by side on the same machine:
+
+1. a lockstep run of the scenario (its agent step times are the reference: the control step);
+2. a `GroundStation` fed what a live ground station would receive from that run (each vehicle's
+   position, plan and status every period, the target's observation), flushed to an `.rrd` file
+   every `P` periods, as `fleetmpc gcs --flush-s F --speed S` flushes every F * S / period
+   periods; each flush is timed as the ground station times it (draining the inbox, plans,
+   status series, events, the record's new periods, the target prediction).
+
+The figure: logging cost per vehicle-period = total flush time / (periods logged x vehicles),
+next to the agent step median; the target is at most 10 % of it. Wall-clock times; nothing is
+asserted.
+"""
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from gcs.ground_station import GroundStation
+from gcs.lockstep import run_lockstep
+from gcs.record import FlightRecord
+from gcs.recording import open_recording
+from onboard.core.plan import Plan
+from protocol.messages import (
+    LearnedParams,
+    PlanMessage,
+    PlanStatus,
+    StatusMessage,
+    TargetObservation,
+    VehicleStatus,
+)
+from protocol.scenario import load_scenario
+
+__all__ = ["TARGET_FRACTION", "run"]
+
+TARGET_FRACTION = 0.10
+"""Logging per vehicle-period at most this fraction of the agent step median."""
+_TARGET_ID = 250
+
+
+def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
+    """What the ground station receives in period k of a run that flew `rec`."""
+    period_ns = gs.live.period_ns
+    m = gs.scenario.controller.horizon
+    stamp = k * period_ns
+    for i, vid in enumerate(rec.vehicle_ids):
+        gs.live.add_pose(vid, float(rec.t_s[k]), *map(float, rec.truth[k, i]))
+        plan = Plan(
+            vehicle_id=vid,
+            stamp_ns=stamp,
+            period_ns=period_ns,
+            states=np.tile(rec.truth[k, i], (m + 1, 1)),
+            inputs=np.tile(rec.command[k, i], (m, 1)),
+        )
+        status = PlanStatus(
+            qp_fallback=not rec.qp_ok[k, i],
+            first_c_norm=float(np.linalg.norm(rec.c[k, i])),
+            solve_time_us=round(rec.step_time_ms[k, i] * 1e3),
+        )
+        gs.inbox.put(PlanMessage(seq=k, plan=plan, status=status))
+        beta = LearnedParams(*map(float, rec.beta[k, i]))
+        gs.inbox.put(
+            StatusMessage(sender_id=vid, seq=k, stamp_ns=stamp, status=VehicleStatus(beta=beta))
+        )
+    north, east = map(float, rec.target[k])
+    gs.inbox.put(
+        TargetObservation(sender_id=_TARGET_ID, seq=k, stamp_ns=stamp, north_m=north, east_m=east)
+    )
+
+
+def _logging(rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path) -> dict:
+    gs = GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
+    stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
+    for k in range(len(rec.t_s)):
+        _receive(gs, rec, k)
+        if (k + 1) % periods_per_flush == 0:
+            gs.flush(stream)
+    gs.flush(stream)
+    stream.flush()
+    stream.disconnect()
+    flush = np.asarray(gs.flush_ms)
+    return {
+        "periods_per_flush": periods_per_flush,
+        "flushes": len(flush),
+        "flush_median_ms": float(np.median(flush)),
+        "flush_p99_ms": float(np.percentile(flush, 99)),
+        "ms_per_vehicle_period": float(flush.sum() / gs.flushed_vehicle_periods),
+        "rrd_kib": rrd.stat().st_size / 1024,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    sc = load_scenario(args.scenario)
+    rec = run_lockstep(sc)
+    step_median_ms = float(np.median(rec.step_time_ms))
+    period_s = sc.controller.period_ns * 1e-9
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for flush_s, speed in ((0.5, 4.0), (1.0, 4.0)):
+            periods = max(1, round(flush_s * speed / period_s))
+            row = _logging(rec, sc, periods_per_flush=periods, rrd=Path(tmp) / f"{periods}.rrd")
+            row |= {"flush_s": flush_s, "speed": speed}
+            row["fraction_of_agent_step"] = row["ms_per_vehicle_period"] / step_median_ms
+            rows.append(row)
+    result = {
+        "scenario": sc.name,
+        "vehicles": len(sc.vehicles),
+        "periods": len(rec.t_s),
+        "agent_step_median_ms": step_median_ms,
+        "target_fraction": TARGET_FRACTION,
+        "gcs_logging": rows,
+    }
+    print(
+        f"fleetmpc bench --gcs-logging: scenario {sc.name!r}, {len(sc.vehicles)} vehicles, "
+        f"{len(rec.t_s)} periods; agent step median {step_median_ms:.3f} ms (same process)"
+    )
+    print(
+        f"  {'flush every':24s} {'median ms':>10s} {'p99 ms':>10s} "
+        f"{'ms / vehicle-period':>20s} {'of agent step':>14s}"
+    )
+    for r in rows:
+        name = f"{r['periods_per_flush']} periods ({r['flush_s']:g} s at x{r['speed']:g})"
+        print(
+            f"  {name:24s} {r['flush_median_ms']:>10.2f} {r['flush_p99_ms']:>10.2f} "
+            f"{r['ms_per_vehicle_period']:>20.4f} {100 * r['fraction_of_agent_step']:>13.1f}%"
+        )
+    print(f"  (target: logging per vehicle-period <= {100 * TARGET_FRACTION:.0f} % of the step)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
