@@ -142,6 +142,11 @@ _INDEX = pa.field(
 )
 
 
+_SCALARS = rr.Scalars.descriptor_scalars()
+_POSITIONS = rr.Points2D.descriptor_positions()
+_STRIPS = rr.LineStrips2D.descriptor_strips()
+
+
 def _offsets(lengths: np.ndarray) -> pa.Array:
     return pa.array(np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32))
 
@@ -164,6 +169,14 @@ class _Columns:
         self.rows = len(self.t_ns)
         self._fields = [_INDEX]
         self._arrays = [pa.array(self.t_ns.astype("timedelta64[ns]"))]
+        self._uniform: dict[int, pa.Array] = {}
+        self._scalars: list[tuple[str, np.ndarray]] = []
+
+    def _rows_of(self, m: int) -> pa.Array:
+        """Offsets of `rows` lists of m items each."""
+        if m not in self._uniform:
+            self._uniform[m] = pa.array(np.arange(0, self.rows * m + 1, m, dtype=np.int32))
+        return self._uniform[m]
 
     def add(self, path: str, descriptor: rr.ComponentDescriptor | str, column: pa.Array) -> None:
         """A list array of `rows` rows (an archetype's descriptor, or a bare name: AnyValues)."""
@@ -182,37 +195,42 @@ class _Columns:
     def scalars(self, path: str, values: np.ndarray) -> None:
         """One Scalars value per row; rows that are not finite stay empty (null), and a series
         with no finite value is not logged."""
-        values = np.asarray(values, dtype=np.float64)
-        missing = ~np.isfinite(values)
-        if missing.all():
+        self._scalars.append((path, values))
+
+    def _add_scalars(self) -> None:
+        """Every Scalars series, converted to Arrow in one array."""
+        if not self._scalars:
             return
-        column = pa.ListArray.from_arrays(
-            _offsets(np.ones(self.rows, dtype=np.int64)),
-            pa.array(values),
-            mask=pa.array(missing) if missing.any() else None,
-        )
-        self.add(path, rr.Scalars.descriptor_scalars(), column)
+        values = np.stack([np.asarray(v, dtype=np.float64) for _, v in self._scalars])
+        missing = ~np.isfinite(values)
+        flat = pa.array(values.ravel())
+        offsets = self._rows_of(1)
+        for j, (path, _) in enumerate(self._scalars):
+            if missing[j].all():
+                continue
+            mask = pa.array(missing[j]) if missing[j].any() else None
+            values_j = flat.slice(j * self.rows, self.rows)
+            self.add(path, _SCALARS, pa.ListArray.from_arrays(offsets, values_j, mask=mask))
+        self._scalars = []
 
     def xy(self, path: str, descriptor: rr.ComponentDescriptor, points: np.ndarray) -> None:
         """(rows, 2) one position / vector per row."""
-        lengths = np.ones(self.rows, dtype=np.int64)
-        self.add(path, descriptor, pa.ListArray.from_arrays(_offsets(lengths), _xy(points)))
+        self.add(path, descriptor, pa.ListArray.from_arrays(self._rows_of(1), _xy(points)))
 
     def strips(self, path: str, points: np.ndarray, strip_lengths: np.ndarray, per_row: int):
         """LineStrips2D: `per_row` strips in every row, of `strip_lengths` points of `points`."""
         strips = pa.ListArray.from_arrays(_offsets(strip_lengths), _xy(points), type=_STRIP)
-        lengths = np.full(self.rows, per_row, dtype=np.int64)
-        column = pa.ListArray.from_arrays(_offsets(lengths), strips)
-        self.add(path, rr.LineStrips2D.descriptor_strips(), column)
+        column = pa.ListArray.from_arrays(self._rows_of(per_row), strips)
+        self.add(path, _STRIPS, column)
 
     def values(self, path: str, name: str, rows: np.ndarray) -> None:
         """AnyValues component `name`: (rows, m) float64 or bool, one list of m per row."""
         m = rows.shape[1]
         flat = pa.array(np.ascontiguousarray(rows).ravel())
-        lengths = np.full(self.rows, m, dtype=np.int64)
-        self.add(path, name, pa.ListArray.from_arrays(_offsets(lengths), flat))
+        self.add(path, name, pa.ListArray.from_arrays(self._rows_of(m), flat))
 
     def chunks(self) -> list:
+        self._add_scalars()
         if len(self._arrays) == 1:
             return []
         batch = pa.RecordBatch.from_arrays(self._arrays, schema=pa.schema(self._fields))
@@ -297,13 +315,13 @@ def _map(
     first = np.maximum(np.arange(k) - window + 1, 0)
     for i, vid in enumerate(rec.vehicle_ids):
         path = f"map/vehicles/{vid}"
-        columns.xy(path, rr.Points2D.descriptor_positions(), pos[rows, i])
+        columns.xy(path, _POSITIONS, pos[rows, i])
         columns.xy(path, rr.Arrows2D.descriptor_origins(), pos[rows, i])
         columns.xy(path, rr.Arrows2D.descriptor_vectors(), heading[:, i])
         trail, lengths = _trail_points(pos[:, i], first=first, start=start)
         columns.strips(f"map/trails/{vid}", trail, lengths, per_row=1)
-        columns.xy(f"map/slots/{vid}", rr.Points2D.descriptor_positions(), slots[:, i])
-    columns.xy("map/target", rr.Points2D.descriptor_positions(), map_from_ned(rec.target[rows]))
+        columns.xy(f"map/slots/{vid}", _POSITIONS, slots[:, i])
+    columns.xy("map/target", _POSITIONS, map_from_ned(rec.target[rows]))
     pairs = pair_indices(n)
     if pairs:
         links = np.stack([pos[rows][:, [a, b]] for a, b in pairs], axis=1)  # (K, P, 2, 2)
