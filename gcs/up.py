@@ -12,8 +12,8 @@ mode, arming, slot error, last solve time, oldest neighbour plan, setpoint rate 
 The run ends when the ground station finishes (``--duration`` of fleet time), on Ctrl-C or
 SIGTERM, or when a process dies: that process is named with the tail of its log. Shutdown sends
 SIGTERM to the ground station first (it closes the recording), then the agents (they command
-HOLD), the target, the SITLs and the router; anything still alive after a grace period is
-killed. Nothing this launcher started outlives it (a viewer spawned with ``--viewer spawn`` is
+HOLD) and the target, then the SITLs and the router; anything still alive after a grace period
+is killed. Nothing this launcher started outlives it (a viewer spawned with ``--viewer spawn`` is
 the user's window and stays open).
 
 Exit status: 0 if the run completed and its gates held, 1 if a gate broke or a process failed,
@@ -40,7 +40,9 @@ from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
 
-_STOP_ORDER = ("gcs", "agent", "target", "sitl", "router")
+_STOP_ORDER = (("gcs",), ("agent", "target"), ("sitl", "router"))
+"""Shutdown stages: the ground station (it closes the recording), then the agents (they command
+HOLD while their autopilots still run) with the target, then the vehicles and the router."""
 _GRACE_S = 3.0
 _TAIL_LINES = 15
 
@@ -130,8 +132,8 @@ class Fleet:
 
     def stop(self) -> dict[str, int | None]:
         """Stop every child (SIGTERM by role order, then SIGKILL); return the exit codes."""
-        for role in _STOP_ORDER:
-            group = [c for c in self.children if c.spec.role == role and c.proc.poll() is None]
+        for roles in _STOP_ORDER:
+            group = [c for c in self.children if c.spec.role in roles and c.proc.poll() is None]
             for c in group:
                 c.proc.send_signal(signal.SIGTERM)
             deadline = time.monotonic() + _GRACE_S
@@ -275,14 +277,16 @@ def run(args: argparse.Namespace) -> int:
     except _ProcessFailed as e:
         failure = e
     finally:
+        t_stop = time.monotonic()
         codes = fleet.stop()
+        stop_s = time.monotonic() - t_stop
         for s, handler in previous.items():
             signal.signal(s, handler)
     if failure is not None:
         print(f"fleetmpc up: FAILED: {failure}; the tail of its log:", file=sys.stderr)
         print(_tail(failure.child.log), file=sys.stderr)
     if interrupted.is_set() and rc is None:
-        print("fleetmpc up: interrupted; every process stopped", file=sys.stderr)
+        print(f"fleetmpc up: interrupted; every process stopped in {stop_s:.1f} s", file=sys.stderr)
     if metrics.is_file():
         print(format_summary(json.loads(metrics.read_text())))
         print(f"metrics: {metrics}\nrecording: {rrd}")
