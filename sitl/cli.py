@@ -6,8 +6,10 @@ server on 5760 + 10 (I - 1), plus the same ground-station UDP stream (as ArduPil
 ``--out udp:HOST:14550``; ``--gcs-port 0`` turns it off). The profile is the vehicle's
 ``autopilot`` in the scenario unless --autopilot says otherwise. Base ports come from the
 scenario's [network] table (the agent's default URL uses the same arithmetic,
-`protocol.scenario.mavlink_url`); --port-offset shifts all of them, and each can be set
-explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
+`protocol.scenario.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
+to, so a [network] table that moves the offboard or ground-station port moves them too and two
+fleets with different tables share no port. --port-offset shifts all of them, and each can be
+set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
 """
 
 import argparse
@@ -17,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from onboard.core.errors import ConfigError
-from protocol.scenario import Scenario, load_scenario
+from protocol.scenario import Network, Scenario, load_scenario
 from sitl.autopilot import AutopilotConfig, Profile
 from sitl.clock import RealTimeClock
 from sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
@@ -26,9 +28,9 @@ from sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 __all__ = ["add_arguments", "build_config", "run"]
 
 PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
-"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1)."""
+"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
 PX4_GCS_LOCAL_BASE_PORT = 18570
-"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1)."""
+"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1), on PX4's default network."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -96,13 +98,16 @@ class _Defaults:
 
 
 def _default_ports(scenario: Scenario, vehicle_id: int, offset: int) -> _Defaults:
-    n = scenario.network
+    n, px4 = scenario.network, Network()
     i = vehicle_id - 1
+    # The bound ports move with the ports streamed to (PX4's defaults for PX4's network).
+    offboard_moved = n.offboard_base_port - px4.offboard_base_port
+    gcs_moved = n.gcs_port - px4.gcs_port
     return _Defaults(
         offboard_port=n.offboard_port(vehicle_id) + offset,
-        offboard_local_port=PX4_OFFBOARD_LOCAL_BASE_PORT + i + offset,
+        offboard_local_port=PX4_OFFBOARD_LOCAL_BASE_PORT + offboard_moved + i + offset,
         gcs_port=n.gcs_port + offset,
-        gcs_local_port=PX4_GCS_LOCAL_BASE_PORT + i + offset,
+        gcs_local_port=PX4_GCS_LOCAL_BASE_PORT + gcs_moved + i + offset,
         tcp_port=n.ardupilot_tcp_port(vehicle_id) + offset,
     )
 

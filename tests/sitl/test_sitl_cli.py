@@ -6,7 +6,7 @@ import socket
 import sys
 
 import pytest
-from sim_client import IDEAL_SCENARIO, SimClient, free_port
+from sim_client import IDEAL_SCENARIO, M, SimClient, free_port
 
 from onboard.core.errors import ConfigError
 from sitl.cli import add_arguments, build_config
@@ -64,10 +64,59 @@ def test_default_ports_follow_px4_and_ardupilot_sitl(start_sitl):
     assert px4.stop() == 0 and apm.stop() == 0
 
 
-def parse(*argv: str) -> argparse.Namespace:
+def test_ardupilot_streams_to_the_ground_station_unasked(start_sitl):
+    """As ArduPilot SITL's ``--out udp:HOST:14550``: telemetry flows without a request."""
+    gcs = SimClient.listen_udp(target_system=3)
+    try:
+        sitl, ready = start_sitl(
+            "--vehicle", "3", "--autopilot", "ardupilot", "--speed", "4", "--tcp-port", "0",
+            "--gcs-port", str(gcs.port), "--gcs-local-port", "0",
+            scenario=IDEAL_SCENARIO.parent / "three.toml",
+        )  # fmt: skip
+        assert f"-> 127.0.0.1:{gcs.port}" in ready["endpoints"]
+        heartbeat = gcs.wait(
+            lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1,
+            what="a HEARTBEAT",
+        )
+        assert heartbeat.autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
+        seen = set()
+        gcs.wait(
+            lambda m: seen.add(m.get_type()) or {"GLOBAL_POSITION_INT", "ATTITUDE"} <= seen,
+            what="GLOBAL_POSITION_INT and ATTITUDE",
+        )
+    finally:
+        gcs.close()
+    assert sitl.stop() == 0
+
+
+def parse(*argv: str, scenario=IDEAL_SCENARIO) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    return parser.parse_args(["--scenario", str(IDEAL_SCENARIO), *argv])
+    return parser.parse_args(["--scenario", str(scenario), *argv])
+
+
+def test_bound_ports_move_with_the_scenario_network(tmp_path):
+    """Two fleets whose [network] tables differ share no port, bound ones included."""
+    moved = tmp_path / "moved.toml"
+    moved.write_text(
+        IDEAL_SCENARIO.read_text()
+        + "\n[network]\noffboard_base_port = 24540\ngcs_port = 34550\n"
+        + "ardupilot_tcp_base_port = 25760\n"
+    )
+    px4 = build_config(parse("--vehicle", "2", scenario=moved))
+    assert [(ep.name, ep.local_port, ep.remote_port) for ep in px4.udp] == [
+        ("offboard", 24581, 24541),
+        ("gcs", 38571, 34550),
+    ]
+    apm = build_config(parse("--vehicle", "2", "--autopilot", "ardupilot", scenario=moved))
+    assert apm.tcp_port == 25770
+    assert [(ep.name, ep.local_port, ep.remote_port) for ep in apm.udp] == [("gcs", 38571, 34550)]
+    # PX4's own numbers on the default network.
+    default = build_config(parse("--vehicle", "2"))
+    assert [(ep.local_port, ep.remote_port) for ep in default.udp] == [
+        (14581, 14541),
+        (18571, 14550),
+    ]
 
 
 @pytest.mark.parametrize(
