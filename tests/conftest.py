@@ -1,8 +1,10 @@
-"""Shared fixtures: scenarios are loaded from the repository's scenarios/ folder."""
+"""Shared fixtures: scenarios from the repository's scenarios/ folder, supervised processes."""
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from helpers import ProcessGroup
 
 from protocol.scenario import Scenario, load_scenario
 
@@ -17,3 +19,13 @@ def paper() -> Scenario:
 @pytest.fixture(scope="session")
 def paper_strict() -> Scenario:
     return load_scenario(ROOT / "scenarios" / "paper-strict.toml")
+
+
+@pytest.fixture
+def processes(tmp_path) -> Iterator[ProcessGroup]:
+    """Start child processes (logs in ``tmp_path/logs``); every one is stopped by PID at the end."""
+    group = ProcessGroup(tmp_path / "logs")
+    try:
+        yield group
+    finally:
+        group.stop_all()

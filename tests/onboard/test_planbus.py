@@ -5,13 +5,14 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import ExitStack, closing
 
+import helpers
 import numpy as np
 import pytest
 import zenoh
+from helpers import wait_until
 
 from onboard.core.errors import ConfigError
 from onboard.core.plan import Plan
@@ -291,31 +292,7 @@ def test_a_refused_send_is_counted_not_raised() -> None:
 
 def free_port_block(n: int) -> int:
     """First of `n` consecutive free TCP ports on 127.0.0.1."""
-    for _ in range(200):
-        with ExitStack() as stack:
-            first = stack.enter_context(closing(socket.socket()))
-            first.bind(("127.0.0.1", 0))
-            base = first.getsockname()[1]
-            if base + n > 65535:
-                continue
-            try:
-                for k in range(1, n):
-                    stack.enter_context(closing(socket.socket())).bind(("127.0.0.1", base + k))
-            except OSError:
-                continue
-            return base
-    raise RuntimeError("no block of free ports")
-
-
-def wait_until(predicate: Callable[[], bool], *, tick: Callable[[], None] = lambda: None) -> bool:
-    """Poll `predicate` (calling `tick` between polls) for up to 5 s."""
-    deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline:
-        tick()
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
+    return helpers.free_port_block(range(n), kinds=(socket.SOCK_STREAM,))
 
 
 @pytest.fixture

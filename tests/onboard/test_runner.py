@@ -12,6 +12,7 @@ from onboard.core.errors import ConfigError
 from onboard.planbus import InMemoryPlanBus, MemoryHubs
 from onboard.runner import (
     ClockSync,
+    EpochMismatchError,
     FleetClock,
     FleetRunner,
     RunnerSettings,
@@ -19,6 +20,7 @@ from onboard.runner import (
     gap_stats_ms,
 )
 from protocol.mavlink_map import FlightMode
+from protocol.messages import GROUND_STATION_ID
 
 FLEET = "test"
 TARGET_ID = 250
@@ -108,6 +110,7 @@ def test_run_streams_engages_and_stops_at_the_requested_time(paper) -> None:
     link = FakeAutopilotLink(system_id=1)
     link.connect(timeout_s=0.1)
     bus = InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=1)
+    listener = InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=None)
     settings = RunnerSettings(
         period_ns=paper.controller.period_ns, warmup_ns=1_000_000_000, stop_at_fleet_ns=3 * 10**9
     )
@@ -135,6 +138,26 @@ def test_run_streams_engages_and_stops_at_the_requested_time(paper) -> None:
     gaps = gap_stats_ms(streamer.send_times_ns)
     assert gaps["count"] > 20
     assert gaps["max"] < 100.0  # the stream never stalls behind the loop
+    # The status carries the stream's rate (the stream is younger than the 1 s window here, so
+    # below its 200 Hz), and the plan the step's time.
+    last = runner.next_step_ns - settings.period_ns
+    status = listener.latest_statuses(last, 0)[1].status
+    assert 0.0 < status.setpoint_rate_hz <= 205.0, status.setpoint_rate_hz
+    plan = listener.latest_plan_messages(last, 0)[1]
+    assert 0 < plan.status.solve_time_us < 1_000_000
+
+
+def test_setpoint_rate_counts_the_sends_of_the_last_window() -> None:
+    now = [10_000_000_000]
+    streamer = SetpointStreamer(FakeAutopilotLink(), period_s=0.01, monotonic_ns=lambda: now[0])
+    streamer.send_times_ns.extend(range(8_000_000_000, 10_000_000_001, 10_000_000))  # 100 Hz
+    assert streamer.rate_hz(window_ns=1_000_000_000) == 100.0
+    assert streamer.rate_hz(window_ns=250_000_000) == 100.0
+    now[0] += 500_000_000  # the stream stopped half a second ago
+    assert streamer.rate_hz(window_ns=1_000_000_000) == 50.0
+    assert streamer.rate_hz(window_ns=250_000_000) == 0.0
+    with pytest.raises(ConfigError):
+        streamer.rate_hz(window_ns=0)
 
 
 def test_streamer_keeps_its_rate_while_the_loop_is_blocked() -> None:
@@ -172,3 +195,96 @@ def test_settings_are_validated() -> None:
         FleetClock(speed=0.0)
     with pytest.raises(ConfigError, match="period_s"):
         SetpointStreamer(FakeAutopilotLink(), period_s=1.0)
+
+
+EPOCH_NS = 1_700_000_000_000_000_000
+
+
+def test_an_awaited_epoch_counts_once_and_only_at_the_clock_speed() -> None:
+    clock = FleetClock(speed=4.0, awaiting_epoch=True)
+    assert clock.uses_epoch and not clock.ready
+    assert clock.epoch_ns is None and clock.fleet_ns(EPOCH_NS) is None
+    with pytest.raises(EpochMismatchError) as info:
+        clock.set_epoch(EPOCH_NS, speed=2.0)
+    assert info.value.field == "speed" and "x2" in str(info.value) and "x4" in str(info.value)
+    assert not clock.ready  # a refused announcement changes nothing
+    assert clock.set_epoch(EPOCH_NS, speed=4.0) is True
+    assert clock.ready and clock.epoch_ns == EPOCH_NS
+    assert clock.fleet_ns(EPOCH_NS + 250_000_000) == 1_000_000_000
+    # Only the first announcement counts: fleet time never jumps.
+    assert clock.set_epoch(EPOCH_NS + 10**9, speed=4.0) is False
+    assert clock.epoch_ns == EPOCH_NS
+    with pytest.raises(EpochMismatchError):
+        clock.set_epoch(EPOCH_NS, speed=4.5)
+    with pytest.raises(ConfigError) as info:
+        FleetClock(epoch_ns=EPOCH_NS, awaiting_epoch=True)
+    assert info.value.field == "epoch_ns"
+    with pytest.raises(ConfigError) as info:
+        FleetClock(awaiting_epoch=True).set_epoch(1.5e18, speed=1.0)
+    assert info.value.field == "epoch_ns"
+
+
+def test_clock_sync_uses_the_samples_taken_before_a_late_epoch() -> None:
+    clock = FleetClock(speed=4.0, awaiting_epoch=True)
+    sync = ClockSync(clock)
+    # The autopilot booted 3 s wall before the epoch; samples arrive with 1..3 ms latency.
+    for k, latency_ns in enumerate((3_000_000, 1_000_000, 2_000_000)):
+        boot_ns = 1_000_000_000 + k * 100_000_000
+        wall = EPOCH_NS - 3_000_000_000 + boot_ns // 4 + latency_ns
+        sync.update(time_boot_ns=boot_ns, received_wall_ns=wall)
+    assert sync.samples == 3 and sync.offset_ns is None and sync.fleet_ns(0) is None
+    clock.set_epoch(EPOCH_NS, speed=4.0)
+    assert sync.offset_ns == -12_000_000_000 + 4 * 1_000_000
+
+
+def _awaiting_runner(paper, hub):
+    agent = build_agents(paper)[0]
+    link = FakeAutopilotLink(system_id=1)
+    link.connect(timeout_s=0.1)
+    logged: list[str] = []
+    runner = FleetRunner(
+        agent,
+        link=link,
+        bus=InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=1),
+        settings=RunnerSettings(period_ns=paper.controller.period_ns, engage=False),
+        clock=FleetClock(speed=4.0, awaiting_epoch=True),
+        log=logged.append,
+    )
+    return runner, link, logged
+
+
+def test_runner_adopts_the_first_announced_epoch_and_ignores_others(paper) -> None:
+    hub = MemoryHubs().hub(FLEET)
+    runner, link, logged = _awaiting_runner(paper, hub)
+    gcs = InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=GROUND_STATION_ID)
+    runner.poll_epoch()
+    assert not runner.sync.clock.ready and runner.failure is None
+    assert runner.tick(link.state()) is None  # no fleet time yet: no step
+    gcs.publish_epoch(epoch_ns=EPOCH_NS, speed=4.0)
+    runner.poll_epoch()
+    assert runner.sync.clock.epoch_ns == EPOCH_NS and runner.epoch_received_wall_ns is not None
+    gcs.publish_epoch(epoch_ns=EPOCH_NS + 5 * 10**9, speed=4.0)
+    runner.poll_epoch()
+    runner.poll_epoch()
+    assert runner.sync.clock.epoch_ns == EPOCH_NS
+    assert sum("ignoring another fleet epoch" in line for line in logged) == 1, logged
+    assert runner.failure is None
+
+
+def test_an_epoch_at_another_speed_stops_the_run(paper) -> None:
+    hub = MemoryHubs().hub(FLEET)
+    runner, link, logged = _awaiting_runner(paper, hub)
+    InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=GROUND_STATION_ID).publish_epoch(
+        epoch_ns=EPOCH_NS, speed=2.0
+    )
+    streamer = SetpointStreamer(link, period_s=0.01)
+    stop = threading.Event()
+    done = threading.Thread(target=runner.run, args=(stop, streamer), daemon=True)
+    done.start()
+    done.join(timeout=5.0)
+    stop.set()
+    assert not done.is_alive()  # the run ended by itself, without telemetry or a stop request
+    assert runner.failure is not None and "x2" in runner.failure and "x4" in runner.failure
+    assert not runner.sync.clock.ready and runner.steps == 0
+    assert any(line.startswith("error: speed") for line in logged), logged
+    assert runner.summary()["failure"] == runner.failure

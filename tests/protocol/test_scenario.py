@@ -1,7 +1,7 @@
 import pytest
 
 from onboard.core.errors import ConfigError
-from protocol.scenario import load_scenario, parse_scenario
+from protocol.scenario import Network, load_scenario, mavlink_url, parse_scenario
 
 BASE = {
     "name": "t",
@@ -18,7 +18,7 @@ def _with(**changes):
 
 
 def test_repository_scenarios_load():
-    for name in ("paper", "paper-strict", "wedge-circle"):
+    for name in ("paper", "paper-strict", "wedge-circle", "mixed-autopilots"):
         sc = load_scenario(f"scenarios/{name}.toml")
         assert sc.name == name
         assert sc.controller.period_ns % sc.plant_steps_per_period == 0
@@ -65,6 +65,13 @@ def test_paper_scenario_holds_the_issue_truth(paper):
             "vehicles[1].initial",
         ),
         ({"vehicles": [BASE["vehicles"][0], {**BASE["vehicles"][1], "id": 1}]}, "vehicles"),
+        (
+            {"vehicles": [BASE["vehicles"][0], {**BASE["vehicles"][1], "autopilot": "apm"}]},
+            "vehicles[1].autopilot",
+        ),
+        ({"network": {"gcs_port": 0}}, "network.gcs_port"),
+        ({"network": {"offboard_base_port": 65535}}, "network.offboard_base_port"),
+        ({"network": {"ardupilot_tcp_base_port": 65530}}, "network.ardupilot_tcp_base_port"),
     ],
 )
 def test_errors_name_the_field(changes, field):
@@ -76,3 +83,43 @@ def test_errors_name_the_field(changes, field):
 def test_missing_file_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match="no such file"):
         load_scenario(tmp_path / "nope.toml")
+
+
+def test_autopilot_error_quotes_the_value():
+    doc = {**BASE, "vehicles": [BASE["vehicles"][0], {**BASE["vehicles"][1], "autopilot": "apm"}]}
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(doc)
+    assert str(err.value) == 'vehicles[1].autopilot: must be "px4" or "ardupilot", got "apm"'
+
+
+def test_each_vehicle_gets_the_url_of_its_autopilot():
+    network = {"host": "127.0.0.2", "offboard_base_port": 24540, "ardupilot_tcp_base_port": 25760}
+    vehicles = [
+        BASE["vehicles"][0],
+        {**BASE["vehicles"][1], "autopilot": "ardupilot"},
+        {"id": 3, "initial": [0.0, -10.0, 0.0], "slot_m": [0.0, -10.0], "autopilot": "px4"},
+    ]
+    sc = _with(vehicles=vehicles, network=network)
+    assert [v.autopilot for v in sc.vehicles] == ["px4", "ardupilot", "px4"]
+    assert [mavlink_url(sc.network, v) for v in sc.vehicles] == [
+        "udpin:127.0.0.2:24540",
+        "tcp:127.0.0.2:25770",
+        "udpin:127.0.0.2:24542",
+    ]
+    # PX4 SITL and ArduPilot SITL conventions on the default network.
+    default = Network()
+    assert [mavlink_url(default, v) for v in sc.vehicles] == [
+        "udpin:127.0.0.1:14540",
+        "tcp:127.0.0.1:5770",
+        "udpin:127.0.0.1:14542",
+    ]
+
+
+def test_mixed_autopilots_is_the_paper_fleet_with_an_ardupilot_vehicle(paper):
+    mixed = load_scenario("scenarios/mixed-autopilots.toml")
+    assert [v.autopilot for v in mixed.vehicles] == ["px4", "ardupilot", "px4"]
+    assert [v.autopilot for v in paper.vehicles] == ["px4", "px4", "px4"]
+    for a, b in zip(mixed.vehicles, paper.vehicles, strict=True):
+        assert (a.id, a.initial, a.slot_m, a.truth) == (b.id, b.initial, b.slot_m, b.truth)
+    for field in ("seed", "duration_s", "controller", "learning", "formation", "target"):
+        assert getattr(mixed, field) == getattr(paper, field), field

@@ -6,7 +6,9 @@ from pathlib import Path
 import pytest
 
 from onboard.core.errors import ConfigError
-from protocol.zenoh_config import ZenohOptions, endpoint
+from protocol.messages import GROUND_STATION_ID, TARGET_ID
+from protocol.scenario import parse_scenario
+from protocol.zenoh_config import ZenohOptions, endpoint, options_from_args, peer_mesh_index
 
 
 def conf_json(options: ZenohOptions, key: str) -> object:
@@ -113,3 +115,53 @@ def test_endpoint_helper() -> None:
     assert endpoint("127.0.0.1", 7447) == "tcp/127.0.0.1:7447"
     with pytest.raises(ConfigError):
         endpoint("127.0.0.1", 70000)
+
+
+def _fleet(*ids: int, **network):
+    vehicles = [
+        {"id": vid, "initial": [0.0, 10.0 * k, 0.0], "slot_m": [0.0, 10.0 * k]}
+        for k, vid in enumerate(ids)
+    ]
+    return parse_scenario({"name": "mesh", "vehicles": vehicles, "network": network})
+
+
+def test_peer_mesh_index_is_vehicles_in_scenario_order_then_target_then_ground_station() -> None:
+    sc = _fleet(7, 3, 5)
+    assert [peer_mesh_index(sc, vid) for vid in (7, 3, 5)] == [0, 1, 2]
+    assert peer_mesh_index(sc, TARGET_ID) == 3
+    assert peer_mesh_index(sc, GROUND_STATION_ID) == 4
+    with pytest.raises(ConfigError) as info:
+        peer_mesh_index(sc, 4)
+    assert info.value.field == "vehicle"
+
+
+def test_options_from_args_default_to_the_fleets_peer_mesh() -> None:
+    sc = _fleet(1, 2, 3, host="127.0.0.3", zenoh_port=17447)
+    members = [options_from_args(None, None, scenario=sc, member_index=k) for k in range(5)]
+    assert members == [
+        ZenohOptions.peer_mesh(index=k, size=5, base_port=17447, host="127.0.0.3") for k in range(5)
+    ]
+    assert members[4].listen == ("tcp/127.0.0.3:17451",)
+    assert members[4].connect == tuple(f"tcp/127.0.0.3:{17447 + j}" for j in range(4))
+    assert conf_json(members[0], "mode") == "peer"
+
+
+def test_options_from_args_connect_makes_a_client_and_a_file_is_a_base() -> None:
+    sc = _fleet(1, 2)
+    client = options_from_args(
+        None, "127.0.0.1:7000, tcp/127.0.0.2:7001", scenario=sc, member_index=0
+    )
+    assert client == ZenohOptions(
+        mode="client", connect=("tcp/127.0.0.1:7000", "tcp/127.0.0.2:7001")
+    )
+    with pytest.raises(ConfigError) as info:
+        options_from_args(None, "nowhere", scenario=sc, member_index=0)
+    assert info.value.field == "--zenoh-connect"
+
+
+def test_options_from_args_takes_a_config_file_first(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] } }')
+    options = options_from_args(path, "127.0.0.1:7000", scenario=_fleet(1), member_index=0)
+    assert options == ZenohOptions(config_file=str(path))
+    assert conf_json(options, "connect/endpoints") == ["tcp/127.0.0.1:7999"]

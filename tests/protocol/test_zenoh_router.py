@@ -5,12 +5,10 @@ import signal
 import socket
 import subprocess
 import sys
-import time
-from collections.abc import Callable
-from contextlib import closing
 
 import numpy as np
 import pytest
+from helpers import free_port, wait_until
 
 from onboard.core.errors import ConfigError
 from onboard.core.plan import Plan
@@ -18,22 +16,6 @@ from onboard.planbus import open_plan_bus
 from protocol.zenoh_router import open_router, router_config
 
 PERIOD_NS = 200_000_000
-
-
-def free_port() -> int:
-    with closing(socket.socket()) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(predicate: Callable[[], bool], *, tick: Callable[[], None] = lambda: None) -> bool:
-    deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline:
-        tick()
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
 
 
 def make_plan(vehicle_id: int, stamp_ns: int) -> Plan:
@@ -59,7 +41,7 @@ def test_router_config_listens_only_where_told_and_never_scouts() -> None:
 
 
 def test_two_clients_exchange_plans_and_targets_through_the_router() -> None:
-    port = free_port()
+    port = free_port(socket.SOCK_STREAM)
     url = f"zenoh://127.0.0.1:{port}?mode=client"
     with (
         open_router(port=port),
@@ -91,7 +73,7 @@ def test_two_clients_exchange_plans_and_targets_through_the_router() -> None:
 
 
 def test_router_command_line_serves_until_sigterm() -> None:
-    port = free_port()
+    port = free_port(socket.SOCK_STREAM)
     proc = subprocess.Popen(
         [sys.executable, "-m", "protocol.zenoh_router", "--port", str(port)],
         stdout=subprocess.PIPE,
