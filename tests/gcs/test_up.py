@@ -9,9 +9,7 @@ starts is given it), which also catches grandchildren.
 import contextlib
 import json
 import os
-import random
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import rerun as rr
+from helpers import live_processes_naming, scenario_on_free_ports
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "scenarios" / "paper.toml"
@@ -32,54 +31,10 @@ FIGURES = (
 )
 
 
-def _bindable(port: int, kind: int) -> bool:
-    with socket.socket(socket.AF_INET, kind) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-def _free_block(kind: int, ports: list[int]) -> int:
-    """A base port b such that b + p is free for every p in `ports`."""
-    for _ in range(200):
-        base = random.randrange(20000, 60000)
-        if all(_bindable(base + p, kind) for p in ports):
-            return base
-    raise AssertionError("no free ports")
-
-
 @pytest.fixture
 def scenario(tmp_path) -> Path:
     """paper.toml with its own free ports, in tmp_path."""
-    udp = socket.SOCK_DGRAM
-    network = {
-        "offboard_base_port": _free_block(udp, [0, 1, 2]),
-        "gcs_port": _free_block(udp, [0]),
-        "ardupilot_tcp_base_port": _free_block(socket.SOCK_STREAM, [0, 10, 20]),
-        "zenoh_port": _free_block(socket.SOCK_STREAM, [0]),
-    }
-    table = "\n".join(f"{k} = {v}" for k, v in network.items())
-    path = tmp_path / "paper-up.toml"
-    path.write_text(f"{PAPER.read_text()}\n[network]\n{table}\n")
-    return path
-
-
-def _processes_naming(text: str) -> list[tuple[int, str]]:
-    """(pid, command line) of every live process whose command line contains `text`."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == os.getpid():
-            continue
-        try:
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if text in cmdline and state != "Z":
-            found.append((int(entry.name), cmdline))
-    return found
+    return scenario_on_free_ports(PAPER, tmp_path / "paper-up.toml")
 
 
 class Up:
@@ -123,7 +78,7 @@ class Up:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(timeout=10.0)
-        for pid, _ in _processes_naming(str(self.scenario)):
+        for pid, _ in live_processes_naming(str(self.scenario)):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
 
@@ -150,7 +105,7 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     run_dir, rrd, metrics = tmp_path / "run", tmp_path / "run.rrd", tmp_path / "metrics.json"
     up = launch(scenario, run_dir, "--duration", "30", "--rrd", str(rrd), "--metrics", str(metrics))
     rc = up.wait(timeout_s=180.0)
-    leftover = _processes_naming(str(scenario))
+    leftover = live_processes_naming(str(scenario))
     assert rc == 0, up.text()
     assert leftover == [], leftover
     m = json.loads(metrics.read_text())
@@ -204,7 +159,7 @@ def test_sigint_brings_everything_down_and_keeps_the_recording(scenario, launch,
     up.proc.send_signal(signal.SIGINT)
     rc = up.wait(timeout_s=30.0)
     down_s = time.monotonic() - t0
-    leftover = _processes_naming(str(scenario))
+    leftover = live_processes_naming(str(scenario))
     assert rc == 130, up.text()
     assert down_s <= 5.0, f"shutdown took {down_s:.1f} s"
     assert leftover == [], leftover
@@ -218,7 +173,7 @@ def test_a_dead_sitl_is_named_and_up_fails(scenario, launch, tmp_path):
     up.wait_flying(fleet_s=4.0)
     (victim,) = [
         pid
-        for pid, cmd in _processes_naming(str(scenario))
+        for pid, cmd in live_processes_naming(str(scenario))
         if " sitl " in cmd and "--vehicle 2 " in cmd
     ]
     os.kill(victim, signal.SIGKILL)
@@ -226,4 +181,4 @@ def test_a_dead_sitl_is_named_and_up_fails(scenario, launch, tmp_path):
     text = up.text()
     assert rc == 1, text
     assert "FAILED: sitl-2" in text, text
-    assert _processes_naming(str(scenario)) == []
+    assert live_processes_naming(str(scenario)) == []
