@@ -17,6 +17,7 @@ asserted.
 import argparse
 import json
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from gcs.record import FlightRecord
 from gcs.recording import open_recording
 from onboard.core.plan import Plan
 from protocol.messages import (
+    TARGET_ID,
     LearnedParams,
     PlanMessage,
     PlanStatus,
@@ -36,41 +38,65 @@ from protocol.messages import (
 )
 from protocol.scenario import load_scenario
 
-__all__ = ["TARGET_FRACTION", "run"]
+__all__ = ["TARGET_FRACTION", "PeriodMessages", "period_messages", "run"]
 
 TARGET_FRACTION = 0.10
 """Logging per vehicle-period at most this fraction of the agent step median."""
-_TARGET_ID = 250
 
 
-def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
-    """What the ground station receives in period k of a run that flew `rec`."""
-    period_ns = gs.live.period_ns
-    m = gs.scenario.controller.horizon
+@dataclass(frozen=True)
+class PeriodMessages:
+    """What a ground station receives in one period of a run that flew a given FlightRecord."""
+
+    poses: list[tuple[int, float, float, float, float]]
+    """(vehicle id, t [s], north [m], east [m], yaw [rad]) per vehicle: its telemetry."""
+    plans: list[PlanMessage]
+    """Each vehicle's plan (states held at its pose, inputs at its command)."""
+    statuses: list[StatusMessage]
+    """Each vehicle's status (its learned parameters)."""
+    target: TargetObservation
+    """The target's observation (its true position)."""
+
+
+def period_messages(rec: FlightRecord, k: int, *, period_ns: int, horizon: int) -> PeriodMessages:
+    """The messages of period `k` of `rec`, as a live fleet that flew exactly `rec` sends them."""
     stamp = k * period_ns
+    poses, plans, statuses = [], [], []
     for i, vid in enumerate(rec.vehicle_ids):
-        gs.live.add_pose(vid, float(rec.t_s[k]), *map(float, rec.truth[k, i]))
+        poses.append((vid, float(rec.t_s[k]), *map(float, rec.truth[k, i])))
         plan = Plan(
             vehicle_id=vid,
             stamp_ns=stamp,
             period_ns=period_ns,
-            states=np.tile(rec.truth[k, i], (m + 1, 1)),
-            inputs=np.tile(rec.command[k, i], (m, 1)),
+            states=np.tile(rec.truth[k, i], (horizon + 1, 1)),
+            inputs=np.tile(rec.command[k, i], (horizon, 1)),
         )
         status = PlanStatus(
             qp_fallback=not rec.qp_ok[k, i],
             first_c_norm=float(np.linalg.norm(rec.c[k, i])),
             solve_time_us=round(rec.step_time_ms[k, i] * 1e3),
         )
-        gs.inbox.put(PlanMessage(seq=k, plan=plan, status=status))
+        plans.append(PlanMessage(seq=k, plan=plan, status=status))
         beta = LearnedParams(*map(float, rec.beta[k, i]))
-        gs.inbox.put(
+        statuses.append(
             StatusMessage(sender_id=vid, seq=k, stamp_ns=stamp, status=VehicleStatus(beta=beta))
         )
     north, east = map(float, rec.target[k])
-    gs.inbox.put(
-        TargetObservation(sender_id=_TARGET_ID, seq=k, stamp_ns=stamp, north_m=north, east_m=east)
+    target = TargetObservation(
+        sender_id=TARGET_ID, seq=k, stamp_ns=stamp, north_m=north, east_m=east
     )
+    return PeriodMessages(poses=poses, plans=plans, statuses=statuses, target=target)
+
+
+def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
+    """What the ground station receives in period k of a run that flew `rec`."""
+    msgs = period_messages(
+        rec, k, period_ns=gs.live.period_ns, horizon=gs.scenario.controller.horizon
+    )
+    for pose in msgs.poses:
+        gs.live.add_pose(*pose)
+    for message in (*msgs.plans, *msgs.statuses, msgs.target):
+        gs.inbox.put(message)
 
 
 def _logging(rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path) -> dict:

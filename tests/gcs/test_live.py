@@ -6,19 +6,14 @@ import math
 import numpy as np
 import pytest
 
+from gcs.bench_logging import period_messages
 from gcs.live import LiveRecord
 from gcs.lockstep import run_lockstep
 from gcs.metrics import compute_metrics
 from gcs.recording import log_flight_record, open_recording
 from gcs.rrd_reader import read_recording
-from onboard.core.plan import Plan
 from protocol.messages import (
-    LearnedParams,
     PlanMessage,
-    PlanStatus,
-    StatusMessage,
-    TargetObservation,
-    VehicleStatus,
 )
 
 DURATION_S = 6.0
@@ -32,44 +27,18 @@ def lockstep(paper):
 def _feed(live: LiveRecord, rec, *, poses: bool = True, start: int = 0) -> None:
     """What a ground station would receive from a run that flew exactly `rec` (from period
     `start` on)."""
-    period_ns = live.period_ns
-    m = live.scenario.controller.horizon
     for k in range(start, len(rec.t_s)):
-        t = rec.t_s[k]
-        stamp = k * period_ns
-        for i, vid in enumerate(rec.vehicle_ids):
-            if poses:
-                live.add_pose(vid, float(t), *map(float, rec.truth[k, i]))
-            plan = Plan(
-                vehicle_id=vid,
-                stamp_ns=stamp,
-                period_ns=period_ns,
-                states=np.tile(rec.truth[k, i], (m + 1, 1)),
-                inputs=np.tile(rec.command[k, i], (m, 1)),
-            )
-            status = PlanStatus(
-                qp_fallback=not rec.qp_ok[k, i],
-                first_c_norm=float(np.linalg.norm(rec.c[k, i])),
-                solve_time_us=round(rec.step_time_ms[k, i] * 1e3),
-            )
-            live.add_plan(PlanMessage(seq=k, plan=plan, status=status))
-            live.add_status(
-                StatusMessage(
-                    sender_id=vid,
-                    seq=k,
-                    stamp_ns=stamp,
-                    status=VehicleStatus(beta=LearnedParams(*map(float, rec.beta[k, i]))),
-                )
-            )
-        live.add_target(
-            TargetObservation(
-                sender_id=250,
-                seq=k,
-                stamp_ns=stamp,
-                north_m=rec.target[k, 0],
-                east_m=rec.target[k, 1],
-            )
+        msgs = period_messages(
+            rec, k, period_ns=live.period_ns, horizon=live.scenario.controller.horizon
         )
+        if poses:
+            for pose in msgs.poses:
+                live.add_pose(*pose)
+        for plan in msgs.plans:
+            live.add_plan(plan)
+        for status in msgs.statuses:
+            live.add_status(status)
+        live.add_target(msgs.target)
 
 
 def test_live_record_gives_the_lockstep_metrics(paper, lockstep) -> None:
