@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gcs.check import check_scenario
+from gcs.fleet import flight_time
 from gcs.live import LiveRecord
 from gcs.metrics import compute_metrics
 from gcs.recording import (
@@ -382,11 +383,7 @@ def _write_json(path: Path, data: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
-    if not 0.01 <= args.speed <= 1000.0:
-        raise ConfigError("--speed", f"must be in [0.01, 1000], got {args.speed}")
-    duration = scenario.duration_s if args.duration is None else args.duration
-    if not duration > 0:
-        raise ConfigError("--duration", f"must be > 0, got {duration}")
+    duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
     for name in ("engage_timeout", "lead", "flush_s"):
         if not getattr(args, name) > 0:
             raise ConfigError(

@@ -33,9 +33,8 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-from gcs.fleet import FleetOptions, ProcessSpec, fleet_processes
+from gcs.fleet import FleetOptions, ProcessSpec, fleet_processes, flight_time
 from gcs.sim import format_summary
-from onboard.core.errors import ConfigError
 from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -218,11 +217,7 @@ def _default_viewer() -> str:
 
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
-    if not 0.01 <= args.speed <= 1000.0:
-        raise ConfigError("--speed", f"must be in [0.01, 1000], got {args.speed}")
-    duration = scenario.duration_s if args.duration is None else args.duration
-    if not duration > 0:
-        raise ConfigError("--duration", f"must be > 0, got {duration}")
+    duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
     run_dir = args.run_dir or Path("runs") / f"up-{datetime.now():%Y%m%d-%H%M%S}"
     rrd = args.rrd or run_dir / "run.rrd"
     metrics = args.metrics or run_dir / "metrics.json"
