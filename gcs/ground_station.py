@@ -55,7 +55,7 @@ from gcs.recording import (
 )
 from gcs.sim import format_summary
 from onboard.core.errors import ConfigError, FleetMpcError
-from onboard.planbus import open_plan_bus
+from onboard.planbus import open_fleet_bus
 from onboard.runner import ClockSync, FleetClock
 from protocol.mavlink_map import (
     Autopilot,
@@ -72,7 +72,6 @@ from protocol.messages import (
     TargetObservation,
 )
 from protocol.scenario import Scenario, load_scenario
-from protocol.zenoh_config import options_from_args, peer_mesh_index
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -399,17 +398,7 @@ def run(args: argparse.Namespace) -> int:
     completed = False
     try:
         mav = mavutil.mavlink_connection(url, source_system=GCS_SYSTEM_ID)
-        bus = open_plan_bus(
-            options_from_args(
-                args.zenoh_config,
-                args.zenoh_connect,
-                scenario=scenario,
-                member_index=peer_mesh_index(scenario, GROUND_STATION_ID),
-            ),
-            fleet=args.fleet or scenario.name,
-            vehicle_id=GROUND_STATION_ID,
-            on_accept=gs.inbox.put,
-        )
+        bus = open_fleet_bus(args, scenario, sender_id=GROUND_STATION_ID, on_accept=gs.inbox.put)
         if args.rrd is not None or spawn or viewer_url is not None:
             stream = open_recording(
                 vehicle_ids=scenario.vehicle_ids,

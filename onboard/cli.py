@@ -26,10 +26,9 @@ from pathlib import Path
 from onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from onboard.core.agent import Agent
 from onboard.core.errors import ConfigError
-from onboard.planbus import open_plan_bus
+from onboard.planbus import open_fleet_bus
 from onboard.runner import FleetClock, FleetRunner, RunnerSettings, SetpointStreamer
 from protocol.scenario import load_scenario, mavlink_url
-from protocol.zenoh_config import options_from_args, peer_mesh_index
 
 __all__ = ["add_arguments", "run"]
 
@@ -108,13 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
     link = bus = streamer = runner = None
     try:
-        options = options_from_args(
-            args.zenoh_config,
-            args.zenoh_connect,
-            scenario=scenario,
-            member_index=peer_mesh_index(scenario, spec.id),
-        )
-        bus = open_plan_bus(options, fleet=args.fleet or scenario.name, vehicle_id=spec.id)
+        bus = open_fleet_bus(args, scenario, sender_id=spec.id)
         link = open_autopilot_link(url, system_id=spec.id, log=_log)
         state = link.connect(timeout_s=args.connect_timeout)
         _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")

@@ -58,6 +58,9 @@ from protocol.messages import (
 )
 
 if TYPE_CHECKING:
+    import argparse
+
+    from protocol.scenario import Scenario
     from protocol.zenoh_config import ZenohOptions
 
 __all__ = [
@@ -68,6 +71,7 @@ __all__ = [
     "PlanBus",
     "PlanBusClosedError",
     "PlanBusError",
+    "open_fleet_bus",
     "open_plan_bus",
 ]
 
@@ -550,3 +554,30 @@ def open_plan_bus(
             f"unknown plan bus {url_or_options!r} (known: mem://NAME, zenoh, zenoh://HOST:PORT)",
         )
     return ZenohPlanBus(options, fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
+
+
+def open_fleet_bus(
+    args: "argparse.Namespace",
+    scenario: "Scenario",
+    *,
+    sender_id: int,
+    on_accept: Callable[[Message], None] | None = None,
+) -> PlanBus:
+    """The Zenoh plan bus of a fleet process, as its command line asks for it.
+
+    `args` holds ``zenoh_config``, ``zenoh_connect`` and ``fleet`` (the options every fleet
+    process takes; `protocol.zenoh_config.options_from_args` says what they mean); the fleet name
+    defaults to the scenario's, and `sender_id` is both the bus identity and the peer-mesh member
+    (`protocol.zenoh_config.peer_mesh_index`).
+    """
+    from protocol.zenoh_config import options_from_args, peer_mesh_index
+
+    options = options_from_args(
+        args.zenoh_config,
+        args.zenoh_connect,
+        scenario=scenario,
+        member_index=peer_mesh_index(scenario, sender_id),
+    )
+    return open_plan_bus(
+        options, fleet=args.fleet or scenario.name, vehicle_id=sender_id, on_accept=on_accept
+    )

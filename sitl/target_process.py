@@ -24,11 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from onboard.core.errors import ConfigError
-from onboard.planbus import PlanBus, open_plan_bus
+from onboard.planbus import PlanBus, open_fleet_bus
 from protocol.keys import epoch_key
 from protocol.messages import TARGET_ID
 from protocol.scenario import load_scenario
-from protocol.zenoh_config import options_from_args, peer_mesh_index
 
 __all__ = ["add_arguments", "run", "wait_for_epoch"]
 
@@ -106,16 +105,7 @@ def run(args: argparse.Namespace) -> int:
     published = 0
     bus = None
     try:
-        bus = open_plan_bus(
-            options_from_args(
-                args.zenoh_config,
-                args.zenoh_connect,
-                scenario=scenario,
-                member_index=peer_mesh_index(scenario, TARGET_ID),
-            ),
-            fleet=args.fleet or scenario.name,
-            vehicle_id=TARGET_ID,
-        )
+        bus = open_fleet_bus(args, scenario, sender_id=TARGET_ID)
         if args.wait_epoch:
             _log(f"waiting for the fleet epoch on {epoch_key(bus.fleet)}")
             epoch_ns = wait_for_epoch(
