@@ -1,1 +1,12 @@
-"""Ground side: the fleet launcher, the ground station, the lockstep simulation and reports."""
+"""Ground side: the fleet launcher, the ground station, the lockstep simulation and reports.
+
+Every `fleetmpc` process (agents, SITLs, target, ground station, benchmarks) enters through this
+package, so it caps OpenBLAS at one thread here, before numpy loads, unless the environment says
+otherwise. The fleet's linear algebra is on matrices of a few dozen rows: OpenBLAS's worker
+threads cannot speed it up, only synchronise and spin, and with a dozen fleet processes on a few
+cores the spinning takes CPU from the other processes.
+"""
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

@@ -38,21 +38,14 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from gcs.check import check_scenario
 from gcs.fleet import flight_time
 from gcs.live import LiveRecord
 from gcs.metrics import compute_metrics
-from gcs.recording import (
-    log_events,
-    log_flight_record,
-    log_plans,
-    log_status_series,
-    log_target_predictions,
-    open_recording,
-)
+from gcs.recording import log_events, log_flight_record, open_recording
 from gcs.sim import format_summary
 from onboard.core.errors import ConfigError, FleetMpcError
 from onboard.planbus import open_fleet_bus
@@ -165,13 +158,6 @@ class VehicleLink:
         return self.armed and self.mode == FlightMode.OFFBOARD
 
 
-@dataclass
-class _Pending:
-    plans: list[PlanMessage] = field(default_factory=list)
-    statuses: list[StatusMessage] = field(default_factory=list)
-    events: list[tuple[int, str, str]] = field(default_factory=list)
-
-
 class GroundStation:
     """The ground station's state and loop; `run` drives it from the command line."""
 
@@ -188,7 +174,8 @@ class GroundStation:
         self.flush_ms: list[float] = []
         self.flushed_vehicle_periods = 0
         """Vehicle-periods logged by the flushes timed in flush_ms."""
-        self._pending = _Pending()
+        self._events: list[tuple[int, str, str]] = []
+        """(sim_time ns, level, text) events not logged yet."""
         self.run_info = {
             "learning": scenario.learning.enabled,
             "feasible": check_scenario(scenario).feasible,
@@ -251,7 +238,7 @@ class GroundStation:
 
     def _event(self, level: str, text: str) -> None:
         t = self.fleet_s()
-        self._pending.events.append((max(0, round((t or 0.0) * 1e9)), level, text))
+        self._events.append((max(0, round((t or 0.0) * 1e9)), level, text))
 
     def check_links(self, now_wall_s: float) -> None:
         for vid, link in self.links.items():
@@ -270,14 +257,12 @@ class GroundStation:
                 return
             if isinstance(message, PlanMessage):
                 self.live.add_plan(message)
-                self._pending.plans.append(message)
                 if message.status.qp_fallback:
-                    self._pending.events.append(
+                    self._events.append(
                         (message.stamp_ns, "WARN", f"UAV {message.sender_id}: QP fallback")
                     )
             elif isinstance(message, StatusMessage):
                 self.live.add_status(message)
-                self._pending.statuses.append(message)
             elif isinstance(message, TargetObservation):
                 self.live.add_target(message)
 
@@ -286,20 +271,20 @@ class GroundStation:
         """Log what arrived since the last flush, in column batches."""
         t0 = time.perf_counter()
         self.drain_bus()
-        pending, self._pending = self._pending, _Pending()
+        events, self._events = self._events, []
         if stream is not None:
-            log_plans(stream, pending.plans)
-            log_status_series(stream, pending.statuses)
-            log_events(stream, pending.events)
+            log_events(stream, events)
         done = min(self.live.complete_periods(), self.periods)
         if done > self.logged_periods:
             if stream is not None:
                 rec = self.live.record(done)
-                log_flight_record(stream, rec, run_info=self.run_info, start=self.logged_periods)
-                stamp = round(rec.t_s[-1] * 1e9)
-                prediction = self.live.target_prediction(stamp)
-                if prediction is not None:
-                    log_target_predictions(stream, [(stamp, prediction)])
+                log_flight_record(
+                    stream,
+                    rec,
+                    run_info=self.run_info,
+                    start=self.logged_periods,
+                    live=self.live.live_rows(self.logged_periods, done),
+                )
                 self.flushed_vehicle_periods += (done - self.logged_periods) * len(self.links)
             self.logged_periods = done
         self.flush_ms.append((time.perf_counter() - t0) * 1e3)

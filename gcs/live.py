@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gcs.record import FlightRecord
+from gcs.record import FlightRecord, LiveRows
 from onboard.core.formation import Formation
 from onboard.core.target_estimator import TargetEstimator
 from protocol.messages import PlanMessage, StatusMessage, TargetObservation
@@ -90,6 +90,8 @@ _SCENARIO_FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", 
 """Per-period fields that depend only on the scenario (computed once per period)."""
 _RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta", "separation_min")
 """Per-period fields built from what was received (recomputed if late input changes them)."""
+_LIVE_FIELDS = ("plans", "setpoint_rate_hz", "plan_age_s")
+"""Received per-period fields that are not in a FlightRecord (see `LiveRows`)."""
 
 
 class LiveRecord:
@@ -112,8 +114,9 @@ class LiveRecord:
             accel_std_m_s2=scenario.controller.target_accel_std_m_s2,
         )
         self.target_observations = 0
+        self._target_pending: TargetObservation | None = None
         self._scenario_rows = {name: np.empty((0,)) for name in _SCENARIO_FIELDS}
-        self._received_rows = {name: np.empty((0,)) for name in _RECEIVED_FIELDS}
+        self._received_rows = {name: np.empty((0,)) for name in _RECEIVED_FIELDS + _LIVE_FIELDS}
         self._valid = 0
         """Periods whose received fields in the cache are current."""
 
@@ -149,8 +152,13 @@ class LiveRecord:
             self._invalidate(message.stamp_ns // self.period_ns)
 
     def add_target(self, message: TargetObservation) -> None:
-        if self._target.observe(message.stamp_ns, np.array([message.north_m, message.east_m])):
-            self.target_observations += 1
+        """A target observation. Only the newest one is kept until `target_prediction` fuses it:
+        the prediction is for display, once per flush, and the filter costs some 30 us per
+        observation."""
+        newest = self._target_pending
+        if newest is None or message.stamp_ns > newest.stamp_ns:
+            self._target_pending = message
+        self.target_observations += 1
 
     # -- queries ----------------------------------------------------------------------------------
     def latest_time_s(self, vehicle_id: int) -> float | None:
@@ -179,6 +187,9 @@ class LiveRecord:
 
     def target_prediction(self, stamp_ns: int) -> np.ndarray | None:
         """The ground station's own constant-velocity prediction of the target over the horizon."""
+        pending, self._target_pending = self._target_pending, None
+        if pending is not None:
+            self._target.observe(pending.stamp_ns, np.array([pending.north_m, pending.east_m]))
         if not self._target.ready:
             return None
         pos, _ = self._target.predict(
@@ -257,22 +268,44 @@ class LiveRecord:
         qp_ok = np.ones((k, n), dtype=bool)
         step_ms = np.full((k, n), np.nan)
         beta = np.full((k, n, 4), np.nan)
+        horizon = self.scenario.controller.horizon
+        plans = np.full((k, n, horizon + 1, 2), np.nan)
+        rate = np.full((k, n), np.nan)
+        ages = np.full((k, n, max(n - 1, 0)), np.nan)
+        t_search = (t_s + 1e-9).tolist()
         for i, vid in enumerate(self.ids):
             track = self._tracks[vid]
+            # The plan of each period (held from the previous one when it is missing).
             earlier = [p for p in track.plans if p < k0]
             held = track.plans[max(earlier)] if earlier else None
+            helds = []
             for j in range(k):
                 msg = track.plans.get(k0 + j)
                 if msg is not None:
                     held = msg
                     step_ms[j, i] = msg.status.solve_time_us * 1e-3
                     qp_ok[j, i] = not msg.status.qp_fallback
-                if held is not None:
-                    command[j, i] = held.plan.inputs[0]
-                    c[j, i] = (held.status.first_c_norm, 0.0)
-                s = bisect_right(track.status_t_s, t_s[j] + 1e-9) - 1
-                if s >= 0:
-                    beta[j, i] = track.statuses[s].status.beta.as_tuple()
+                helds.append(held)
+            rows = [j for j, h in enumerate(helds) if h is not None]
+            if rows:
+                command[rows, i] = [helds[j].plan.inputs[0] for j in rows]
+                c[rows, i, 0] = [helds[j].status.first_c_norm for j in rows]
+                c[rows, i, 1] = 0.0
+                whole = [j for j in rows if helds[j].plan.states.shape[0] == horizon + 1]
+                if whole:
+                    plans[whole, i] = [helds[j].plan.states[:, :2] for j in whole]
+            # The latest status at or before each period.
+            latest = [bisect_right(track.status_t_s, t) - 1 for t in t_search]
+            rows = [j for j, st in enumerate(latest) if st >= 0]
+            if rows:
+                statuses = [track.statuses[latest[j]].status for j in rows]
+                beta[rows, i] = [st.beta.as_tuple() for st in statuses]
+                rate[rows, i] = [st.setpoint_rate_hz for st in statuses]
+                others = {o: a for a, o in enumerate(x for x in self.ids if x != vid)}
+                for j, st in zip(rows, statuses, strict=True):
+                    for a in st.neighbour_plan_ages:
+                        if a.vehicle_id in others:
+                            ages[j, i, others[a.vehicle_id]] = a.age_ns * 1e-9
         return {
             "truth": truth,
             "command": command,
@@ -281,6 +314,9 @@ class LiveRecord:
             "step_time_ms": step_ms,
             "beta": beta,
             "separation_min": self._separation_minima(k0, k_n),
+            "plans": plans,
+            "setpoint_rate_hz": rate,
+            "plan_age_s": ages,
         }
 
     def _separation_minima(self, k0: int, k_n: int) -> np.ndarray:
@@ -326,7 +362,9 @@ class LiveRecord:
         self._scenario_periods(k_n)
         self._update_cache(k_n)
         got = self._scenario_rows | self._received_rows
-        rows = {name: values[:k_n].copy() for name, values in got.items()}
+        rows = {
+            name: values[:k_n].copy() for name, values in got.items() if name not in _LIVE_FIELDS
+        }
         with np.errstate(invalid="ignore"):
             min_separation = np.fmin.reduce(rows.pop("separation_min"))
         return FlightRecord(
@@ -340,4 +378,16 @@ class LiveRecord:
             speed_max_m_s=sc.controller.speed_max_m_s,
             yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
             d_safe_m=sc.controller.d_safe_m,
+        )
+
+    def live_rows(self, start: int, periods: int) -> LiveRows:
+        """Plans, setpoint rates and plan ages of periods `start` .. `periods` - 1, and the
+        target prediction at the last of them (what the ground station logs beside the
+        record's slice)."""
+        if not 0 <= start < periods:
+            raise ValueError(f"no periods in {start} .. {periods - 1}")
+        self._update_cache(periods)
+        rows = {name: self._received_rows[name][start:periods].copy() for name in _LIVE_FIELDS}
+        return LiveRows(
+            **rows, target_prediction=self.target_prediction((periods - 1) * self.period_ns)
         )

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FlightRecord"]
+__all__ = ["FlightRecord", "LiveRows"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,3 +48,23 @@ class FlightRecord:
     speed_max_m_s: float
     yaw_rate_max_rad_s: float
     d_safe_m: float
+
+
+@dataclass(frozen=True, eq=False)
+class LiveRows:
+    """What only a live run adds to the periods of a FlightRecord slice (K rows, N vehicles).
+
+    Each row holds what the ground station had received for that period: the plan stamped at
+    it (held from an earlier period if it is missing) and the latest status at or before it.
+    """
+
+    plans: np.ndarray
+    """Each vehicle's planned positions (K, N, M + 1, 2) North, East [m]; nan before any plan."""
+    setpoint_rate_hz: np.ndarray
+    """Each vehicle's setpoint rate (K, N) [Hz]; nan before any status."""
+    plan_age_s: np.ndarray
+    """Age of each other vehicle's plan as vehicle i sees it (K, N, N - 1) [s], the others in
+    fleet order; nan where not reported."""
+    target_prediction: np.ndarray | None
+    """The ground station's prediction of the target over the horizon (M + 1, 2) North, East
+    [m], made at the last row's time (None without a target observation)."""

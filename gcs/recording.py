@@ -4,18 +4,23 @@ Everything is logged column-wise on the `sim_time` timeline, a duration in integ
 the component columns of every entity that shares a time index are built straight as Arrow arrays
 into one record batch, which Rerun splits into one chunk per entity, and all the chunks of a call
 go out in one `rr.send_chunks` (one call per flush instead of one `send_columns` per entity, and
-no archetype conversions). Entity layout (a live ground station logs the same paths):
+no archetype conversions). The cost of a flush grows with the number of entities (Rerun makes
+and ships one chunk per entity, some 70 us each), not with the rows, so the vehicles of a fleet
+share entities, one instance or one line each. Entity layout (a live ground station logs the
+same paths):
 
-- `map/vehicles/<id>`: position (Points2D) and heading (Arrows2D);
-- `map/trails/<id>`: the last `trail_window_s` of the path (LineStrips2D);
-- `map/target`, `map/slots/<id>` (Points2D), `map/formation_links` (LineStrips2D, every pair);
-- `series/separation/<a>-<b>`, `series/centre_distance`, `series/formation_error/<id>` [m],
-  `series/c_norm/<id>`, `series/beta/<id>/<param>`, `series/beta_truth/<id>/<param>`,
-  `series/solve_time_ms/<id>` (Scalars);
+- `map/vehicles`: every vehicle's position (Points2D) and heading (Arrows2D), one instance
+  per vehicle in fleet order, coloured and labelled by a static logged once;
+- `map/trails` (the last `trail_window_s` of each path) and `map/formation_links` (every
+  pair) as LineStrips2D; `map/target` and `map/slots` (one per vehicle) as Points2D;
+- `series/separation` (one line per pair), `series/centre_distance`,
+  `series/formation_error`, `series/c_norm`, `series/solve_time_ms` (one line per vehicle),
+  `series/beta/<param>` (per vehicle: learned, then truth) as Scalars, the lines named and
+  coloured by a static SeriesLines;
 - `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
-- live runs only: `map/plans/<id>` (each agent's planned horizon, LineStrips2D),
+- live runs only: `map/plans` (each agent's planned horizon, LineStrips2D),
   `map/target_prediction` (the ground station's prediction of the target over the horizon),
-  `series/plan_age/<id>/<neighbour>` [s] and `series/setpoint_rate/<id>` [Hz] (Scalars);
+  `series/plan_age` [s] (one line per vehicle and neighbour) and `series/setpoint_rate` [Hz];
 - `meta` (static AnyValues) and `flight_record` (AnyValues, float64, one row per period): what
   `gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
 
@@ -25,7 +30,6 @@ is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that
 
 import json
 import uuid
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -34,20 +38,17 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from gcs.metrics import pair_indices
-from gcs.record import FlightRecord
-from protocol.messages import PlanMessage, StatusMessage
+from gcs.record import FlightRecord, LiveRows
 
 __all__ = [
     "APPLICATION_ID",
     "BETA_PARAMS",
+    "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
     "TIMELINE",
     "fleet_blueprint",
     "log_events",
     "log_flight_record",
-    "log_plans",
-    "log_status_series",
-    "log_target_predictions",
     "open_recording",
     "map_from_ned",
     "sim_time_ns",
@@ -77,6 +78,10 @@ RECORD_ARRAYS = (
     "slot_offsets_world",
 )
 """Per-period FlightRecord fields stored losslessly under `flight_record`."""
+MIN_SEPARATION_COLUMN = "min_separation_known_m"
+"""A `flight_record` column: the run's minimum separation as known when the row was logged (a
+growing record logs it with every slice, so the newest row has the whole run's; `meta`'s copy
+is the value at the first slice)."""
 
 _HEADING_ARROW_M = 2.0
 _RGB = (
@@ -114,11 +119,18 @@ def fleet_blueprint(*, vehicle_ids: tuple[int, ...]) -> rrb.Blueprint:
         rrb.TimeSeriesView(origin="series/formation_error", name="formation error [m]"),
         rrb.TimeSeriesView(origin="series/c_norm", name="||c||"),
         rrb.TimeSeriesView(
-            name="beta (learned, truth)",
-            origin="series",
-            contents=["series/beta/**", "series/beta_truth/**"],
+            name="effectiveness (learned, truth)",
+            origin="series/beta",
+            contents=[f"series/beta/{p}" for p in BETA_PARAMS[:2]],
+        ),
+        rrb.TimeSeriesView(
+            name="drift [m/s] (learned, truth)",
+            origin="series/beta",
+            contents=[f"series/beta/{p}" for p in BETA_PARAMS[2:]],
         ),
         rrb.TimeSeriesView(origin="series/solve_time_ms", name="agent step [ms]"),
+        rrb.TimeSeriesView(origin="series/plan_age", name="neighbour plan age [s]"),
+        rrb.TimeSeriesView(origin="series/setpoint_rate", name="setpoint rate [Hz]"),
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
@@ -157,6 +169,10 @@ def _xy(points: np.ndarray) -> pa.Array:
     return pa.FixedSizeListArray.from_arrays(flat, type=_F32_XY)
 
 
+_FIELDS: dict[tuple[str, str, pa.DataType], pa.Field] = {}
+"""Schema fields by (entity path, component, type): the same few dozen every flush."""
+
+
 class _Columns:
     """Component columns of many entities on one `sim_time` index, sent as one record batch.
 
@@ -180,47 +196,66 @@ class _Columns:
 
     def add(self, path: str, descriptor: rr.ComponentDescriptor | str, column: pa.Array) -> None:
         """A list array of `rows` rows (an archetype's descriptor, or a bare name: AnyValues)."""
-        meta = {"rerun:kind": "data", "rerun:entity_path": path}
-        if isinstance(descriptor, str):
-            meta["rerun:component"] = descriptor
-        else:
-            meta["rerun:component"] = descriptor.component
-            meta["rerun:archetype"] = descriptor.archetype
-            meta["rerun:component_type"] = descriptor.component_type
-        self._fields.append(
-            pa.field(f"{path}:{meta['rerun:component']}", column.type, metadata=meta)
-        )
+        component = descriptor if isinstance(descriptor, str) else descriptor.component
+        key = (path, component, column.type)
+        f = _FIELDS.get(key)
+        if f is None:
+            meta = {"rerun:kind": "data", "rerun:entity_path": path, "rerun:component": component}
+            if not isinstance(descriptor, str):
+                meta["rerun:archetype"] = descriptor.archetype
+                meta["rerun:component_type"] = descriptor.component_type
+            f = _FIELDS[key] = pa.field(f"{path}:{component}", column.type, metadata=meta)
+        self._fields.append(f)
         self._arrays.append(column)
 
     def scalars(self, path: str, values: np.ndarray) -> None:
-        """One Scalars value per row; rows that are not finite stay empty (null), and a series
-        with no finite value is not logged."""
-        self._scalars.append((path, values))
+        """Scalars: values (rows,) or (rows, lines), one line per column (an entity with
+        several lines names them with a static SeriesLines). A row with no finite value stays
+        empty (null); a series with no finite value at all is not logged."""
+        values = np.asarray(values, dtype=np.float64)
+        self._scalars.append((path, values.reshape(self.rows, -1)))
 
     def _add_scalars(self) -> None:
         """Every Scalars series, converted to Arrow in one array."""
         if not self._scalars:
             return
-        values = np.stack([np.asarray(v, dtype=np.float64) for _, v in self._scalars])
-        missing = ~np.isfinite(values)
-        flat = pa.array(values.ravel())
-        offsets = self._rows_of(1)
-        for j, (path, _) in enumerate(self._scalars):
-            if missing[j].all():
-                continue
-            mask = pa.array(missing[j]) if missing[j].any() else None
-            values_j = flat.slice(j * self.rows, self.rows)
-            self.add(path, _SCALARS, pa.ListArray.from_arrays(offsets, values_j, mask=mask))
+        flat = pa.array(np.concatenate([v.ravel() for _, v in self._scalars]))
+        at = 0
+        for path, values in self._scalars:
+            missing = ~np.isfinite(values).any(axis=1)
+            size = values.size
+            if not missing.all():
+                mask = pa.array(missing) if missing.any() else None
+                column = pa.ListArray.from_arrays(
+                    self._rows_of(values.shape[1]), flat.slice(at, size), mask=mask
+                )
+                self.add(path, _SCALARS, column)
+            at += size
         self._scalars = []
 
-    def xy(self, path: str, descriptor: rr.ComponentDescriptor, points: np.ndarray) -> None:
-        """(rows, 2) one position / vector per row."""
-        self.add(path, descriptor, pa.ListArray.from_arrays(self._rows_of(1), _xy(points)))
+    def xy(
+        self, path: str, descriptor: rr.ComponentDescriptor, points: np.ndarray, per_row: int = 1
+    ) -> None:
+        """(rows x per_row, 2): `per_row` positions / vectors in every row."""
+        self.add(path, descriptor, pa.ListArray.from_arrays(self._rows_of(per_row), _xy(points)))
 
-    def strips(self, path: str, points: np.ndarray, strip_lengths: np.ndarray, per_row: int):
-        """LineStrips2D: `per_row` strips in every row, of `strip_lengths` points of `points`."""
+    def strips(
+        self,
+        path: str,
+        points: np.ndarray,
+        strip_lengths: np.ndarray,
+        per_row: int,
+        missing: np.ndarray | None = None,
+    ):
+        """LineStrips2D: `per_row` strips in every row that is not `missing` (a missing row is
+        null: nothing logged at that time, so the viewer keeps the previous strips), of
+        `strip_lengths` points of `points`."""
         strips = pa.ListArray.from_arrays(_offsets(strip_lengths), _xy(points), type=_STRIP)
-        column = pa.ListArray.from_arrays(self._rows_of(per_row), strips)
+        if missing is None or not missing.any():
+            column = pa.ListArray.from_arrays(self._rows_of(per_row), strips)
+        else:
+            counts = np.where(missing, 0, per_row)
+            column = pa.ListArray.from_arrays(_offsets(counts), strips, mask=pa.array(missing))
         self.add(path, _STRIPS, column)
 
     def values(self, path: str, name: str, rows: np.ndarray) -> None:
@@ -266,34 +301,80 @@ def _record_arrays(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
         a = np.asarray(getattr(rec, name))[start:]
         a = a.astype(np.bool_) if name == "qp_ok" else a.astype(np.float64)
         columns.values("flight_record", name, a.reshape(columns.rows, -1))
+    known = np.full((columns.rows, 1), rec.min_separation_m, dtype=np.float64)
+    columns.values("flight_record", MIN_SEPARATION_COLUMN, known)
 
 
-def _log_map_styles(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) -> None:
-    for i, vid in enumerate(vehicle_ids):
-        rgb = _colour(i)
-        stream.log(f"map/vehicles/{vid}", rr.Points2D.from_fields(colors=[rgb]), static=True)
-        stream.log(f"map/trails/{vid}", rr.LineStrips2D.from_fields(colors=[rgb]), static=True)
-        stream.log(
-            f"map/slots/{vid}",
-            rr.Points2D.from_fields(colors=[rgb], radii=[-3.0], labels=[f"slot {vid}"]),
-            static=True,
+def _series_names(
+    rec: FlightRecord, *, live: bool
+) -> dict[str, tuple[list[str], list[tuple[int, ...]]]]:
+    """Line names and colours of every multi-line series entity (logged once, static)."""
+    ids = rec.vehicle_ids
+    uav = [f"UAV {v}" for v in ids]
+    rgb = [_colour(i) for i in range(len(ids))]
+    pairs = pair_indices(len(ids))
+    out = {
+        "series/separation": (
+            [f"{ids[a]}-{ids[b]}" for a, b in pairs],
+            [_colour(len(ids) + p) for p in range(len(pairs))],
+        ),
+    }
+    if live:
+        out["series/setpoint_rate"] = (uav, rgb)
+        out["series/plan_age"] = (
+            [f"UAV {v} sees {o}" for v in ids for o in ids if o != v],
+            [_colour(i) for i, v in enumerate(ids) for o in ids if o != v],
         )
-        stream.log(f"map/plans/{vid}", rr.LineStrips2D.from_fields(colors=[rgb]), static=True)
-    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
+    for name in _PER_VEHICLE_SERIES:
+        out[f"series/{name}"] = (uav, rgb)
+    for param in BETA_PARAMS:
+        truth = [f"UAV {v} truth" for v in ids]
+        out[f"series/beta/{param}"] = (uav + truth, rgb + [(*c, 110) for c in rgb])
+    return out
+
+
+def _log_static(stream: rr.RecordingStream, rec: FlightRecord, *, live: bool) -> None:
+    """Colours, labels and line names: logged once, at the start of a recording."""
+    ids = rec.vehicle_ids
+    rgb = [_colour(i) for i in range(len(ids))]
     stream.log(
-        "map/target_prediction",
-        rr.LineStrips2D.from_fields(colors=[(0, 0, 0)], radii=[-1.0]),
+        "map/vehicles",
+        rr.Points2D.from_fields(colors=rgb, labels=[f"UAV {v}" for v in ids], radii=[-4.0]),
         static=True,
     )
+    stream.log("map/vehicles", rr.Arrows2D.from_fields(colors=rgb), static=True)
+    stream.log("map/trails", rr.LineStrips2D.from_fields(colors=rgb), static=True)
+    stream.log(
+        "map/slots",
+        rr.Points2D.from_fields(colors=rgb, radii=[-3.0], labels=[f"slot {v}" for v in ids]),
+        static=True,
+    )
+    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
+    if live:
+        stream.log("map/plans", rr.LineStrips2D.from_fields(colors=rgb), static=True)
+        stream.log(
+            "map/target_prediction",
+            rr.LineStrips2D.from_fields(colors=[(0, 0, 0)], radii=[-1.0]),
+            static=True,
+        )
+    for path, (names, colours) in _series_names(rec, live=live).items():
+        stream.log(path, rr.SeriesLines(names=names, colors=colours), static=True)
 
 
 def _trail_points(pos: np.ndarray, *, first: np.ndarray, start: int) -> tuple:
-    """Points of the trails of rows start.. (each row: pos[first[j] .. j]) and their lengths."""
-    rows = np.arange(start, len(pos))
+    """Trails of rows start.. of pos (K, N, 2): in each row, vehicle by vehicle, the points
+    pos[first[k] .. k, i]; returns the points and the strip lengths (rows x N)."""
+    k_all, n = pos.shape[:2]
+    rows = np.arange(start, k_all)
     lengths = rows + 1 - first[rows]
     begin = np.repeat(np.cumsum(lengths) - lengths, lengths)
-    index = np.arange(lengths.sum()) - begin + np.repeat(first[rows], lengths)
-    return pos[index], lengths
+    times = np.arange(lengths.sum()) - begin + np.repeat(first[rows], lengths)
+    row_of = np.repeat(np.arange(len(rows)), lengths)
+    # Every (vehicle, time) point, ordered by row, then vehicle, then time.
+    flat = (times[None, :] * n + np.arange(n)[:, None]).ravel()
+    key = (row_of[None, :] * n + np.arange(n)[:, None]).ravel()
+    points = pos.reshape(-1, 2)[flat[np.argsort(key, kind="stable")]]
+    return points, np.repeat(lengths, n)
 
 
 def _map(
@@ -309,18 +390,16 @@ def _map(
     rows = slice(start, k)
     yaw = rec.truth[rows, :, 2]
     heading = map_from_ned(_HEADING_ARROW_M * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1))
-    slots = map_from_ned(rec.slots[rows])
     step_ns = np.median(np.diff(t_ns)) if k > 1 else 1
     window = max(1, int(round(trail_window_s * 1e9 / max(step_ns, 1))))
     first = np.maximum(np.arange(k) - window + 1, 0)
-    for i, vid in enumerate(rec.vehicle_ids):
-        path = f"map/vehicles/{vid}"
-        columns.xy(path, _POSITIONS, pos[rows, i])
-        columns.xy(path, rr.Arrows2D.descriptor_origins(), pos[rows, i])
-        columns.xy(path, rr.Arrows2D.descriptor_vectors(), heading[:, i])
-        trail, lengths = _trail_points(pos[:, i], first=first, start=start)
-        columns.strips(f"map/trails/{vid}", trail, lengths, per_row=1)
-        columns.xy(f"map/slots/{vid}", _POSITIONS, slots[:, i])
+    here = pos[rows].reshape(-1, 2)
+    columns.xy("map/vehicles", _POSITIONS, here, per_row=n)
+    columns.xy("map/vehicles", rr.Arrows2D.descriptor_origins(), here, per_row=n)
+    columns.xy("map/vehicles", rr.Arrows2D.descriptor_vectors(), heading.reshape(-1, 2), per_row=n)
+    trail, lengths = _trail_points(pos, first=first, start=start)
+    columns.strips("map/trails", trail, lengths, per_row=n)
+    columns.xy("map/slots", _POSITIONS, map_from_ned(rec.slots[rows]).reshape(-1, 2), per_row=n)
     columns.xy("map/target", _POSITIONS, map_from_ned(rec.target[rows]))
     pairs = pair_indices(n)
     if pairs:
@@ -333,23 +412,44 @@ def _map(
         )
 
 
+_PER_VEHICLE_SERIES = ("formation_error", "c_norm", "solve_time_ms")
+"""Series entities with one line per vehicle, besides beta and the live-only ones."""
+
+
 def _series(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
-    ids = rec.vehicle_ids
     pos = rec.truth[start:, :, :2]
-    for a, b in pair_indices(len(ids)):
-        d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
-        columns.scalars(f"series/separation/{ids[a]}-{ids[b]}", d)
+    pairs = pair_indices(len(rec.vehicle_ids))
+    if pairs:
+        d = [np.linalg.norm(pos[:, a] - pos[:, b], axis=1) for a, b in pairs]
+        columns.scalars("series/separation", np.stack(d, axis=1))
     centre = np.mean(pos - rec.slot_offsets_world[start:], axis=1)
     columns.scalars("series/centre_distance", np.linalg.norm(centre - rec.target[start:], axis=1))
-    formation_error = np.linalg.norm(pos - rec.slots[start:], axis=2)
-    c_norm = np.linalg.norm(rec.c[start:], axis=2)
-    for i, vid in enumerate(ids):
-        columns.scalars(f"series/formation_error/{vid}", formation_error[:, i])
-        columns.scalars(f"series/c_norm/{vid}", c_norm[:, i])
-        columns.scalars(f"series/solve_time_ms/{vid}", rec.step_time_ms[start:, i])
-        for p, param in enumerate(BETA_PARAMS):
-            columns.scalars(f"series/beta/{vid}/{param}", rec.beta[start:, i, p])
-            columns.scalars(f"series/beta_truth/{vid}/{param}", rec.beta_truth[start:, i, p])
+    columns.scalars("series/formation_error", np.linalg.norm(pos - rec.slots[start:], axis=2))
+    columns.scalars("series/c_norm", np.linalg.norm(rec.c[start:], axis=2))
+    columns.scalars("series/solve_time_ms", rec.step_time_ms[start:])
+    for p, param in enumerate(BETA_PARAMS):
+        both = np.concatenate([rec.beta[start:, :, p], rec.beta_truth[start:, :, p]], axis=1)
+        columns.scalars(f"series/beta/{param}", both)
+
+
+def _live(columns: _Columns, live: LiveRows) -> None:
+    """Plans, setpoint rates, plan ages and the target prediction of a live slice."""
+    k, n = live.plans.shape[:2]
+    has = np.isfinite(live.plans).all(axis=(2, 3))  # (K, N)
+    if has.any():
+        points = map_from_ned(live.plans[has].reshape(-1, 2))
+        lengths = np.where(has, live.plans.shape[2], 0).ravel()
+        columns.strips("map/plans", points, lengths, per_row=n, missing=~has.any(axis=1))
+    columns.scalars("series/setpoint_rate", live.setpoint_rate_hz)
+    if live.plan_age_s.shape[2]:
+        columns.scalars("series/plan_age", live.plan_age_s.reshape(k, -1))
+    if live.target_prediction is not None:
+        prediction = map_from_ned(np.asarray(live.target_prediction).reshape(-1, 2))
+        missing = np.arange(k) < k - 1  # the prediction is made at the last row's time
+        columns.strips(
+            "map/target_prediction", prediction, np.array([len(prediction)]), per_row=1,
+            missing=missing,
+        )  # fmt: skip
 
 
 def log_events(
@@ -397,82 +497,37 @@ def log_flight_record(
     run_info: dict | None = None,
     trail_window_s: float = 20.0,
     start: int = 0,
+    live: LiveRows | None = None,
 ) -> None:
-    """Log a FlightRecord to an open recording stream, column-wise.
+    """Log a FlightRecord to an open recording stream, column-wise, in one batch.
 
     run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
     trail_window_s: length of the trail drawn behind each vehicle [s].
     start: log only periods `start`.. (a live ground station logs a growing record in slices;
-    earlier periods still draw the trails). The static `meta` is logged every time.
+    earlier periods still draw the trails). The static `meta` (the record's constants and the run
+    facts), colours and line names are logged when start is 0.
+    live: what a live run adds to periods `start`.. (plans, setpoint rates, plan ages, the
+    target prediction).
     """
     t_ns = sim_time_ns(rec.t_s)
-    _log_meta(stream, rec, run_info=run_info or {})
     if start == 0:
-        _log_map_styles(stream, rec.vehicle_ids)
+        _log_meta(stream, rec, run_info=run_info or {})
+    if start == 0:
+        _log_static(stream, rec, live=live is not None)
     if start >= len(t_ns):
         return
     columns = _Columns(t_ns[start:])
     _record_arrays(columns, rec, start=start)
     _map(columns, rec, t_ns=t_ns, trail_window_s=trail_window_s, start=start)
     _series(columns, rec, start=start)
+    if live is not None:
+        if live.plans.shape[0] != columns.rows:
+            raise ValueError(
+                f"live rows: {live.plans.shape[0]} periods for a slice of {columns.rows}"
+            )
+        _live(columns, live)
     _send(stream, [columns])
     log_events(stream, _qp_events(rec, t_ns=t_ns, start=start))
-
-
-def log_plans(stream: rr.RecordingStream, plans: list[PlanMessage]) -> None:
-    """Each agent's planned horizon at its stamp, one batch per vehicle: `map/plans/<id>`."""
-    by_vehicle: dict[int, list[PlanMessage]] = defaultdict(list)
-    for m in plans:
-        by_vehicle[m.sender_id].append(m)
-    groups = []
-    for vid, items in by_vehicle.items():
-        columns = _Columns([m.stamp_ns for m in items])
-        states = [m.plan.states[:, :2] for m in items]
-        columns.strips(
-            f"map/plans/{vid}",
-            map_from_ned(np.concatenate(states)),
-            np.array([len(x) for x in states]),
-            per_row=1,
-        )
-        groups.append(columns)
-    _send(stream, groups)
-
-
-def log_target_predictions(
-    stream: rr.RecordingStream, predictions: list[tuple[int, np.ndarray]]
-) -> None:
-    """(sim_time ns, predicted positions (M + 1, 2) North/East) as `map/target_prediction`."""
-    if predictions:
-        stamps, paths = zip(*predictions, strict=True)
-        columns = _Columns(stamps)
-        columns.strips(
-            "map/target_prediction",
-            map_from_ned(np.concatenate(paths)),
-            np.array([len(p) for p in paths]),
-            per_row=1,
-        )
-        _send(stream, [columns])
-
-
-def log_status_series(stream: rr.RecordingStream, statuses: list[StatusMessage]) -> None:
-    """Setpoint rates and neighbour plan ages from vehicle statuses, one batch per vehicle."""
-    by_vehicle: dict[int, list[StatusMessage]] = defaultdict(list)
-    for m in statuses:
-        by_vehicle[m.sender_id].append(m)
-    groups = []
-    for vid, items in by_vehicle.items():
-        columns = _Columns([m.stamp_ns for m in items])
-        columns.scalars(
-            f"series/setpoint_rate/{vid}", np.array([m.status.setpoint_rate_hz for m in items])
-        )
-        ages: dict[int, np.ndarray] = {}
-        for j, m in enumerate(items):
-            for a in m.status.neighbour_plan_ages:
-                ages.setdefault(a.vehicle_id, np.full(len(items), np.nan))[j] = a.age_ns * 1e-9
-        for nbr, values in ages.items():
-            columns.scalars(f"series/plan_age/{vid}/{nbr}", values)
-        groups.append(columns)
-    _send(stream, groups)
 
 
 def open_recording(

@@ -2,7 +2,8 @@
 
 Reads the `meta` and `flight_record` entities with rerun-sdk's chunk reader
 (`rr.chunk.RrdReader(path).stream()`); the float64 arrays come back bit for bit, and the sample
-times as `sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`).
+times as `sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`). The run's minimum
+separation is the newest row's `min_separation_known_m` (a live recording grows in slices).
 """
 
 import json
@@ -13,7 +14,7 @@ import pyarrow as pa
 import rerun as rr
 
 from gcs.record import FlightRecord
-from gcs.recording import RECORD_ARRAYS, TIMELINE
+from gcs.recording import MIN_SEPARATION_COLUMN, RECORD_ARRAYS, TIMELINE
 from onboard.core.errors import FleetMpcError
 
 __all__ = ["RecordingError", "RecordingRun", "read_recording"]
@@ -61,18 +62,19 @@ def read_recording(path: str | Path) -> RecordingRun:
         raise RecordingError(f"{p}: not a readable Rerun recording ({e})") from e
     meta: dict[str, pa.Array] = {}
     times: list[np.ndarray] = []
-    values: dict[str, list[np.ndarray]] = {name: [] for name in RECORD_ARRAYS}
+    columns = (*RECORD_ARRAYS, MIN_SEPARATION_COLUMN)
+    values: dict[str, list[np.ndarray]] = {name: [] for name in columns}
     for chunk in chunks:
         if chunk.entity_path == _META_ENTITY:
             meta.update(_data_columns(chunk.to_record_batch()))
         elif chunk.entity_path == _RECORD_ENTITY:
             batch = chunk.to_record_batch()
             data = _data_columns(batch)
-            if set(data) != set(RECORD_ARRAYS):
-                raise RecordingError(f"{p}: a flight_record chunk lacks some of {RECORD_ARRAYS}")
+            if set(data) != set(columns):
+                raise RecordingError(f"{p}: a flight_record chunk lacks some of {columns}")
             t = batch.column(batch.schema.get_field_index(TIMELINE))
             times.append(t.cast(pa.int64()).to_numpy())
-            for name in RECORD_ARRAYS:
+            for name in columns:
                 values[name].extend(_rows(data[name]))
     if not meta or not times:
         raise RecordingError(f"{p}: no fleetmpc flight record (meta / flight_record) in it")
@@ -106,7 +108,7 @@ def read_recording(path: str | Path) -> RecordingRun:
         desired_distance_m=_rows(meta["desired_distance_m"])[0].reshape(n, n),
         trail_m=scalar("trail_m"),
         slot_offsets_world=per_period("slot_offsets_world", (n, 2)),
-        min_separation_m=scalar("min_separation_m"),
+        min_separation_m=float(per_period(MIN_SEPARATION_COLUMN, ())[-1]),
         speed_max_m_s=scalar("speed_max_m_s"),
         yaw_rate_max_rad_s=scalar("yaw_rate_max_rad_s"),
         d_safe_m=scalar("d_safe_m"),

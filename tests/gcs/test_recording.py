@@ -78,20 +78,12 @@ def test_every_entity_family_is_in_the_file(run, rrd):
     path, _, _, _ = rrd
     ids = rec.vehicle_ids
     expected = {"/map/target", "/map/formation_links", "/series/centre_distance", "/events"}
-    for vid in ids:
-        expected |= {
-            f"/map/vehicles/{vid}",
-            f"/map/trails/{vid}",
-            f"/map/slots/{vid}",
-            f"/series/formation_error/{vid}",
-            f"/series/c_norm/{vid}",
-            f"/series/solve_time_ms/{vid}",
-        }
-        expected |= {f"/series/beta/{vid}/{p}" for p in BETA_PARAMS}
-        expected |= {f"/series/beta_truth/{vid}/{p}" for p in BETA_PARAMS}
-    expected |= {f"/series/separation/{ids[a]}-{ids[b]}" for a, b in pair_indices(len(ids))}
+    expected |= {"/map/vehicles", "/map/trails", "/map/slots", "/series/separation"}
+    expected |= {"/series/formation_error", "/series/c_norm", "/series/solve_time_ms"}
+    expected |= {f"/series/beta/{p}" for p in BETA_PARAMS}
     chunks = _chunks_by_entity(path)
     assert expected <= set(chunks), sorted(expected - set(chunks))
+    assert not {"/map/plans", "/series/plan_age"} & set(chunks), "live-only entities logged"
     k = len(rec.t_s)
     # Every time series has one row per period on the sim_time timeline, in integer ns.
     for entity in expected - {"/events"}:
@@ -101,14 +93,24 @@ def test_every_entity_family_is_in_the_file(run, rrd):
     batch = chunks["/series/centre_distance"][0].to_record_batch()
     t_ns = batch.column(batch.schema.get_field_index(TIMELINE)).cast("int64").to_numpy()
     assert np.array_equal(t_ns, np.round(rec.t_s * 1e9).astype(np.int64))
-    # Heading arrows ride with the positions.
-    names = {
-        name
-        for c in chunks[f"/map/vehicles/{ids[0]}"]
-        if not c.is_static
-        for name in c.to_record_batch().schema.names
-    }
-    assert "Points2D:positions" in names and "Arrows2D:vectors" in names
+    # One instance per vehicle: positions and heading arrows ride together, in fleet order.
+    (vehicles,) = [c for c in chunks["/map/vehicles"] if not c.is_static]
+    batch = vehicles.to_record_batch()
+    assert "Points2D:positions" in batch.schema.names and "Arrows2D:vectors" in batch.schema.names
+    positions = batch.column(batch.schema.names.index("Points2D:positions")).to_pylist()
+    north, east = rec.truth[3, 2, :2]
+    assert positions[3][2] == pytest.approx([east, -north], abs=1e-4)  # map x East, y South
+    # One line per pair and per vehicle, named by a static SeriesLines.
+    (separation,) = [c for c in chunks["/series/separation"] if not c.is_static]
+    batch = separation.to_record_batch()
+    lines = batch.column(batch.schema.names.index("Scalars:scalars")).to_pylist()
+    a, b = rec.truth[5, 0, :2], rec.truth[5, 1, :2]
+    assert len(lines[5]) == len(pair_indices(len(ids)))
+    assert lines[5][0] == pytest.approx(np.hypot(*(a - b)), rel=1e-12)
+    (names,) = [c for c in chunks["/series/beta/speed_effectiveness"] if c.is_static]
+    batch = names.to_record_batch()
+    got = batch.column(batch.schema.names.index("SeriesLines:names")).to_pylist()[0]
+    assert got == [f"UAV {v}" for v in ids] + [f"UAV {v} truth" for v in ids]
     assert rr.chunk.RrdReader(path).blueprints(), "no blueprint sent with the recording"
 
 

@@ -121,15 +121,11 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     entities = _rrd_entities(rrd)
     expected = {"/map/target", "/map/target_prediction", "/map/formation_links"}
     expected |= {"/series/centre_distance", "/events", "/flight_record", "/meta"}
-    expected |= {f"/series/separation/{p}" for p in ("1-2", "1-3", "2-3")}
-    for v in (1, 2, 3):
-        for family in ("map/vehicles", "map/trails", "map/slots", "map/plans"):
-            expected.add(f"/{family}/{v}")
-        for family in ("formation_error", "c_norm", "solve_time_ms", "setpoint_rate"):
-            expected.add(f"/series/{family}/{v}")
-        expected.add(f"/series/beta/{v}/speed_effectiveness")
-        expected.add(f"/series/beta_truth/{v}/drift_east_m_s")
-        expected |= {f"/series/plan_age/{v}/{n}" for n in (1, 2, 3) if n != v}
+    expected |= {"/map/vehicles", "/map/trails", "/map/slots", "/map/plans"}
+    for family in ("separation", "formation_error", "c_norm", "solve_time_ms"):
+        expected.add(f"/series/{family}")
+    expected |= {"/series/setpoint_rate", "/series/plan_age"}
+    expected |= {"/series/beta/speed_effectiveness", "/series/beta/drift_east_m_s"}
     assert expected <= entities, sorted(expected - entities)
     assert rr.chunk.RrdReader(rrd).blueprints(), "no blueprint in the recording"
 
@@ -165,7 +161,7 @@ def test_sigint_brings_everything_down_and_keeps_the_recording(scenario, launch,
     assert leftover == [], leftover
     assert "interrupted" in up.text()
     entities = _rrd_entities(rrd)  # readable, and it holds the flight so far
-    assert {"/flight_record", "/map/vehicles/1", "/series/separation/1-2"} <= entities
+    assert {"/flight_record", "/map/vehicles", "/series/separation"} <= entities
 
 
 def test_a_dead_sitl_is_named_and_up_fails(scenario, launch, tmp_path):
