@@ -18,7 +18,7 @@ class TargetEstimator:
 
     def __init__(self, *, observation_std_m: float, accel_std_m_s2: float = 0.3) -> None:
         self._kf = KalmanFilter(dim_x=4, dim_z=2)
-        self._kf.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+        self._H = self._kf.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
         self._kf.R = np.eye(2) * max(observation_std_m, 1e-3) ** 2
         self._q = accel_std_m_s2**2
         self._stamp_ns: int | None = None
@@ -70,7 +70,7 @@ class TargetEstimator:
         if stamp_ns < self._stamp_ns:
             return False
         self._predict_to(stamp_ns)
-        self._kf.update(p)
+        self._kf.update(p, H=self._H)  # H given: p is used as it is (no reshape_z)
         self.observations += 1
         return True
 
