@@ -17,17 +17,19 @@ OSQP is set up once with a fixed sparsity pattern (structural zeros kept) and up
 with warm start; every solve is checked (status, finiteness, bounds).
 
 Speed: a period runs in a fraction of a millisecond, so the per-period code counts numpy calls.
-Everything that does not depend on the period's data is built in the constructor (the identity
-parts of the stacked model, the heading weights, the input-bound rows, the QP's index maps); the
-linearization of both models, the rotated gains and the c = 0 rollouts come from one plain-float
-pass over the horizon; the rest is a handful of batched matrix products.
+Everything that does not depend on the period's data is built in the constructor (the constant
+entries of the condensing system, the weights, the input-bound rows, the QP's index maps). One
+plain-float pass over the horizon linearizes both models, rotates the gains, rolls out c = 0 and
+builds the separation rows; its values reach their places in one scatter; one triangular solve
+condenses the horizon (`TubeLbmpc._precompute`); two products give the cost.
 """
 
 import math
+import struct
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg import blas
 
 from onboard.core.config import ControllerSettings
 from onboard.core.errors import InfeasibleError
@@ -41,25 +43,8 @@ from onboard.core.tube import (
 
 __all__ = ["QpData", "QpSolution", "TubeLbmpc"]
 
-# The stacked state X = [zbar; ztil] (6) moves with Ab = blockdiag(A, A~) (6 x 6) and Bb = [B; B~]
-# (6 x 2). Flat positions, within one step's Ab and Bb, of the entries that change with the
-# linearization point (all others are 0, the identity, or tau):
-_AB_HEADING = np.array([0 * 6 + 2, 1 * 6 + 2, 3 * 6 + 5, 4 * 6 + 5])
-"""dx+/dth and dy+/dth of A, then of A~."""
-_BB_POSITION = np.array([0, 1, 2, 3, 6, 7, 8, 9])
-"""B[0:2, 0:2] then B~[0:2, 0:2], row-major."""
-# Columns of the per-step row the linearization's float loop writes.
-_LIN_A = slice(0, 4)
-"""dx/dth, dy/dth of A, then of A~ (to _AB_HEADING)."""
-_LIN_B = slice(4, 12)
-"""B[0:2, 0:2], then B~[0:2, 0:2] (to _BB_POSITION)."""
-_LIN_K = slice(12, 18)
-"""K_j row-major."""
-_LIN_X0 = slice(18, 24)
-"""[zref; ztil] at c = 0, at step j + 1."""
-_LIN_RESIDUAL = slice(24, 27)
-"""ztil_{j+1}(c = 0) - r_{j+1}, heading wrapped."""
-_LIN_WIDTH = 27
+_BLOCK = 8
+"""Rows per step in the condensing system: u_j (2), zbar_{j+1} (3), ztil_{j+1} (3)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,15 +92,6 @@ class QpSolution:
     iterations: int
 
 
-class _Period(NamedTuple):
-    """One period's condensed QP (see `TubeLbmpc._layout` for the rows of Y)."""
-
-    Y: np.ndarray
-    """(8M + NM, 2M + 1): every affine map of c the period needs, constant part last."""
-    x0: np.ndarray
-    """(M + 1, 6): the stacked prediction [zbar; ztil] at c = 0, j = 0..M."""
-
-
 class TubeLbmpc:
     """Tube LBMPC for one vehicle with `n_neighbours` neighbours; the QP is built once."""
 
@@ -151,59 +127,111 @@ class TubeLbmpc:
     def _precompute(self) -> None:
         """Build what every period shares, so a period only writes the values that change.
 
-        One period's condensed QP lives in one array Y of 2M + 1 columns (c_0..c_{M-1}, then a
-        constant) whose rows are, by block (named slices `_rows_*`):
-            states      6M rows   X_j = d[zbar_j; ztil_j]/dc, j = 1..M (the constant column
-                                  holds the learned cost residual ztil_j(c = 0) - r_j)
-            inputs      2M rows   Hu_j = du_j/dc, j = 0..M-1 (u_j - u_s,j; constant 0)
-            separation  NM rows   n_kj' dpbar_j/dc for neighbour k, step j = 1..M
-        With W (8M x 8M) the cost weights on the first two blocks (zero on the nominal states),
-        the cost is (Y c + y)' W (Y c + y), so one product Y' W Y gives P and q, and A is the
-        last two blocks: both are read from Y through flat index maps.
+        Condensing as one triangular system. Stack, per step j = 0..M-1, the input and the two
+        predictions it produces, v_j = [u_j; zbar_{j+1}; ztil_{j+1}] (8 rows, `_BLOCK`), then the
+        separation rows s_kj = n_kj' pbar_j for neighbour k and step j = 1..M (N M rows). Their
+        derivatives with respect to c obey
+            du_j         - K_j dzbar_j                  = E_j   (E_j injects c_j into u_j)
+            dzbar_{j+1}  - A_j dzbar_j   - B_j du_j     = 0
+            dztil_{j+1}  - A~_j dztil_j  - B~_j du_j    = 0
+            ds_kj        - n_kj' dpbar_j                = 0
+        with dzbar_0 = dztil_0 = 0: a unit lower-triangular system T D = E (m x m, m = 8M + NM)
+        whose forward substitution (one BLAS dtrsm) is the recursion through the horizon. D fills
+        the first 2M columns of Y (m x 2M + 1); Y's last column is the constant part: the learned
+        cost residual ztil_j(c = 0) - r_j on the ztil rows, 0 elsewhere. With W the cost weights
+        on the first 8M rows (block diagonal by step: R on u_j, Q on ztil_{j+1}, the terminal P
+        on ztil_M, 0 on zbar), the cost is (Y c + y)' W (Y c + y), so one product Y' W Y gives P
+        and q; OSQP's A is the u and s rows of Y, read through a flat index map.
 
-        Cached: the K0 entries as floats; Ab and Bb with their constant entries (identity, tau);
-        E_j, which injects c_j into u_j; W with its constant entries (heading and input weights;
-        the position weights and the terminal block are rewritten every period);
-        the input-bound rows of l and u (the separation rows' u is +infinity); the index maps;
-        and the OSQP problem with its fixed pattern.
+        Persistent buffers: T, the c = 0 rollouts x0 and Y are views into one flat buffer, so
+        that the period's float pass reaches every value it computes with one scatter through a
+        flat index map (`_lin_dest`; step 0's K and A entries, which multiply dzbar_0 = 0, go to
+        a scratch entry). Entries that never change (T's unit diagonal, the identity parts of A
+        and A~, B's tau) are written once. A period overwrites every entry that depends on its
+        data, so nothing of an earlier period (even a non-finite one) survives into the next.
+
+        Also cached: the K0 and P0 entries as floats; W's constant entries (heading and input
+        weights; the stage position weights and the terminal block are rewritten every period);
+        the input-bound rows of l and u (the separation rows' u is +infinity); the packer of the
+        float pass; and the OSQP problem with its fixed pattern.
         """
         s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
+        m = _BLOCK * M + N * M
         self._K0_entries = tuple(float(k) for k in self.K0.ravel())
-        self._Ab_template = np.tile(np.eye(6), (M, 1, 1))
-        self._Bb_template = np.zeros((M, 6, 2))
-        self._Bb_template[:, 2, 1] = self.tau
-        steps = np.arange(M)[:, None]
-        self._Ab_heading = (36 * steps + _AB_HEADING).ravel()  # flat, over all M steps
-        self._Bb_position = (12 * steps + _BB_POSITION).ravel()
-        self._E = np.zeros((M, 2, n))
-        for j in range(M):
-            self._E[j, :, 2 * j : 2 * j + 2] = np.eye(2)
-        # Rows of Y.
-        self._rows_states = slice(0, 6 * M)
-        self._rows_inputs = slice(6 * M, 8 * M)
-        self._rows_separation = slice(8 * M, 8 * M + N * M)
-        self._Y_shape = (8 * M + N * M, n + 1)
-        # Weights: stage j's learned position and heading rows, the terminal block, the inputs.
-        W = np.zeros((8 * M, 8 * M))
-        learned = 6 * np.arange(M)[:, None] + np.array([3, 4, 5])  # rows of ztil_j, j = 1..M
-        W[learned[:-1, 2], learned[:-1, 2]] = s.q_heading
-        inputs = np.arange(6 * M, 8 * M)
-        W[inputs, inputs] = np.tile([s.r_speed, s.r_yaw_rate], M)
-        self._W = W
-        terminal = learned[-1]
-        self._W_variable = np.concatenate(
-            [
-                (learned[:-1, :2] * (8 * M + 1)).ravel(),  # position weights, j = 1..M-1
-                (terminal[:, None] * (8 * M) + terminal[None, :]).ravel(),  # P block, row-major
-            ]
-        )
-        """Flat entries of W written each period: stage position weights, then the terminal P."""
         self._P0_entries = tuple(self.P0.ravel().tolist())
+        # Row of each quantity in Y (and T): u_j, zbar_{j+1}, ztil_{j+1}, s_kj.
+        u_row = [_BLOCK * j for j in range(M)]
+        zbar_row = [_BLOCK * j + 2 for j in range(M)]  # zbar_{j+1}
+        ztil_row = [_BLOCK * j + 5 for j in range(M)]  # ztil_{j+1}
+        # The period buffer and, carved from np.arange alongside, each entry's flat index.
+        shapes = {"scratch": ((1,), "C"), "T": ((m, m), "F"), "x0": ((M + 1, 6), "C")}
+        shapes["Y"] = ((m, n + 1), "C")
+        total = sum(math.prod(shape) for shape, _ in shapes.values())
+        self._buffer = np.zeros(total)
+        views, index, start = {}, {}, 0
+        for name, (shape, order) in shapes.items():
+            stop = start + math.prod(shape)
+            views[name] = self._buffer[start:stop].reshape(shape, order=order)
+            index[name] = np.arange(start, stop).reshape(shape, order=order)
+            start = stop
+        T, self._x0, self._Y = views["T"], views["x0"], views["Y"]
+        self._T = T  # Fortran order: dtrsm reads it in place
+        T[np.arange(m), np.arange(m)] = 1.0
+        for j in range(M):
+            T[zbar_row[j] + 2, u_row[j] + 1] = -self.tau  # B[2, 1] (B~[2, 1] varies with a_w)
+            if j:
+                for r in range(3):  # the identity parts of A_j and A~_j
+                    T[zbar_row[j] + r, zbar_row[j - 1] + r] = -1.0
+                    T[ztil_row[j] + r, ztil_row[j - 1] + r] = -1.0
+        self._E = np.zeros((m, n), order="F")
+        for j in range(M):
+            self._E[u_row[j] : u_row[j] + 2, 2 * j : 2 * j + 2] = np.eye(2)
+        # Where the float pass's values go (see `_fill` for their order).
+        iT, scratch = index["T"], int(index["scratch"][0])
+        dest = [*index["x0"][0, :3], *index["x0"][0, 3:]]
+        for j in range(M):
+            u, zb, zt = u_row[j], zbar_row[j], ztil_row[j]
+            zb_prev, zt_prev = zb - _BLOCK, zt - _BLOCK
+            first = j == 0  # K_0 and A_0 multiply dzbar_0 = dztil_0 = 0: scratch
+            dest += (
+                [scratch] * 6 if first else iT[u : u + 2, zb_prev : zb_prev + 3].ravel().tolist()
+            )
+            dest += [scratch] * 2 if first else iT[zb : zb + 2, zb_prev + 2].tolist()
+            dest += iT[zb : zb + 2, u : u + 2].ravel().tolist()
+            dest += [scratch] * 2 if first else iT[zt : zt + 2, zt_prev + 2].tolist()
+            dest += iT[zt : zt + 2, u : u + 2].ravel().tolist()
+            dest.append(int(iT[zt + 2, u + 1]))
+            dest += index["x0"][j + 1].tolist()
+            dest += index["Y"][zt : zt + 3, n].tolist()
+        for k in range(N):
+            for j in range(M):
+                dest += iT[_BLOCK * M + k * M + j, zbar_row[j] : zbar_row[j] + 2].tolist()
+        self._lin_dest = np.array(dest, dtype=np.intp)
+        self._pack = struct.Struct(f"{len(dest)}d").pack
+        # Weights, by step block: R on u_j, q_heading (and the period's position weights) on
+        # ztil_{j+1}, the terminal P on ztil_M.
+        W = np.zeros((M, _BLOCK, _BLOCK))
+        W[:, 0, 0], W[:, 1, 1] = s.r_speed, s.r_yaw_rate
+        W[: M - 1, 7, 7] = s.q_heading
+        self._W = W
+        self._W_flat = W.reshape(-1)
+        flat = np.arange(W.size).reshape(W.shape)
+        self._W_variable = np.concatenate(
+            [flat[: M - 1, [5, 6], [5, 6]].ravel(), flat[M - 1, 5:, 5:].ravel()]
+        )
+        """Flat entries of W written each period: stage position weights (x, y for ztil_1 ..
+        ztil_{M-1}), then the terminal P (row-major)."""
+        self._Yc = self._Y[: _BLOCK * M]
+        self._Y_blocks = self._Yc.reshape(M, _BLOCK, n + 1)
+        self._WY = np.zeros((M, _BLOCK, n + 1))
+        self._H = np.zeros((n + 1, n + 1))  # [[P / 2, q / 2], [., .]]
+        self._Hc, self._HcT, self._H_q = self._H[:n, :n], self._H[:n, :n].T, self._H[:n, n]
+        self._P_dense = np.zeros((n, n))
         bound = (self.u_max[None, :] - self.tightening).ravel()
         self._input_lower, self._input_upper = -bound, bound
         self._first_input_limit = tuple(float(u) * (1 + 1e-3) + 1e-6 for u in self.u_max)
         # Pattern: P upper triangle dense; u_j depends on c_0..c_j; a separation row at step j
-        # on c_0..c_{j-1}.
+        # on c_0..c_{j-1}. A's rows are Y's u rows, then its separation rows.
         p_mask = np.triu(np.ones((n, n), dtype=bool))
         in_mask = np.zeros((2 * M, n), dtype=bool)
         for j in range(M):
@@ -212,10 +240,18 @@ class TubeLbmpc:
         for k in range(N):
             for j in range(1, M + 1):
                 sep_mask[k * M + j - 1, : 2 * j] = True
-        self._qp = FixedPatternQp(
-            p_mask, np.vstack([in_mask, sep_mask]), eps=s.solver_eps, max_iter=s.solver_max_iter
+        a_rows = [r + i for r in u_row for i in (0, 1)] + list(range(_BLOCK * M, m))
+        self._qp = qp = FixedPatternQp(
+            p_mask,
+            np.vstack([in_mask, sep_mask]),
+            eps=s.solver_eps,
+            max_iter=s.solver_max_iter,
+            a_rows=np.array(a_rows),
+            a_row_length=n + 1,
         )
-        self._qp.u[2 * M :] = INFINITY
+        qp.u[2 * M :] = INFINITY
+        self._l_inputs, self._u_inputs = qp.l[: 2 * M], qp.u[: 2 * M]
+        self._l_separation = qp.l[2 * M :]
         self._warm = np.zeros(n)
         self._x_ext = np.zeros(n + 1)  # [c; 0]: Y's rows at c, constant column ignored
 
@@ -240,37 +276,38 @@ class TubeLbmpc:
         u = np.where(np.isfinite(u), u, 0.0)
         return np.clip(u, -self.u_max, self.u_max)
 
-    def _failed(self, status: str, x0: np.ndarray, d: QpData) -> QpSolution:
+    def _failed(self, status: str, d: QpData) -> QpSolution:
         return QpSolution(
             ok=False,
             status=status,
             c=np.zeros((self.M, 2)),
             inputs=np.array(d.u_s, dtype=float),
-            nominal=x0[:, :3].copy(),
-            learned=x0[:, 3:].copy(),
+            nominal=self._x0[:, :3].copy(),
+            learned=self._x0[:, 3:].copy(),
             iterations=0,
         )
 
     # -- one period -----------------------------------------------------------------------------
-    def _linearize(
-        self, d: QpData
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Both models along the linearization trajectory, in one plain-float pass over j.
+    def _fill(self, d: QpData) -> list[float]:
+        """One plain-float pass: both models along the linearization trajectory, the rotated
+        gains, the c = 0 rollouts and the separation rows, scattered into T, x0 and Y's constant
+        column; returns the separation rows' lower bounds (N M).
 
-        Returns Phi (M, 6, 6) = Ab + Bb [K 0] (how the stacked state's dependence on c
-        propagates), Bb (M, 6, 2), K (M, 2, 3), x0 (M + 1, 6), the stacked prediction at c = 0
-        ([zref; ztil], the linearized models' rollouts of u_s from z0), and the learned cost
-        residual at c = 0 (M, 3) for j = 1..M, heading wrapped. Per step j, at
-        phi = th + tau a_w w / 2:
+        Per step j, at phi = th + tau a_w w / 2:
             A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
             dy/dth = tau a_V v cos phi,  B = [[tau a_V cos phi, dx/dth tau a_w / 2],
             [tau a_V sin phi, dy/dth tau a_w / 2], [0, tau a_w]],
             e = (tau d_x - dx/dth phi, tau d_y - dy/dth phi, 0),
-        with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal.
-        With M a handful of steps, a float loop is cheaper than a few dozen numpy calls on
-        (M,)-arrays.
+        with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal,
+        and K_j = K0 T(th_j)'. T holds their negatives (the system's off-diagonal blocks); x0
+        (M + 1, 6) is [zref; ztil], the linearized models' rollouts of u_s from z0; the cost
+        residual's heading is wrapped.
+
+        Values go out in `_lin_dest`'s order through one `struct` pack (a list of a couple of
+        hundred floats becomes an array 3-4x faster than through np.array). With M a handful of
+        steps, a float loop is cheaper than a few dozen numpy calls on (M,)-arrays.
         """
-        M, tau = self.M, self.tau
+        tau = self.tau
         a_v, a_w, d_x, d_y = np.asarray(d.beta, dtype=float).tolist()
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
@@ -278,15 +315,21 @@ class TubeLbmpc:
         sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
         xb, yb, hb = np.asarray(d.z0, dtype=float).tolist()
         xt, yt, ht = xb, yb, hb
-        out: list[float] = []  # per step: the _LIN_COLUMNS
+        out = [xb, yb, hb, xt, yt, ht]  # x0[0], then per step the entries listed below
+        ref: list[tuple[float, float]] = []  # zref's positions, j = 1..M
         steps = zip(
-            d.lin_states[:M, 2].tolist(),
+            d.lin_states[: self.M, 2].tolist(),
             d.lin_inputs.tolist(),
             d.u_s.tolist(),
             d.targets.tolist(),
             strict=True,
         )
         for th, (v, w), (us_v, us_w), (rx, ry, rh) in steps:
+            c, s = cos(th), sin(th)
+            out += (  # -K_j
+                k01 * s - k00 * c, -k00 * s - k01 * c, -k02,
+                k11 * s - k10 * c, -k10 * s - k11 * c, -k12,
+            )  # fmt: skip
             phi = th + hn * w
             s, c = sin(phi), cos(phi)
             dx, dy = -tau * v * s, tau * v * c
@@ -305,46 +348,23 @@ class TubeLbmpc:
                 yt + ty * ht + t10 * us_v + t11 * us_w + tau * d_y - ty * phi,
                 ht + tw * us_w,
             )
-            c, s = cos(th), sin(th)
             out += (
-                dx, dy, tx, ty,
-                b00, b01, b10, b11, t00, t01, t10, t11,
-                k00 * c - k01 * s, k00 * s + k01 * c, k02,
-                k10 * c - k11 * s, k10 * s + k11 * c, k12,
-                xb, yb, hb, xt, yt, ht,
-                xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,
+                -dx, -dy, -b00, -b01, -b10, -b11,  # -A_j's heading column, -B_j
+                -tx, -ty, -t00, -t01, -t10, -t11, -tw,  # the same of A~_j, B~_j
+                xb, yb, hb, xt, yt, ht,  # x0[j + 1]
+                xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,  # cost residual
             )  # fmt: skip
-        lin = np.fromiter(out, float, len(out)).reshape(M, _LIN_WIDTH)
-        Phi = self._Ab_template.copy()
-        Phi.ravel()[self._Ab_heading] = lin[:, _LIN_A].ravel()
-        Bb = self._Bb_template.copy()
-        Bb.ravel()[self._Bb_position] = lin[:, _LIN_B].ravel()
-        Bb[:, 5, 1] = tw  # B~[2, 1] = tau a_w (B[2, 1] = tau is constant)
-        K = lin[:, _LIN_K].reshape(M, 2, 3)
-        Phi[:, :, :3] += Bb @ K
-        x0 = np.empty((M + 1, 6))
-        x0[0, :3] = x0[0, 3:] = d.z0
-        x0[1:] = lin[:, _LIN_X0]
-        return Phi, Bb, K, x0, lin[:, _LIN_RESIDUAL]
+            ref.append((xb, yb))
+        lower = self._separation(d, ref, out) if self.n_neighbours else []
+        self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
+        return lower
 
-    def _condense(self, d: QpData) -> _Period:
-        """Fill Y's state and input rows: one recursion on the stacked sensitivities,
-        X_1 = Bb_0 E_0, X_{j+1} = Phi_j X_j + Bb_j E_j (only the columns of c_0..c_j are
-        nonzero), and Hu_j = K_j dzbar_j/dc + E_j."""
-        M, n = self.M, 2 * self.M
-        Phi, Bb, K, x0, residual = self._linearize(d)
-        Y = np.zeros(self._Y_shape)
-        X = Y[self._rows_states, :n].reshape(M, 6, n)  # X[j - 1] is X_j
-        X[0, :, :2] = Bb[0]
-        for j in range(1, M):
-            w = 2 * j
-            X[j, :, :w] = Phi[j].dot(X[j - 1, :, :w])
-            X[j, :, w : w + 2] = Bb[j]
-        Y[self._rows_states, n].reshape(M, 6)[:, 3:] = residual
-        Hu = Y[self._rows_inputs, :n].reshape(M, 2, n)
-        Hu[1:] = K[1:] @ X[: M - 1, :3]
-        Hu += self._E
-        return _Period(Y, x0)
+    def _condense(self, d: QpData) -> list[float]:
+        """Fill T, x0 and Y for this period (`_precompute` describes them); returns the
+        separation rows' lower bounds."""
+        lower = self._fill(d)
+        self._Y[:, :-1] = blas.dtrsm(1.0, self._T, self._E, lower=1, diag=1)
+        return lower
 
     def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
         """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs.
@@ -353,42 +373,37 @@ class TubeLbmpc:
         is u_s.
         """
         M, n = self.M, 2 * self.M
-        Y, x0 = self._condense(d)
+        self._condense(d)
+        blocks = self._Y_blocks[:, :, :n]
         S = np.zeros((M + 1, 6, n))
-        S[1:] = Y[self._rows_states, :n].reshape(M, 6, n)
-        Hu = Y[self._rows_inputs, :n].reshape(M, 2, n).copy()
-        return S[:, :3], x0[:, :3].copy(), S[:, 3:], x0[:, 3:].copy(), Hu
+        S[1:] = blocks[:, 2:]
+        x0 = self._x0
+        return S[:, :3], x0[:, :3].copy(), S[:, 3:], x0[:, 3:].copy(), blocks[:, :2].copy()
 
     def solve(self, d: QpData) -> QpSolution:
         """Build this period's QP values, solve it, and check the answer."""
-        M, N, n = self.M, self.n_neighbours, 2 * self.M
+        M, n = self.M, 2 * self.M
         qp = self._qp
-        Y, x0 = self._condense(d)
+        lower = self._condense(d)
+        Y, Yc = self._Y, self._Yc
         u_s = d.u_s.ravel()
-        # Cost: P = 2 Y' W Y and q = 2 Y' W y over the state and input rows.
-        W = self._W  # every entry that varies is written here
-        W.ravel()[self._W_variable] = [
+        # Cost: P = 2 Y' W Y and q = 2 Y' W y over the u and prediction rows.
+        self._W_flat[self._W_variable] = [  # every entry of W that varies
             *(w for w in d.position_weights[: M - 1].tolist() for _ in "xy"),
             *self._terminal_entries(float(d.targets[-1, 2]), float(d.terminal_scale)),
         ]
-        Yc = Y[: 8 * M]
-        H = Yc.T.dot(W.dot(Yc))  # (n + 1, n + 1): [[P / 2, q / 2], [., .]]
-        Hc = H[:n, :n]
-        np.multiply(H[:n, n], 2.0, out=qp.q)
-        # Input constraints: u_j = Hu_j c + u_s,j within the tightened box.
-        np.subtract(self._input_lower, u_s, out=qp.l[: 2 * M])
-        np.subtract(self._input_upper, u_s, out=qp.u[: 2 * M])
-        # Separation constraints, one row per neighbour k and step j = 1..M.
-        if N:
-            normals, qp.l[2 * M :] = self._separation(d, x0)
-            X = Y[self._rows_states, :n].reshape(M, 6, n)
-            rows = np.matmul(normals, X[:, :2])  # (N, M, 1, n)
-            Y[self._rows_separation, :n] = rows.reshape(N * M, n)
-        qp.gather(Hc + Hc.T, Y[6 * M :, :n])
+        np.matmul(self._W, self._Y_blocks, out=self._WY)
+        np.dot(Yc.T, self._WY.reshape(Yc.shape), out=self._H)
+        np.multiply(self._H_q, 2.0, out=qp.q)
+        # Input constraints: u_j = Hu_j c + u_s,j within the tightened box; separation rows.
+        np.subtract(self._input_lower, u_s, out=self._l_inputs)
+        np.subtract(self._input_upper, u_s, out=self._u_inputs)
+        self._l_separation[:] = lower
+        qp.gather(np.add(self._Hc, self._HcT, out=self._P_dense), Y)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
             self._last_c = None
-            return self._failed("non-finite problem data", x0, d)
+            return self._failed("non-finite problem data", d)
         qp.update()
         if self._last_c is not None:
             self._warm[:-2] = self._last_c[2:]
@@ -399,60 +414,62 @@ class TubeLbmpc:
         if not ok:
             self._last_c = None
             x = np.zeros(n)
-        # Predictions and inputs: the state and input rows of Y at c = x (constant column x 0).
+        # Predictions and inputs: the u and prediction rows of Y at c = x (constant column x 0).
         self._x_ext[:n] = x
-        y = Yc.dot(self._x_ext)
-        inputs = y[self._rows_inputs]
-        inputs += u_s
-        u0, w0 = inputs[:2].tolist()
+        y = Yc.dot(self._x_ext).reshape(M, _BLOCK)
+        inputs = y[:, :2] + d.u_s
+        u0, w0 = inputs[0].tolist()
         v_lim, w_lim = self._first_input_limit
         if ok and (abs(u0) > v_lim or abs(w0) > w_lim):
             ok, status = False, "first input outside U"
         if ok:
             self._last_c = x
-        z = x0.copy()
-        z[1:] += y[self._rows_states].reshape(M, 6)
+        z = self._x0.copy()
+        z[1:] += y[:, 2:]
         return QpSolution(
             ok=ok,
             status=status,
             c=x.reshape(M, 2),
-            inputs=inputs.reshape(M, 2),
+            inputs=inputs,
             nominal=z[:, :3],
             learned=z[:, 3:],
             iterations=iterations,
         )
 
-    def _separation(self, d: QpData, x0: np.ndarray) -> tuple[np.ndarray, list[float]]:
-        """Unit normals (N, M, 1, 2) and lower bounds (N M) of the separation rows.
+    def _separation(
+        self, d: QpData, ref: list[tuple[float, float]], out: list[float]
+    ) -> list[float]:
+        """Separation rows: appends -n_kj (the system's entries) to `out`, returns the lower
+        bounds (N M), for neighbour k and step j = 1..M.
 
         The normal n_kj points from neighbour k's predicted position to the linearization point
         at step j (from z0 when the two coincide); the row is n_kj' pbar_j(c) >= margin_kj, i.e.
-        n_kj' dpbar_j/dc c >= margin_kj - n_kj' (zref_j - p_kj). A row whose margin is not finite
-        is off: zero normal, lower bound -infinity. Plain floats: N M is a handful of pairs.
+        n_kj' dpbar_j/dc c >= margin_kj - n_kj' (zref_j - p_kj), with `ref` the zref_j. A row whose
+        margin is not finite is off: zero normal, lower bound -infinity. Plain floats: N M is a
+        handful of pairs.
         """
-        M, N = self.M, self.n_neighbours
         lin = d.lin_states[1:, :2].tolist()
-        ref = x0[1:, :2].tolist()
         x_0, y_0 = np.asarray(d.z0[:2], dtype=float).tolist()
-        normals, lower = [], []
+        hypot, isfinite = math.hypot, math.isfinite
+        lower = []
         for p_k, margins in zip(
             d.neighbour_positions.tolist(), d.neighbour_margins.tolist(), strict=True
         ):
             for (px, py), margin, (lx, ly), (rx, ry) in zip(p_k, margins, lin, ref, strict=True):
-                if not math.isfinite(margin):
-                    normals += (0.0, 0.0)
+                if not isfinite(margin):
+                    out += (0.0, 0.0)
                     lower.append(-INFINITY)
                     continue
                 ax, ay = lx - px, ly - py
-                dist = math.hypot(ax, ay)
+                dist = hypot(ax, ay)
                 if dist < 1e-6:
                     ax, ay = x_0 - px, y_0 - py
-                    dist = math.hypot(ax, ay)
+                    dist = hypot(ax, ay)
                 dist = max(dist, 1e-9)
                 nx, ny = ax / dist, ay / dist
-                normals += (nx, ny)
+                out += (-nx, -ny)
                 lower.append(margin - (nx * (rx - px) + ny * (ry - py)))
-        return np.array(normals).reshape(N, M, 1, 2), lower
+        return lower
 
     def _terminal_entries(self, yaw: float, scale: float) -> tuple[float, ...]:
         """The 9 entries (row-major) of scale T(yaw) P0 T(yaw)', from P0's entries."""

@@ -6,7 +6,9 @@ The pattern of P (upper triangle) and A is given once as boolean masks; every ma
 structural nonzero (zeros are kept), so the nonzero count never changes and OSQP accepts every
 update (DESIGN.md). Each period the caller computes P and A densely; `gather` copies the masked
 entries into OSQP's CSC order through flat index maps computed at setup (no scipy.sparse object
-is built per period), and the caller writes q, l and u straight into their views.
+is built per period), and the caller writes q, l and u straight into their views. A's rows may
+be read from a larger array whose rows come in another order (`a_rows`), so that a caller whose
+constraint rows are interleaved with other rows needs no copy to gather them.
 
 All five value arrays live in one buffer, so one check (`finite`) covers the whole problem before
 the solver sees it. Infinite bounds are written as +-OSQP_INFTY (1e30, what OSQP treats as
@@ -33,12 +35,19 @@ INFINITY = float(_ext.OSQP_INFTY)
 _SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
 
 
-def _csc_pattern(mask: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray]:
-    """Zero CSC matrix holding every entry of `mask`, and each entry's flat (row-major) index."""
+def _csc_pattern(
+    mask: np.ndarray, rows: np.ndarray | None = None, row_length: int | None = None
+) -> tuple[sp.csc_matrix, np.ndarray]:
+    """Zero CSC matrix holding every entry of `mask`, and each entry's flat (row-major) index.
+
+    The index is into a dense array of rows of `row_length` entries (default: the mask's own
+    shape) where row i of the mask is row rows[i] (default: i).
+    """
     m = sp.csc_matrix(mask.astype(float))
     m.sort_indices()
     cols = np.repeat(np.arange(mask.shape[1]), np.diff(m.indptr))
-    flat = m.indices * mask.shape[1] + cols
+    source_rows = m.indices if rows is None else np.asarray(rows)[m.indices]
+    flat = source_rows * (mask.shape[1] if row_length is None else row_length) + cols
     m.data[:] = 0.0
     return m, flat.astype(np.intp)
 
@@ -53,15 +62,21 @@ class FixedPatternQp:
         *,
         eps: float,
         max_iter: int,
+        a_rows: np.ndarray | None = None,
+        a_row_length: int | None = None,
     ) -> None:
+        """`a_rows[i]` is the row of the array handed to `gather` as A that holds A's row i, and
+        `a_row_length` that array's row length (defaults: A itself, (m, n))."""
         n, m = p_mask.shape[0], a_mask.shape[0]
         if p_mask.shape != (n, n) or a_mask.shape[1] != n:
             raise ValueError("p_mask must be (n, n) and a_mask (m, n)")
         if np.tril(p_mask, -1).any():
             raise ValueError("p_mask must cover the upper triangle of P only")
+        if a_rows is not None and len(a_rows) != m:
+            raise ValueError("a_rows must name one source row per row of a_mask")
         self.n, self.m = n, m
         P, self._p_flat = _csc_pattern(p_mask)
-        A, self._a_flat = _csc_pattern(a_mask)
+        A, self._a_flat = _csc_pattern(a_mask, a_rows, a_row_length)
         n_p, n_a = self._p_flat.size, self._a_flat.size
         # One buffer, five views: P's and A's CSC values, then q, l, u.
         self.data = np.zeros(n_p + n_a + n + 2 * m)
@@ -83,7 +98,10 @@ class FixedPatternQp:
         )
 
     def gather(self, P_dense: np.ndarray, A_dense: np.ndarray) -> None:
-        """Copy the pattern's entries of dense P (n, n) and A (m, n) into Px and Ax."""
+        """Copy the pattern's entries of dense P (n, n) and A into Px and Ax.
+
+        A_dense is (m, n), or the C-contiguous array that `a_rows` and `a_row_length` describe.
+        """
         P_dense.take(self._p_flat, out=self.Px)
         A_dense.take(self._a_flat, out=self.Ax)
 
