@@ -44,7 +44,7 @@ from onboard.core.tube import (
 __all__ = ["QpData", "QpSolution", "TubeLbmpc"]
 
 _BLOCK = 8
-"""Rows per step in the condensing system: u_j (2), zbar_{j+1} (3), ztil_{j+1} (3)."""
+"""Rows per step j in the condensing system: zbar_j (3), ztil_j (3), u_j (2)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,28 +127,32 @@ class TubeLbmpc:
     def _precompute(self) -> None:
         """Build what every period shares, so a period only writes the values that change.
 
-        Condensing as one triangular system. Stack, per step j = 0..M-1, the input and the two
-        predictions it produces, v_j = [u_j; zbar_{j+1}; ztil_{j+1}] (8 rows, `_BLOCK`), then the
-        separation rows s_kj = n_kj' pbar_j for neighbour k and step j = 1..M (N M rows). Their
-        derivatives with respect to c obey
+        Condensing as one triangular system. Stack, per step j = 0..M, the two predictions and
+        the input they lead to, v_j = [zbar_j; ztil_j; u_j] (8 rows, `_BLOCK`; u_M is padding),
+        then the separation rows s_kj = n_kj' pbar_j for neighbour k and step j = 1..M (N M
+        rows). Their derivatives with respect to c obey
+            dzbar_0 = dztil_0 = 0
             du_j         - K_j dzbar_j                  = E_j   (E_j injects c_j into u_j)
             dzbar_{j+1}  - A_j dzbar_j   - B_j du_j     = 0
             dztil_{j+1}  - A~_j dztil_j  - B~_j du_j    = 0
-            ds_kj        - n_kj' dpbar_j                = 0
-        with dzbar_0 = dztil_0 = 0: a unit lower-triangular system T D = E (m x m, m = 8M + NM)
-        whose forward substitution (one BLAS dtrsm) is the recursion through the horizon. D fills
-        the first 2M columns of Y (m x 2M + 1); Y's last column is the constant part: the learned
-        cost residual ztil_j(c = 0) - r_j on the ztil rows, 0 elsewhere. With W the cost weights
-        on the first 8M rows (block diagonal by step: R on u_j, Q on ztil_{j+1}, the terminal P
-        on ztil_M, 0 on zbar), the cost is (Y c + y)' W (Y c + y), so one product Y' W Y gives P
-        and q; OSQP's A is the u and s rows of Y, read through a flat index map.
+            ds_kj        - n_kj' dpbar_j                = 0,
+        a unit lower-triangular system T D = E (m x m, m = 8 (M + 1) + N M) whose forward
+        substitution (one BLAS dtrsm) is the recursion through the horizon.
 
-        Persistent buffers: T, the c = 0 rollouts x0 and Y are views into one flat buffer, so
-        that the period's float pass reaches every value it computes with one scatter through a
-        flat index map (`_lin_dest`; step 0's K and A entries, which multiply dzbar_0 = 0, go to
-        a scratch entry). Entries that never change (T's unit diagonal, the identity parts of A
-        and A~, B's tau) are written once. A period overwrites every entry that depends on its
-        data, so nothing of an earlier period (even a non-finite one) survives into the next.
+        Y (m x 2M + 2) holds D in its first 2M columns, then two constant columns: the learned
+        cost residual ztil_j(c = 0) - r_j on the ztil_j rows, j = 1..M (0 elsewhere), and the
+        rows' values at c = 0 (zref_j, ztil_j(c = 0), u_s,j: the linearized models' rollouts of
+        u_s from z0). With W the cost weights on the step rows (block diagonal by step: Q on
+        ztil_j, the terminal P on ztil_M, R on u_j, 0 on zbar), the cost is
+        (Y c + y)' W (Y c + y) over the first 2M + 1 columns, so one product Y' W Y gives P and
+        q; OSQP's A is the u and s rows of Y, read through a flat index map; and one product
+        Y [c; 0; 1] gives every prediction and input of the solution.
+
+        Persistent buffers: T and Y are views into one flat buffer, so that the period's float
+        pass reaches every value it computes with one scatter through a flat index map
+        (`_lin_dest`). Entries that never change (T's unit diagonal, the identity parts of A and
+        A~, B's tau) are written once. A period overwrites every entry that depends on its data,
+        so nothing of an earlier period (even a non-finite one) survives into the next.
 
         Also cached: the K0 and P0 entries as floats; W's constant entries (heading and input
         weights; the stage position weights and the terminal block are rewritten every period);
@@ -156,16 +160,15 @@ class TubeLbmpc:
         float pass; and the OSQP problem with its fixed pattern.
         """
         s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
-        m = _BLOCK * M + N * M
+        steps = _BLOCK * (M + 1)
+        m = steps + N * M
         self._K0_entries = tuple(float(k) for k in self.K0.ravel())
         self._P0_entries = tuple(self.P0.ravel().tolist())
-        # Row of each quantity in Y (and T): u_j, zbar_{j+1}, ztil_{j+1}, s_kj.
-        u_row = [_BLOCK * j for j in range(M)]
-        zbar_row = [_BLOCK * j + 2 for j in range(M)]  # zbar_{j+1}
-        ztil_row = [_BLOCK * j + 5 for j in range(M)]  # ztil_{j+1}
+        zbar_row = [_BLOCK * j for j in range(M + 1)]  # rows of zbar_j, ztil_j and u_j
+        ztil_row = [_BLOCK * j + 3 for j in range(M + 1)]
+        u_row = [_BLOCK * j + 6 for j in range(M + 1)]
         # The period buffer and, carved from np.arange alongside, each entry's flat index.
-        shapes = {"scratch": ((1,), "C"), "T": ((m, m), "F"), "x0": ((M + 1, 6), "C")}
-        shapes["Y"] = ((m, n + 1), "C")
+        shapes = {"T": ((m, m), "F"), "Y": ((m, n + 2), "C")}  # T in Fortran order for dtrsm
         total = sum(math.prod(shape) for shape, _ in shapes.values())
         self._buffer = np.zeros(total)
         views, index, start = {}, {}, 0
@@ -174,59 +177,60 @@ class TubeLbmpc:
             views[name] = self._buffer[start:stop].reshape(shape, order=order)
             index[name] = np.arange(start, stop).reshape(shape, order=order)
             start = stop
-        T, self._x0, self._Y = views["T"], views["x0"], views["Y"]
-        self._T = T  # Fortran order: dtrsm reads it in place
+        self._T, self._Y = T, Y = views["T"], views["Y"]
         T[np.arange(m), np.arange(m)] = 1.0
         for j in range(M):
-            T[zbar_row[j] + 2, u_row[j] + 1] = -self.tau  # B[2, 1] (B~[2, 1] varies with a_w)
-            if j:
-                for r in range(3):  # the identity parts of A_j and A~_j
-                    T[zbar_row[j] + r, zbar_row[j - 1] + r] = -1.0
-                    T[ztil_row[j] + r, ztil_row[j - 1] + r] = -1.0
+            T[zbar_row[j + 1] + 2, u_row[j] + 1] = -self.tau  # B[2, 1] (B~[2, 1] varies)
+            for r in range(3):  # the identity parts of A_j and A~_j
+                T[zbar_row[j + 1] + r, zbar_row[j] + r] = -1.0
+                T[ztil_row[j + 1] + r, ztil_row[j] + r] = -1.0
         self._E = np.zeros((m, n), order="F")
         for j in range(M):
             self._E[u_row[j] : u_row[j] + 2, 2 * j : 2 * j + 2] = np.eye(2)
         # Where the float pass's values go (see `_fill` for their order).
-        iT, scratch = index["T"], int(index["scratch"][0])
-        dest = [*index["x0"][0, :3], *index["x0"][0, 3:]]
+        iT, iY = index["T"], index["Y"]
+        dest = iY[: ztil_row[0] + 3, n + 1].tolist()  # zbar_0 = ztil_0 = z0
         for j in range(M):
-            u, zb, zt = u_row[j], zbar_row[j], ztil_row[j]
-            zb_prev, zt_prev = zb - _BLOCK, zt - _BLOCK
-            first = j == 0  # K_0 and A_0 multiply dzbar_0 = dztil_0 = 0: scratch
-            dest += (
-                [scratch] * 6 if first else iT[u : u + 2, zb_prev : zb_prev + 3].ravel().tolist()
-            )
-            dest += [scratch] * 2 if first else iT[zb : zb + 2, zb_prev + 2].tolist()
-            dest += iT[zb : zb + 2, u : u + 2].ravel().tolist()
-            dest += [scratch] * 2 if first else iT[zt : zt + 2, zt_prev + 2].tolist()
-            dest += iT[zt : zt + 2, u : u + 2].ravel().tolist()
-            dest.append(int(iT[zt + 2, u + 1]))
-            dest += index["x0"][j + 1].tolist()
-            dest += index["Y"][zt : zt + 3, n].tolist()
+            zb, zt, u = zbar_row[j], ztil_row[j], u_row[j]
+            zb1, zt1 = zbar_row[j + 1], ztil_row[j + 1]
+            for entries in (
+                iT[u : u + 2, zb : zb + 3],  # K_j
+                iY[u : u + 2, n + 1],  # u_s,j
+                iT[zb1 : zb1 + 2, zb + 2],  # A_j's heading column
+                iT[zb1 : zb1 + 2, u : u + 2],  # B_j
+                iT[zt1 : zt1 + 2, zt + 2],  # A~_j's heading column
+                iT[zt1 : zt1 + 2, u : u + 2],  # B~_j
+                iT[zt1 + 2 : zt1 + 3, u + 1],  # B~_j[2, 1]
+                iY[zb1 : zt1 + 3, n + 1],  # zref_{j+1}, ztil_{j+1} at c = 0
+                iY[zt1 : zt1 + 3, n],  # cost residual
+            ):
+                dest += entries.ravel().tolist()
         for k in range(N):
-            for j in range(M):
-                dest += iT[_BLOCK * M + k * M + j, zbar_row[j] : zbar_row[j] + 2].tolist()
+            for j in range(1, M + 1):
+                dest += iT[steps + k * M + j - 1, zbar_row[j] : zbar_row[j] + 2].tolist()
         self._lin_dest = np.array(dest, dtype=np.intp)
         self._pack = struct.Struct(f"{len(dest)}d").pack
-        # Weights, by step block: R on u_j, q_heading (and the period's position weights) on
-        # ztil_{j+1}, the terminal P on ztil_M.
-        W = np.zeros((M, _BLOCK, _BLOCK))
-        W[:, 0, 0], W[:, 1, 1] = s.r_speed, s.r_yaw_rate
-        W[: M - 1, 7, 7] = s.q_heading
+        # Weights, by step block: q_heading (and the period's position weights) on ztil_j,
+        # the terminal P on ztil_M, R on u_j.
+        W = np.zeros((M + 1, _BLOCK, _BLOCK))
+        W[1:M, 5, 5] = s.q_heading
+        W[:M, 6, 6], W[:M, 7, 7] = s.r_speed, s.r_yaw_rate
         self._W = W
         self._W_flat = W.reshape(-1)
         flat = np.arange(W.size).reshape(W.shape)
         self._W_variable = np.concatenate(
-            [flat[: M - 1, [5, 6], [5, 6]].ravel(), flat[M - 1, 5:, 5:].ravel()]
+            [flat[1:M, [3, 4], [3, 4]].ravel(), flat[M, 3:6, 3:6].ravel()]
         )
         """Flat entries of W written each period: stage position weights (x, y for ztil_1 ..
         ztil_{M-1}), then the terminal P (row-major)."""
-        self._Yc = self._Y[: _BLOCK * M]
-        self._Y_blocks = self._Yc.reshape(M, _BLOCK, n + 1)
-        self._WY = np.zeros((M, _BLOCK, n + 1))
+        self._Y_steps = Y[:steps]
+        self._Y_cost = Y[:steps, : n + 1].reshape(M + 1, _BLOCK, n + 1)
+        self._WY = np.zeros((M + 1, _BLOCK, n + 1))
         self._H = np.zeros((n + 1, n + 1))  # [[P / 2, q / 2], [., .]]
         self._Hc, self._HcT, self._H_q = self._H[:n, :n], self._H[:n, :n].T, self._H[:n, n]
         self._P_dense = np.zeros((n, n))
+        self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
+        """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
         bound = (self.u_max[None, :] - self.tightening).ravel()
         self._input_lower, self._input_upper = -bound, bound
         self._first_input_limit = tuple(float(u) * (1 + 1e-3) + 1e-6 for u in self.u_max)
@@ -240,20 +244,21 @@ class TubeLbmpc:
         for k in range(N):
             for j in range(1, M + 1):
                 sep_mask[k * M + j - 1, : 2 * j] = True
-        a_rows = [r + i for r in u_row for i in (0, 1)] + list(range(_BLOCK * M, m))
+        a_rows = [u_row[j] + i for j in range(M) for i in (0, 1)] + list(range(steps, m))
         self._qp = qp = FixedPatternQp(
             p_mask,
             np.vstack([in_mask, sep_mask]),
             eps=s.solver_eps,
             max_iter=s.solver_max_iter,
             a_rows=np.array(a_rows),
-            a_row_length=n + 1,
+            a_row_length=n + 2,
         )
         qp.u[2 * M :] = INFINITY
         self._l_inputs, self._u_inputs = qp.l[: 2 * M], qp.u[: 2 * M]
         self._l_separation = qp.l[2 * M :]
         self._warm = np.zeros(n)
-        self._x_ext = np.zeros(n + 1)  # [c; 0]: Y's rows at c, constant column ignored
+        self._x_ext = np.zeros(n + 2)  # [c; 0; 1]: Y's rows at c
+        self._x_ext[-1] = 1.0
 
     # -- small maps -----------------------------------------------------------------------------
     def feedback_gain(self, yaw: float) -> np.ndarray:
@@ -290,8 +295,8 @@ class TubeLbmpc:
     # -- one period -----------------------------------------------------------------------------
     def _fill(self, d: QpData) -> list[float]:
         """One plain-float pass: both models along the linearization trajectory, the rotated
-        gains, the c = 0 rollouts and the separation rows, scattered into T, x0 and Y's constant
-        column; returns the separation rows' lower bounds (N M).
+        gains, the c = 0 rollouts and the separation rows, scattered into T and Y's constant
+        columns; returns the separation rows' lower bounds (N M).
 
         Per step j, at phi = th + tau a_w w / 2:
             A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
@@ -299,8 +304,8 @@ class TubeLbmpc:
             [tau a_V sin phi, dy/dth tau a_w / 2], [0, tau a_w]],
             e = (tau d_x - dx/dth phi, tau d_y - dy/dth phi, 0),
         with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal,
-        and K_j = K0 T(th_j)'. T holds their negatives (the system's off-diagonal blocks); x0
-        (M + 1, 6) is [zref; ztil], the linearized models' rollouts of u_s from z0; the cost
+        and K_j = K0 T(th_j)'. T holds their negatives (the system's off-diagonal blocks); the
+        c = 0 values are zref and ztil, the linearized models' rollouts of u_s from z0; the cost
         residual's heading is wrapped.
 
         Values go out in `_lin_dest`'s order through one `struct` pack (a list of a couple of
@@ -315,7 +320,7 @@ class TubeLbmpc:
         sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
         xb, yb, hb = np.asarray(d.z0, dtype=float).tolist()
         xt, yt, ht = xb, yb, hb
-        out = [xb, yb, hb, xt, yt, ht]  # x0[0], then per step the entries listed below
+        out = [xb, yb, hb, xt, yt, ht]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
         ref: list[tuple[float, float]] = []  # zref's positions, j = 1..M
         steps = zip(
             d.lin_states[: self.M, 2].tolist(),
@@ -326,9 +331,10 @@ class TubeLbmpc:
         )
         for th, (v, w), (us_v, us_w), (rx, ry, rh) in steps:
             c, s = cos(th), sin(th)
-            out += (  # -K_j
+            out += (  # -K_j, then u_s,j
                 k01 * s - k00 * c, -k00 * s - k01 * c, -k02,
                 k11 * s - k10 * c, -k10 * s - k11 * c, -k12,
+                us_v, us_w,
             )  # fmt: skip
             phi = th + hn * w
             s, c = sin(phi), cos(phi)
@@ -351,7 +357,7 @@ class TubeLbmpc:
             out += (
                 -dx, -dy, -b00, -b01, -b10, -b11,  # -A_j's heading column, -B_j
                 -tx, -ty, -t00, -t01, -t10, -t11, -tw,  # the same of A~_j, B~_j
-                xb, yb, hb, xt, yt, ht,  # x0[j + 1]
+                xb, yb, hb, xt, yt, ht,  # zref_{j+1}, ztil_{j+1} at c = 0
                 xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,  # cost residual
             )  # fmt: skip
             ref.append((xb, yb))
@@ -360,10 +366,10 @@ class TubeLbmpc:
         return lower
 
     def _condense(self, d: QpData) -> list[float]:
-        """Fill T, x0 and Y for this period (`_precompute` describes them); returns the
-        separation rows' lower bounds."""
+        """Fill T and Y for this period (`_precompute` describes them); returns the separation
+        rows' lower bounds."""
         lower = self._fill(d)
-        self._Y[:, :-1] = blas.dtrsm(1.0, self._T, self._E, lower=1, diag=1)
+        self._Y[:, : 2 * self.M] = blas.dtrsm(1.0, self._T, self._E, lower=1, diag=1)
         return lower
 
     def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
@@ -374,32 +380,35 @@ class TubeLbmpc:
         """
         M, n = self.M, 2 * self.M
         self._condense(d)
-        blocks = self._Y_blocks[:, :, :n]
-        S = np.zeros((M + 1, 6, n))
-        S[1:] = blocks[:, 2:]
+        D = self._Y_steps[:, :n].reshape(M + 1, _BLOCK, n)
         x0 = self._x0
-        return S[:, :3], x0[:, :3].copy(), S[:, 3:], x0[:, 3:].copy(), blocks[:, :2].copy()
+        return (
+            D[:, :3].copy(),
+            x0[:, :3].copy(),
+            D[:, 3:6].copy(),
+            x0[:, 3:].copy(),
+            D[:M, 6:].copy(),
+        )
 
     def solve(self, d: QpData) -> QpSolution:
         """Build this period's QP values, solve it, and check the answer."""
         M, n = self.M, 2 * self.M
         qp = self._qp
         lower = self._condense(d)
-        Y, Yc = self._Y, self._Yc
         u_s = d.u_s.ravel()
-        # Cost: P = 2 Y' W Y and q = 2 Y' W y over the u and prediction rows.
+        # Cost: P = 2 Y' W Y and q = 2 Y' W y over the step rows.
         self._W_flat[self._W_variable] = [  # every entry of W that varies
             *(w for w in d.position_weights[: M - 1].tolist() for _ in "xy"),
             *self._terminal_entries(float(d.targets[-1, 2]), float(d.terminal_scale)),
         ]
-        np.matmul(self._W, self._Y_blocks, out=self._WY)
-        np.dot(Yc.T, self._WY.reshape(Yc.shape), out=self._H)
+        np.matmul(self._W, self._Y_cost, out=self._WY)
+        np.dot(self._Y_cost.reshape(-1, n + 1).T, self._WY.reshape(-1, n + 1), out=self._H)
         np.multiply(self._H_q, 2.0, out=qp.q)
         # Input constraints: u_j = Hu_j c + u_s,j within the tightened box; separation rows.
         np.subtract(self._input_lower, u_s, out=self._l_inputs)
         np.subtract(self._input_upper, u_s, out=self._u_inputs)
         self._l_separation[:] = lower
-        qp.gather(np.add(self._Hc, self._HcT, out=self._P_dense), Y)
+        qp.gather(np.add(self._Hc, self._HcT, out=self._P_dense), self._Y)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
             self._last_c = None
@@ -414,25 +423,23 @@ class TubeLbmpc:
         if not ok:
             self._last_c = None
             x = np.zeros(n)
-        # Predictions and inputs: the u and prediction rows of Y at c = x (constant column x 0).
+        # Predictions and inputs at c = x: the step rows of Y times [c; 0; 1].
         self._x_ext[:n] = x
-        y = Yc.dot(self._x_ext).reshape(M, _BLOCK)
-        inputs = y[:, :2] + d.u_s
+        y = self._Y_steps.dot(self._x_ext).reshape(M + 1, _BLOCK)
+        inputs = y[:M, 6:]
         u0, w0 = inputs[0].tolist()
         v_lim, w_lim = self._first_input_limit
         if ok and (abs(u0) > v_lim or abs(w0) > w_lim):
             ok, status = False, "first input outside U"
         if ok:
             self._last_c = x
-        z = self._x0.copy()
-        z[1:] += y[:, 2:]
         return QpSolution(
             ok=ok,
             status=status,
             c=x.reshape(M, 2),
             inputs=inputs,
-            nominal=z[:, :3],
-            learned=z[:, 3:],
+            nominal=y[:, :3],
+            learned=y[:, 3:6],
             iterations=iterations,
         )
 
