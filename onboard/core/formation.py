@@ -28,9 +28,10 @@ class Formation:
     def size(self) -> int:
         return self._offsets.shape[0]
 
-    def course(self, target_velocity_m_s: np.ndarray) -> float:
+    def course(self, target_velocity_m_s: np.ndarray | tuple[float, float]) -> float:
         """Target course [rad]; the last known course while the target is (nearly) still."""
-        vx, vy = np.asarray(target_velocity_m_s, dtype=float).tolist()
+        vx, vy = target_velocity_m_s
+        vx, vy = float(vx), float(vy)  # plain floats from an array or a pair alike
         if math.hypot(vx, vy) >= self._min_speed:
             self._course = math.atan2(vy, vx)
         return self._course
