@@ -10,6 +10,7 @@ the clipped tube feedback law. No I/O, no clocks: time arrives as integer nanose
 """
 
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -115,6 +116,28 @@ class Agent:
             for n in range(len(self.neighbour_ids) + 1)
         ]
         """Stage position weights by number of formation terms (read-only arrays)."""
+        self._fleet_index = {vid: i for i, vid in enumerate(fleet_ids)}
+        N = len(self.neighbour_ids)
+        shapes = {
+            "z0": (3,),
+            "beta": (4,),
+            "lin_states": (M + 1, 3),
+            "lin_inputs": (M, 2),
+            "u_s": (M, 2),
+            "targets": (M, 3),
+            "neighbour_positions": (N, M, 2),
+            "neighbour_margins": (N, M),
+        }
+        self._period_arrays: list[tuple[str, slice, tuple[int, ...]]] = []
+        """The period's arrays as slices of one packed buffer, in packing order."""
+        start = 0
+        for name, shape in shapes.items():
+            stop = start + math.prod(shape)
+            self._period_arrays.append((name, slice(start, stop), shape))
+            start = stop
+        self._pack_period = struct.Struct(f"{start}d").pack
+        self._full_weight = controller.q_position + N * controller.q_formation
+        """Stage position weight with every formation term (the terminal P's)."""
         self._last_command = np.zeros(2)
         self._last_plan: Plan | None = None
         self.fallbacks = 0
@@ -184,12 +207,13 @@ class Agent:
         candidates: list[list[tuple[float, float]]],
         beta: tuple[float, ...],
         goal: list[list[float]],
-    ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float]]]:
+    ) -> tuple[list[float], list[float]]:
         """The candidate input sequence whose learned rollout ends closest to the goal.
 
         Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s
         from 0 (in its own direction), rolled out with the learned model and scored by the
-        squared distance of its positions to the goal (M points); returns (states, inputs).
+        squared distance of its positions to the goal (M points); returns (states, inputs),
+        flat: x, y, theta for j = 0..M, then v, w for j = 0..M-1.
         """
         s = self.settings
         tau = s.period_s
@@ -201,7 +225,7 @@ class Agent:
         best, best_cost = None, math.inf
         for candidate in candidates:
             x, y, th = z0
-            states, inputs, cost = [z0], [], 0.0
+            states, inputs, cost = list(z0), [], 0.0
             for (v, w), (gx, gy) in zip(candidate, goal, strict=True):
                 # Clip to U (nan passes through), then keep |v| >= v_min in v's direction.
                 v = -v_max if v < -v_max else v_max if v > v_max else v
@@ -214,8 +238,8 @@ class Agent:
                 x += tau * (a_v * v * cos(phi) + d_x)
                 y += tau * (a_v * v * sin(phi) + d_y)
                 th += tw * w
-                states.append((x, y, th))
-                inputs.append((v, w))
+                states += (x, y, th)
+                inputs += (v, w)
                 cost += (x - gx) ** 2 + (y - gy) ** 2
             if cost < best_cost:
                 best, best_cost = (states, inputs), cost
@@ -237,28 +261,35 @@ class Agent:
         and their count. `centres` are the formation centres at j = 0..M+1.
         """
         s, M = self.settings, self.settings.horizon
+        when_ns, reach_s = inp.stamp_ns + s.period_ns, s.plan_extrapolation_s
+        forget_s, stale_s, ahead_s, v_max = (
+            s.plan_forget_s,
+            s.plan_stale_s,
+            -s.period_s,
+            s.speed_max_m_s,
+        )
+        slot_centres = centres[1 : M + 1]
         nb_pos: list[float] = []
         nb_margin: list[float] = []
         pull: list[tuple[float, float]] | None = None
         n_terms = 0
         for nid in self.neighbour_ids:
             plan = inp.neighbour_plans.get(nid)
-            if plan is None or ages[nid] > s.plan_forget_s or ages[nid] < -s.period_s:
+            if plan is None or ages[nid] > forget_s or ages[nid] < ahead_s:
                 nb_pos += self._no_positions
                 nb_margin += self._no_margins
                 continue
             age = max(ages[nid], 0.0)
-            positions = plan.position_list(
-                inp.stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
-            )
+            positions = plan.position_list(when_ns, M, max_extrapolation_s=reach_s)
             for xy in positions:
                 nb_pos += xy
-            nb_margin += [m + s.speed_max_m_s * age for m in self._margin_m]
-            if age <= s.plan_stale_s:
-                kx, ky = offsets[self.fleet_ids.index(nid)]
+            inflation = v_max * age
+            nb_margin += [m + inflation for m in self._margin_m]
+            if age <= stale_s:
+                kx, ky = offsets[self._fleet_index[nid]]
                 terms = [
                     (px - (cx + kx), py - (cy + ky))
-                    for (px, py), (cx, cy) in zip(positions, centres[1 : M + 1], strict=True)
+                    for (px, py), (cx, cy) in zip(positions, slot_centres, strict=True)
                 ]
                 pull = (
                     terms
@@ -333,10 +364,7 @@ class Agent:
                 "waiting for telemetry" if not self.dekf.initialized else "waiting for target",
                 ages,
             )
-        z0 = self.dekf.z.copy()
-        beta = self.dekf.beta.copy()
-        z0_f = tuple(z0.tolist())
-        beta_f = tuple(beta.tolist())
+        z0_f, beta_f = self.dekf.z.tolist(), self.dekf.beta.tolist()
         # Target and slots over j = 0..M+1: slot i = target - trail + offsets[i].
         track, tgt_vel = self.target.predicted_track(inp.stamp_ns, s.period_ns, M + 2)
         trail_x, trail_y, offsets = self.formation.placement(tgt_vel)
@@ -344,7 +372,6 @@ class Agent:
         ox, oy = offsets[self.index]
         mine = [(cx + ox, cy + oy) for cx, cy in centres]
         u_s, heading_s = self._steady_inputs(mine, beta_f, z0_f[2])
-        N = len(self.neighbour_ids)
         nb_pos, nb_margin, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
         weight = s.q_position + n_terms * s.q_formation
         goal = self._goal(mine[1 : M + 1], pull, n_terms, weight)
@@ -359,35 +386,40 @@ class Agent:
         # (The rollout's headings are continuous from z0's: no unwrapping needed.)
         # Target headings: the steady headings, unwrapped near the linearization's.
         targets = []
-        for (gx, gy), h, (_, _, ref) in zip(
-            goal, heading_s[1 : M + 1], lin_states[1:], strict=True
-        ):
+        for (gx, gy), h, ref in zip(goal, heading_s[1 : M + 1], lin_states[5::3], strict=True):
             targets += (gx, gy, ref + (h - ref + math.pi) % _TWO_PI - math.pi)
-        n_full = len(self.neighbour_ids)
-        u_s_a = np.array([u for pair in u_s for u in pair]).reshape(M, 2)
-        nb_pos_a = np.array(nb_pos).reshape(N, M, 2)
-        nb_margin_a = np.array(nb_margin).reshape(N, M)
+        # The period's arrays, from one packed buffer (a few dozen np.array calls on short
+        # float lists would cost several times more).
+        buffer = np.frombuffer(
+            bytearray(
+                self._pack_period(
+                    *z0_f,
+                    *beta_f,
+                    *lin_states,
+                    *lin_inputs,
+                    *[u for pair in u_s for u in pair],
+                    *targets,
+                    *nb_pos,
+                    *nb_margin,
+                )
+            )
+        )
+        arrays = {name: buffer[part].reshape(shape) for name, part, shape in self._period_arrays}
         data = QpData(
-            z0=z0,
-            lin_states=np.array([v for st in lin_states for v in st]).reshape(M + 1, 3),
-            lin_inputs=np.array([v for ui in lin_inputs for v in ui]).reshape(M, 2),
-            beta=beta,
-            u_s=u_s_a,
-            targets=np.array(targets).reshape(M, 3),
+            **arrays,
             position_weights=self._position_weights[n_terms],
-            terminal_scale=weight / (s.q_position + n_full * s.q_formation),
-            neighbour_positions=nb_pos_a,
-            neighbour_margins=nb_margin_a,
+            terminal_scale=weight / self._full_weight,
         )
         sol = self.mpc.solve(data)
+        z0, beta = data.z0, data.beta
         if sol.ok:
             inputs = np.minimum(np.maximum(sol.inputs, self._u_min), self.u_max)
             states, c, status = sol.learned.copy(), sol.c, "solved"
         else:
             self.fallbacks += 1
             ref = np.array([mine[0][0], mine[0][1], heading_s[0]])
-            u = self.mpc.fallback_input(z0, ref, u_s_a[0])
-            u = self._safe_stop(z0, u, nb_pos_a, nb_margin_a)
+            u = self.mpc.fallback_input(z0, ref, data.u_s[0])
+            u = self._safe_stop(z0, u, data.neighbour_positions, data.neighbour_margins)
             inputs = np.repeat(u[None, :], M, axis=0)
             states, c, status = (
                 rollout(z0, inputs, beta, tau),
