@@ -155,9 +155,9 @@ class TubeLbmpc:
         so nothing of an earlier period (even a non-finite one) survives into the next.
 
         Also cached: the K0 and P0 entries as floats; W's constant entries (heading and input
-        weights; the stage position weights and the terminal block are rewritten every period);
-        the input-bound rows of l and u (the separation rows' u is +infinity); the packer of the
-        float pass; and the OSQP problem with its fixed pattern.
+        weights; the stage position weights are rewritten when they change, the terminal block
+        every period); the input-bound rows of l and u (the separation rows' u is +infinity);
+        the packer of the float pass; and the OSQP problem with its fixed pattern.
         """
         s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
         steps = _BLOCK * (M + 1)
@@ -218,11 +218,12 @@ class TubeLbmpc:
         self._W = W
         self._W_flat = W.reshape(-1)
         flat = np.arange(W.size).reshape(W.shape)
-        self._W_variable = np.concatenate(
-            [flat[1:M, [3, 4], [3, 4]].ravel(), flat[M, 3:6, 3:6].ravel()]
-        )
-        """Flat entries of W written each period: stage position weights (x, y for ztil_1 ..
-        ztil_{M-1}), then the terminal P (row-major)."""
+        self._W_position = flat[1:M, [3, 4], [3, 4]].ravel()
+        """Flat entries of W for the stage position weights (x, y of ztil_1 .. ztil_{M-1})."""
+        self._W_terminal = flat[M, 3:6, 3:6].ravel()
+        """Flat entries of W for the terminal P (row-major), rewritten every period."""
+        self._position_weights: list[float] | None = None
+        """The stage position weights now in W (they change only with the formation terms)."""
         self._Y_steps = Y[:steps]
         self._Y_cost = Y[:steps, : n + 1].reshape(M + 1, _BLOCK, n + 1)
         self._WY = np.zeros((M + 1, _BLOCK, n + 1))
@@ -397,10 +398,13 @@ class TubeLbmpc:
         lower = self._condense(d)
         u_s = d.u_s.ravel()
         # Cost: P = 2 Y' W Y and q = 2 Y' W y over the step rows.
-        self._W_flat[self._W_variable] = [  # every entry of W that varies
-            *(w for w in d.position_weights[: M - 1].tolist() for _ in "xy"),
-            *self._terminal_entries(float(d.targets[-1, 2]), float(d.terminal_scale)),
-        ]
+        weights = d.position_weights[: M - 1].tolist()
+        if weights != self._position_weights:
+            self._W_flat[self._W_position] = [w for w in weights for _ in "xy"]
+            self._position_weights = weights
+        self._W_flat[self._W_terminal] = self._terminal_entries(
+            float(d.targets[-1, 2]), float(d.terminal_scale)
+        )
         np.matmul(self._W, self._Y_cost, out=self._WY)
         np.dot(self._Y_cost.reshape(-1, n + 1).T, self._WY.reshape(-1, n + 1), out=self._H)
         np.multiply(self._H_q, 2.0, out=qp.q)
