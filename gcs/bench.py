@@ -99,6 +99,16 @@ def _per_step(calls: list[tuple[int, int]], steps: list[tuple[int, int]]) -> np.
     return out
 
 
+def _as_arrays(d: QpData) -> QpData:
+    """The same QpData with numpy arrays (the agent hands the QP plain-float sequences)."""
+    return QpData(
+        **{
+            name: value if name == "terminal_scale" else np.asarray(value, dtype=float)
+            for name, value in vars(d).items()
+        }
+    )
+
+
 def _cvxpy_rebuild(mpc: TubeLbmpc) -> Callable[[QpData], np.ndarray | None]:
     """The same QP written out in cvxpy and built from scratch on every call."""
     import cvxpy as cp
@@ -235,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
         rebuild = _cvxpy_rebuild(TubeLbmpc(sc.controller, n_neighbours=len(sc.vehicles) - 1))
         for i in range(0, len(seq), stride):
             t0 = time.perf_counter_ns()
-            c_ref = rebuild(seq[i])
+            c_ref = rebuild(_as_arrays(seq[i]))
             cvx_ns.append(time.perf_counter_ns() - t0)
             ours_ns.append(times[i])
             if solutions[i].ok and c_ref is not None:

@@ -10,7 +10,6 @@ the clipped tube feedback law. No I/O, no clocks: time arrives as integer nanose
 """
 
 import math
-import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -106,7 +105,7 @@ class Agent:
         self.u_max = self.mpc.u_max
         M = controller.horizon
         self._u_min = -self.u_max
-        self._no_positions = [0.0] * (2 * M)
+        self._no_positions = [(0.0, 0.0)] * M
         """An absent neighbour's positions (ignored: its margins are infinite)."""
         self._no_margins = [math.inf] * M
         self._margin_m = (controller.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:]).tolist()
@@ -118,24 +117,6 @@ class Agent:
         """Stage position weights by number of formation terms (read-only arrays)."""
         self._fleet_index = {vid: i for i, vid in enumerate(fleet_ids)}
         N = len(self.neighbour_ids)
-        shapes = {
-            "z0": (3,),
-            "beta": (4,),
-            "lin_states": (M + 1, 3),
-            "lin_inputs": (M, 2),
-            "u_s": (M, 2),
-            "targets": (M, 3),
-            "neighbour_positions": (N, M, 2),
-            "neighbour_margins": (N, M),
-        }
-        self._period_arrays: list[tuple[str, slice, tuple[int, ...]]] = []
-        """The period's arrays as slices of one packed buffer, in packing order."""
-        start = 0
-        for name, shape in shapes.items():
-            stop = start + math.prod(shape)
-            self._period_arrays.append((name, slice(start, stop), shape))
-            start = stop
-        self._pack_period = struct.Struct(f"{start}d").pack
         self._full_weight = controller.q_position + N * controller.q_formation
         """Stage position weight with every formation term (the terminal P's)."""
         self._last_command = np.zeros(2)
@@ -207,13 +188,12 @@ class Agent:
         candidates: list[list[tuple[float, float]]],
         beta: tuple[float, ...],
         goal: list[list[float]],
-    ) -> tuple[list[float], list[float]]:
+    ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float]]]:
         """The candidate input sequence whose learned rollout ends closest to the goal.
 
         Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s
         from 0 (in its own direction), rolled out with the learned model and scored by the
-        squared distance of its positions to the goal (M points); returns (states, inputs),
-        flat: x, y, theta for j = 0..M, then v, w for j = 0..M-1.
+        squared distance of its positions to the goal (M points); returns (states, inputs).
         """
         s = self.settings
         tau = s.period_s
@@ -225,7 +205,7 @@ class Agent:
         best, best_cost = None, math.inf
         for candidate in candidates:
             x, y, th = z0
-            states, inputs, cost = list(z0), [], 0.0
+            states, inputs, cost = [z0], [], 0.0
             for (v, w), (gx, gy) in zip(candidate, goal, strict=True):
                 # Clip to U (nan passes through), then keep |v| >= v_min in v's direction.
                 v = -v_max if v < -v_max else v_max if v > v_max else v
@@ -238,8 +218,8 @@ class Agent:
                 x += tau * (a_v * v * cos(phi) + d_x)
                 y += tau * (a_v * v * sin(phi) + d_y)
                 th += tw * w
-                states += (x, y, th)
-                inputs += (v, w)
+                states.append((x, y, th))
+                inputs.append((v, w))
                 cost += (x - gx) ** 2 + (y - gy) ** 2
             if cost < best_cost:
                 best, best_cost = (states, inputs), cost
@@ -252,11 +232,13 @@ class Agent:
         ages: dict[int, float],
         centres: list[tuple[float, float]],
         offsets: list[tuple[float, float]],
-    ) -> tuple[list[float], list[float], list[tuple[float, float]] | None, int]:
+    ) -> tuple[
+        list[list[tuple[float, float]]], list[list[float]], list[tuple[float, float]] | None, int
+    ]:
         """Neighbours' predicted positions and separation margins at j = 1..M, and the pull.
 
-        Returns the positions flat (N M 2; zeros for an absent neighbour), the margins flat
-        (N M; infinite for an absent neighbour, inflated by v_max x age otherwise), the pull
+        Returns the positions (N, M, 2; zeros for an absent neighbour), the margins (N, M;
+        infinite for an absent neighbour, inflated by v_max x age otherwise), the pull
         sum_k (p_kj - slot_kj) over the neighbours whose plan is fresh (None if there is none)
         and their count. `centres` are the formation centres at j = 0..M+1.
         """
@@ -269,22 +251,21 @@ class Agent:
             s.speed_max_m_s,
         )
         slot_centres = centres[1 : M + 1]
-        nb_pos: list[float] = []
-        nb_margin: list[float] = []
+        nb_pos: list[list[tuple[float, float]]] = []
+        nb_margin: list[list[float]] = []
         pull: list[tuple[float, float]] | None = None
         n_terms = 0
         for nid in self.neighbour_ids:
             plan = inp.neighbour_plans.get(nid)
             if plan is None or ages[nid] > forget_s or ages[nid] < ahead_s:
-                nb_pos += self._no_positions
-                nb_margin += self._no_margins
+                nb_pos.append(self._no_positions)
+                nb_margin.append(self._no_margins)
                 continue
             age = max(ages[nid], 0.0)
             positions = plan.position_list(when_ns, M, max_extrapolation_s=reach_s)
-            for xy in positions:
-                nb_pos += xy
+            nb_pos.append(positions)
             inflation = v_max * age
-            nb_margin += [m + inflation for m in self._margin_m]
+            nb_margin.append([m + inflation for m in self._margin_m])
             if age <= stale_s:
                 kx, ky = offsets[self._fleet_index[nid]]
                 terms = [
@@ -364,7 +345,8 @@ class Agent:
                 "waiting for telemetry" if not self.dekf.initialized else "waiting for target",
                 ages,
             )
-        z0_f, beta_f = self.dekf.z.tolist(), self.dekf.beta.tolist()
+        z0, beta = self.dekf.z.copy(), self.dekf.beta.copy()
+        z0_f, beta_f = z0.tolist(), beta.tolist()
         # Target and slots over j = 0..M+1: slot i = target - trail + offsets[i].
         track, tgt_vel = self.target.predicted_track(inp.stamp_ns, s.period_ns, M + 2)
         trail_x, trail_y, offsets = self.formation.placement(tgt_vel)
@@ -385,41 +367,34 @@ class Agent:
         lin_states, lin_inputs = self._seed(z0_f, candidates, beta_f, goal)
         # (The rollout's headings are continuous from z0's: no unwrapping needed.)
         # Target headings: the steady headings, unwrapped near the linearization's.
-        targets = []
-        for (gx, gy), h, ref in zip(goal, heading_s[1 : M + 1], lin_states[5::3], strict=True):
-            targets += (gx, gy, ref + (h - ref + math.pi) % _TWO_PI - math.pi)
-        # The period's arrays, from one packed buffer (a few dozen np.array calls on short
-        # float lists would cost several times more).
-        buffer = np.frombuffer(
-            bytearray(
-                self._pack_period(
-                    *z0_f,
-                    *beta_f,
-                    *lin_states,
-                    *lin_inputs,
-                    *[u for pair in u_s for u in pair],
-                    *targets,
-                    *nb_pos,
-                    *nb_margin,
-                )
+        targets = [
+            (gx, gy, ref + (h - ref + math.pi) % _TWO_PI - math.pi)
+            for (gx, gy), h, (_, _, ref) in zip(
+                goal, heading_s[1 : M + 1], lin_states[1:], strict=True
             )
-        )
-        arrays = {name: buffer[part].reshape(shape) for name, part, shape in self._period_arrays}
+        ]
+        # The QP reads its data as plain floats: hand them over as they are.
         data = QpData(
-            **arrays,
+            z0=z0_f,
+            lin_states=lin_states,
+            lin_inputs=lin_inputs,
+            beta=beta_f,
+            u_s=u_s,
+            targets=targets,
             position_weights=self._position_weights[n_terms],
             terminal_scale=weight / self._full_weight,
+            neighbour_positions=nb_pos,
+            neighbour_margins=nb_margin,
         )
         sol = self.mpc.solve(data)
-        z0, beta = data.z0, data.beta
         if sol.ok:
             inputs = np.minimum(np.maximum(sol.inputs, self._u_min), self.u_max)
             states, c, status = sol.learned.copy(), sol.c, "solved"
         else:
             self.fallbacks += 1
             ref = np.array([mine[0][0], mine[0][1], heading_s[0]])
-            u = self.mpc.fallback_input(z0, ref, data.u_s[0])
-            u = self._safe_stop(z0, u, data.neighbour_positions, data.neighbour_margins)
+            u = self.mpc.fallback_input(z0, ref, np.array(u_s[0]))
+            u = self._safe_stop(z0, u, np.array(nb_pos), np.array(nb_margin))
             inputs = np.repeat(u[None, :], M, axis=0)
             states, c, status = (
                 rollout(z0, inputs, beta, tau),

@@ -26,6 +26,7 @@ condenses the horizon (`TubeLbmpc._precompute`); two products give the cost.
 
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,29 +48,45 @@ _BLOCK = 8
 """Rows per step j in the condensing system: zbar_j (3), ztil_j (3), u_j (2)."""
 
 
+Floats = (
+    np.ndarray | Sequence[float] | Sequence[Sequence[float]] | Sequence[Sequence[Sequence[float]]]
+)
+"""An array, or the same numbers as (nested) sequences of plain floats."""
+
+
+def _rows(a: Floats) -> list:
+    """Nested plain-float lists (or the sequences as given) of a small array-like."""
+    return a.tolist() if isinstance(a, np.ndarray) else a
+
+
 @dataclass(frozen=True, eq=False)
 class QpData:
-    """Everything one period's QP depends on. Shapes use M = horizon, N = number of neighbours."""
+    """Everything one period's QP depends on. Shapes use M = horizon, N = number of neighbours.
 
-    z0: np.ndarray
+    Each array may also be given as nested sequences of plain floats of its shape (rows as lists
+    or tuples): the agent computes its data in floats, and the QP's float pass reads them as
+    floats, so an array round trip in between would cost more than the arithmetic on them.
+    """
+
+    z0: Floats
     """Current state estimate (3,)."""
-    lin_states: np.ndarray
+    lin_states: Floats
     """Linearization trajectory (M + 1, 3); lin_states[0] should be z0."""
-    lin_inputs: np.ndarray
+    lin_inputs: Floats
     """Linearization inputs (M, 2); speeds must not be 0."""
-    beta: np.ndarray
+    beta: Floats
     """Learned oracle parameters (4,)."""
-    u_s: np.ndarray
+    u_s: Floats
     """Steady-state inputs under the learned model (M, 2)."""
-    targets: np.ndarray
+    targets: Floats
     """Cost targets r_j for j = 1..M (M, 3): position and heading (unwrapped near lin_states)."""
-    position_weights: np.ndarray
+    position_weights: Floats
     """Position weight of each stage j = 1..M (M,) [1/m^2]."""
     terminal_scale: float
     """Scale of the terminal weight P (formation weight present / formation weight assumed)."""
-    neighbour_positions: np.ndarray
+    neighbour_positions: Floats
     """Neighbours' predicted positions at j = 1..M (N, M, 2)."""
-    neighbour_margins: np.ndarray
+    neighbour_margins: Floats
     """Required distance from each neighbour at j = 1..M (N, M) [m]; inf or nan disables a row."""
 
 
@@ -167,8 +184,24 @@ class TubeLbmpc:
         zbar_row = [_BLOCK * j for j in range(M + 1)]  # rows of zbar_j, ztil_j and u_j
         ztil_row = [_BLOCK * j + 3 for j in range(M + 1)]
         u_row = [_BLOCK * j + 6 for j in range(M + 1)]
-        # The period buffer and, carved from np.arange alongside, each entry's flat index.
-        shapes = {"T": ((m, m), "F"), "Y": ((m, n + 2), "C")}  # T in Fortran order for dtrsm
+        # OSQP's pattern: P upper triangle dense; u_j depends on c_0..c_j; a separation row at
+        # step j on c_0..c_{j-1}. A's rows are Y's u rows, then its separation rows.
+        p_mask = np.triu(np.ones((n, n), dtype=bool))
+        in_mask = np.zeros((2 * M, n), dtype=bool)
+        for j in range(M):
+            in_mask[2 * j : 2 * j + 2, : 2 * j + 2] = True
+        sep_mask = np.zeros((N * M, n), dtype=bool)
+        for k in range(N):
+            for j in range(1, M + 1):
+                sep_mask[k * M + j - 1, : 2 * j] = True
+        a_mask = np.vstack([in_mask, sep_mask])
+        # The period buffer (OSQP's values, T, Y) and, carved from np.arange alongside, each
+        # entry's flat index.
+        shapes = {
+            "qp": ((FixedPatternQp.data_size(p_mask, a_mask),), "C"),
+            "T": ((m, m), "F"),  # Fortran order: dtrsm reads it in place
+            "Y": ((m, n + 2), "C"),
+        }
         total = sum(math.prod(shape) for shape, _ in shapes.values())
         self._buffer = np.zeros(total)
         views, index, start = {}, {}, 0
@@ -177,6 +210,18 @@ class TubeLbmpc:
             views[name] = self._buffer[start:stop].reshape(shape, order=order)
             index[name] = np.arange(start, stop).reshape(shape, order=order)
             start = stop
+        a_rows = [u_row[j] + i for j in range(M) for i in (0, 1)] + list(range(steps, m))
+        self._qp = qp = FixedPatternQp(
+            p_mask,
+            a_mask,
+            eps=s.solver_eps,
+            max_iter=s.solver_max_iter,
+            a_rows=np.array(a_rows),
+            a_row_length=n + 2,
+            data=views["qp"],
+        )
+        qp.u[2 * M :] = INFINITY
+        il, iu = index["qp"][qp.layout["l"]], index["qp"][qp.layout["u"]]
         self._T, self._Y = T, Y = views["T"], views["Y"]
         T[np.arange(m), np.arange(m)] = 1.0
         for j in range(M):
@@ -196,6 +241,8 @@ class TubeLbmpc:
             for entries in (
                 iT[u : u + 2, zb : zb + 3],  # K_j
                 iY[u : u + 2, n + 1],  # u_s,j
+                il[2 * j : 2 * j + 2],  # its bounds, lower
+                iu[2 * j : 2 * j + 2],  # and upper
                 iT[zb1 : zb1 + 2, zb + 2],  # A_j's heading column
                 iT[zb1 : zb1 + 2, u : u + 2],  # B_j
                 iT[zt1 : zt1 + 2, zt + 2],  # A~_j's heading column
@@ -208,6 +255,7 @@ class TubeLbmpc:
         for k in range(N):
             for j in range(1, M + 1):
                 dest += iT[steps + k * M + j - 1, zbar_row[j] : zbar_row[j] + 2].tolist()
+                dest.append(int(il[2 * M + k * M + j - 1]))
         self._lin_dest = np.array(dest, dtype=np.intp)
         self._pack = struct.Struct(f"{len(dest)}d").pack
         # Weights, by step block: q_heading (and the period's position weights) on ztil_j,
@@ -232,31 +280,10 @@ class TubeLbmpc:
         self._P_dense = np.zeros((n, n))
         self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
         """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
-        bound = (self.u_max[None, :] - self.tightening).ravel()
-        self._input_lower, self._input_upper = -bound, bound
+        bound = self.u_max[None, :] - self.tightening
+        self._input_box = [(-v, -w, v, w) for v, w in bound.tolist()]
+        """The tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
         self._first_input_limit = tuple(float(u) * (1 + 1e-3) + 1e-6 for u in self.u_max)
-        # Pattern: P upper triangle dense; u_j depends on c_0..c_j; a separation row at step j
-        # on c_0..c_{j-1}. A's rows are Y's u rows, then its separation rows.
-        p_mask = np.triu(np.ones((n, n), dtype=bool))
-        in_mask = np.zeros((2 * M, n), dtype=bool)
-        for j in range(M):
-            in_mask[2 * j : 2 * j + 2, : 2 * j + 2] = True
-        sep_mask = np.zeros((N * M, n), dtype=bool)
-        for k in range(N):
-            for j in range(1, M + 1):
-                sep_mask[k * M + j - 1, : 2 * j] = True
-        a_rows = [u_row[j] + i for j in range(M) for i in (0, 1)] + list(range(steps, m))
-        self._qp = qp = FixedPatternQp(
-            p_mask,
-            np.vstack([in_mask, sep_mask]),
-            eps=s.solver_eps,
-            max_iter=s.solver_max_iter,
-            a_rows=np.array(a_rows),
-            a_row_length=n + 2,
-        )
-        qp.u[2 * M :] = INFINITY
-        self._l_inputs, self._u_inputs = qp.l[: 2 * M], qp.u[: 2 * M]
-        self._l_separation = qp.l[2 * M :]
         self._warm = np.zeros(n)
         self._x_ext = np.zeros(n + 2)  # [c; 0; 1]: Y's rows at c
         self._x_ext[-1] = 1.0
@@ -294,10 +321,11 @@ class TubeLbmpc:
         )
 
     # -- one period -----------------------------------------------------------------------------
-    def _fill(self, d: QpData) -> list[float]:
-        """One plain-float pass: both models along the linearization trajectory, the rotated
-        gains, the c = 0 rollouts and the separation rows, scattered into T and Y's constant
-        columns; returns the separation rows' lower bounds (N M).
+    def _fill(self, d: QpData) -> None:
+        """One plain-float pass over the period's data: both models along the linearization
+        trajectory, the rotated gains, the c = 0 rollouts, the input bounds and the separation
+        rows, scattered into T, Y's constant columns and OSQP's l and u; and the cost weights
+        that vary, into W.
 
         Per step j, at phi = th + tau a_w w / 2:
             A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
@@ -307,35 +335,39 @@ class TubeLbmpc:
         with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal,
         and K_j = K0 T(th_j)'. T holds their negatives (the system's off-diagonal blocks); the
         c = 0 values are zref and ztil, the linearized models' rollouts of u_s from z0; the cost
-        residual's heading is wrapped.
+        residual's heading is wrapped; u_j = Hu_j c + u_s,j stays in the tightened box, so the
+        input rows' bounds are the box less u_s,j.
 
         Values go out in `_lin_dest`'s order through one `struct` pack (a list of a couple of
         hundred floats becomes an array 3-4x faster than through np.array). With M a handful of
         steps, a float loop is cheaper than a few dozen numpy calls on (M,)-arrays.
         """
         tau = self.tau
-        a_v, a_w, d_x, d_y = np.asarray(d.beta, dtype=float).tolist()
+        a_v, a_w, d_x, d_y = _rows(d.beta)
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
         k00, k01, k02, k10, k11, k12 = self._K0_entries
         sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
-        xb, yb, hb = np.asarray(d.z0, dtype=float).tolist()
+        xb, yb, hb = _rows(d.z0)
         xt, yt, ht = xb, yb, hb
         out = [xb, yb, hb, xt, yt, ht]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
         ref: list[tuple[float, float]] = []  # zref's positions, j = 1..M
+        lin = _rows(d.lin_states)
         steps = zip(
-            d.lin_states[: self.M, 2].tolist(),
-            d.lin_inputs.tolist(),
-            d.u_s.tolist(),
-            d.targets.tolist(),
+            lin[: self.M],
+            _rows(d.lin_inputs),
+            _rows(d.u_s),
+            _rows(d.targets),
+            self._input_box,
             strict=True,
         )
-        for th, (v, w), (us_v, us_w), (rx, ry, rh) in steps:
+        for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
             c, s = cos(th), sin(th)
-            out += (  # -K_j, then u_s,j
-                k01 * s - k00 * c, -k00 * s - k01 * c, -k02,
+            out += (
+                k01 * s - k00 * c, -k00 * s - k01 * c, -k02,  # -K_j
                 k11 * s - k10 * c, -k10 * s - k11 * c, -k12,
-                us_v, us_w,
+                us_v, us_w,  # u_s,j
+                lo_v - us_v, lo_w - us_w, hi_v - us_v, hi_w - us_w,  # input rows' l, u
             )  # fmt: skip
             phi = th + hn * w
             s, c = sin(phi), cos(phi)
@@ -362,16 +394,21 @@ class TubeLbmpc:
                 xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,  # cost residual
             )  # fmt: skip
             ref.append((xb, yb))
-        lower = self._separation(d, ref, out) if self.n_neighbours else []
+        if self.n_neighbours:
+            self._separation(d, (out[0], out[1]), lin, ref, out)
         self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
-        return lower
+        # Cost weights: the stage position weights when they change, the terminal P (at the
+        # last target heading rh) every period.
+        weights = _rows(d.position_weights)[: self.M - 1]
+        if weights != self._position_weights:
+            self._W_flat[self._W_position] = [w for w in weights for _ in "xy"]
+            self._position_weights = weights
+        self._W_flat[self._W_terminal] = self._terminal_entries(rh, float(d.terminal_scale))
 
-    def _condense(self, d: QpData) -> list[float]:
-        """Fill T and Y for this period (`_precompute` describes them); returns the separation
-        rows' lower bounds."""
-        lower = self._fill(d)
+    def _condense(self, d: QpData) -> None:
+        """Fill T, Y and the bounds for this period (`_precompute` describes them)."""
+        self._fill(d)
         self._Y[:, : 2 * self.M] = blas.dtrsm(1.0, self._T, self._E, lower=1, diag=1)
-        return lower
 
     def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
         """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs.
@@ -395,23 +432,11 @@ class TubeLbmpc:
         """Build this period's QP values, solve it, and check the answer."""
         M, n = self.M, 2 * self.M
         qp = self._qp
-        lower = self._condense(d)
-        u_s = d.u_s.ravel()
+        self._condense(d)
         # Cost: P = 2 Y' W Y and q = 2 Y' W y over the step rows.
-        weights = d.position_weights[: M - 1].tolist()
-        if weights != self._position_weights:
-            self._W_flat[self._W_position] = [w for w in weights for _ in "xy"]
-            self._position_weights = weights
-        self._W_flat[self._W_terminal] = self._terminal_entries(
-            float(d.targets[-1, 2]), float(d.terminal_scale)
-        )
         np.matmul(self._W, self._Y_cost, out=self._WY)
         np.dot(self._Y_cost.reshape(-1, n + 1).T, self._WY.reshape(-1, n + 1), out=self._H)
         np.multiply(self._H_q, 2.0, out=qp.q)
-        # Input constraints: u_j = Hu_j c + u_s,j within the tightened box; separation rows.
-        np.subtract(self._input_lower, u_s, out=self._l_inputs)
-        np.subtract(self._input_upper, u_s, out=self._u_inputs)
-        self._l_separation[:] = lower
         qp.gather(np.add(self._Hc, self._HcT, out=self._P_dense), self._Y)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
@@ -448,28 +473,32 @@ class TubeLbmpc:
         )
 
     def _separation(
-        self, d: QpData, ref: list[tuple[float, float]], out: list[float]
-    ) -> list[float]:
-        """Separation rows: appends -n_kj (the system's entries) to `out`, returns the lower
-        bounds (N M), for neighbour k and step j = 1..M.
+        self,
+        d: QpData,
+        z0: tuple[float, float],
+        lin: Sequence[Sequence[float]],
+        ref: list[tuple[float, float]],
+        out: list[float],
+    ) -> None:
+        """Separation rows, for neighbour k and step j = 1..M: appends to `out` -n_kj (the
+        system's entries) and the row's lower bound.
 
         The normal n_kj points from neighbour k's predicted position to the linearization point
-        at step j (from z0 when the two coincide); the row is n_kj' pbar_j(c) >= margin_kj, i.e.
-        n_kj' dpbar_j/dc c >= margin_kj - n_kj' (zref_j - p_kj), with `ref` the zref_j. A row whose
-        margin is not finite is off: zero normal, lower bound -infinity. Plain floats: N M is a
-        handful of pairs.
+        (`lin`, j = 0..M) at step j (from z0's position when the two coincide); the row is
+        n_kj' pbar_j(c) >= margin_kj, i.e. n_kj' dpbar_j/dc c >= margin_kj - n_kj' (zref_j - p_kj),
+        with `ref` the zref_j. A row whose margin is not finite is off: zero normal, lower bound
+        -infinity. Plain floats: N M is a handful of pairs.
         """
-        lin = d.lin_states[1:, :2].tolist()
-        x_0, y_0 = np.asarray(d.z0[:2], dtype=float).tolist()
+        x_0, y_0 = z0
         hypot, isfinite = math.hypot, math.isfinite
-        lower = []
         for p_k, margins in zip(
-            d.neighbour_positions.tolist(), d.neighbour_margins.tolist(), strict=True
+            _rows(d.neighbour_positions), _rows(d.neighbour_margins), strict=True
         ):
-            for (px, py), margin, (lx, ly), (rx, ry) in zip(p_k, margins, lin, ref, strict=True):
+            for (px, py), margin, (lx, ly, _), (rx, ry) in zip(
+                p_k, margins, lin[1:], ref, strict=True
+            ):
                 if not isfinite(margin):
-                    out += (0.0, 0.0)
-                    lower.append(-INFINITY)
+                    out += (0.0, 0.0, -INFINITY)
                     continue
                 ax, ay = lx - px, ly - py
                 dist = hypot(ax, ay)
@@ -478,9 +507,7 @@ class TubeLbmpc:
                     dist = hypot(ax, ay)
                 dist = max(dist, 1e-9)
                 nx, ny = ax / dist, ay / dist
-                out += (-nx, -ny)
-                lower.append(margin - (nx * (rx - px) + ny * (ry - py)))
-        return lower
+                out += (-nx, -ny, margin - (nx * (rx - px) + ny * (ry - py)))
 
     def _terminal_entries(self, yaw: float, scale: float) -> tuple[float, ...]:
         """The 9 entries (row-major) of scale T(yaw) P0 T(yaw)', from P0's entries."""

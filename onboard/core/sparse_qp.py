@@ -64,9 +64,13 @@ class FixedPatternQp:
         max_iter: int,
         a_rows: np.ndarray | None = None,
         a_row_length: int | None = None,
+        data: np.ndarray | None = None,
     ) -> None:
         """`a_rows[i]` is the row of the array handed to `gather` as A that holds A's row i, and
-        `a_row_length` that array's row length (defaults: A itself, (m, n))."""
+        `a_row_length` that array's row length (defaults: A itself, (m, n)). `data`, if given,
+        is the zero 1-D array of `data_size(p_mask, a_mask)` entries to hold the values (a view
+        of a caller's buffer, so that the caller can write them and values of its own through
+        one scatter); by default the problem allocates its own."""
         n, m = p_mask.shape[0], a_mask.shape[0]
         if p_mask.shape != (n, n) or a_mask.shape[1] != n:
             raise ValueError("p_mask must be (n, n) and a_mask (m, n)")
@@ -79,12 +83,19 @@ class FixedPatternQp:
         A, self._a_flat = _csc_pattern(a_mask, a_rows, a_row_length)
         n_p, n_a = self._p_flat.size, self._a_flat.size
         # One buffer, five views: P's and A's CSC values, then q, l, u.
-        self.data = np.zeros(n_p + n_a + n + 2 * m)
-        self.Px = self.data[:n_p]
-        self.Ax = self.data[n_p : n_p + n_a]
-        self.q = self.data[n_p + n_a : n_p + n_a + n]
-        self.l = self.data[n_p + n_a + n : n_p + n_a + n + m]
-        self.u = self.data[n_p + n_a + n + m :]
+        size = self.data_size(p_mask, a_mask)
+        if data is None:
+            data = np.zeros(size)
+        elif data.shape != (size,) or data.any():
+            raise ValueError(f"data must be a zero 1-D array of {size} entries")
+        self.data = data
+        ends = np.cumsum([0, n_p, n_a, n, m, m]).tolist()
+        names = ("Px", "Ax", "q", "l", "u")
+        self.layout = {
+            name: slice(a, b) for name, a, b in zip(names, ends[:-1], ends[1:], strict=True)
+        }
+        """Where each of the five value vectors sits in `data`."""
+        self.Px, self.Ax, self.q, self.l, self.u = (data[part] for part in self.layout.values())
         P.data[:] = np.eye(n).ravel()[self._p_flat]  # P = I and A = 0 until the first update
         settings = _ext.OSQPSettings()
         _ext.osqp_set_default_settings(settings)
@@ -96,6 +107,12 @@ class FixedPatternQp:
         self._solver = _ext.OSQPSolver(
             _ext.CSC(P), np.zeros(n), _ext.CSC(A), -np.ones(m), np.ones(m), m, n, settings
         )
+
+    @staticmethod
+    def data_size(p_mask: np.ndarray, a_mask: np.ndarray) -> int:
+        """Entries of the value buffer: P's and A's pattern entries, then q, l and u."""
+        n, m = p_mask.shape[0], a_mask.shape[0]
+        return int(np.count_nonzero(p_mask)) + int(np.count_nonzero(a_mask)) + n + 2 * m
 
     def gather(self, P_dense: np.ndarray, A_dense: np.ndarray) -> None:
         """Copy the pattern's entries of dense P (n, n) and A into Px and Ax.
