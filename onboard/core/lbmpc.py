@@ -159,22 +159,23 @@ class TubeLbmpc:
         Y (m x 2M + 2) holds D in its first 2M columns, then two constant columns: the learned
         cost residual ztil_j(c = 0) - r_j on the ztil_j rows, j = 1..M (0 elsewhere), and the
         rows' values at c = 0 (zref_j, ztil_j(c = 0), u_s,j: the linearized models' rollouts of
-        u_s from z0). With W the cost weights on the step rows (block diagonal by step: Q on
-        ztil_j, the terminal P on ztil_M, R on u_j, 0 on zbar), the cost is
-        (Y c + y)' W (Y c + y) over the first 2M + 1 columns, so one product Y' W Y gives P and
-        q; OSQP's A is the u and s rows of Y, read through a flat index map; and one product
-        Y [c; 0; 1] gives every prediction and input of the solution.
+        u_s from z0). With W twice the cost weights on the step rows (block diagonal by step:
+        Q on ztil_j, the terminal P on ztil_M, R on u_j, 0 on zbar), the cost is
+        (Y c + y)' W (Y c + y) / 2 over the first 2M + 1 columns, so one product H = Y' W Y
+        holds OSQP's P and q as [[P, q], [q', .]]; OSQP's A is the u and s rows of Y; and one
+        product Y [c; 0; 1] gives every prediction and input of the solution.
 
-        Persistent buffers: T and Y are views into one flat buffer, so that the period's float
-        pass reaches every value it computes with one scatter through a flat index map
-        (`_lin_dest`). Entries that never change (T's unit diagonal, the identity parts of A and
-        A~, B's tau) are written once. A period overwrites every entry that depends on its data,
-        so nothing of an earlier period (even a non-finite one) survives into the next.
+        Persistent buffers: OSQP's values, T, Y, W and H are views into one flat buffer, so that
+        the period's float pass reaches every value it computes (T's and Y's entries, the bounds
+        l and u, the weights that vary) with one scatter through a flat index map (`_lin_dest`),
+        and P, A and q reach OSQP with one take (`_qp_sources`). Entries that never change
+        (T's unit diagonal, the identity parts of A and A~, B's tau, the heading and input
+        weights, the separation rows' u = +infinity) are written once. A period overwrites every
+        entry that depends on its data, so nothing of an earlier period (even a non-finite one)
+        survives into the next.
 
-        Also cached: the K0 and P0 entries as floats; W's constant entries (heading and input
-        weights; the stage position weights are rewritten when they change, the terminal block
-        every period); the input-bound rows of l and u (the separation rows' u is +infinity);
-        the packer of the float pass; and the OSQP problem with its fixed pattern.
+        Also cached: the K0 and P0 entries as floats, the tightened input box of each step, the
+        packer of the float pass, and the OSQP problem with its fixed pattern.
         """
         s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
         steps = _BLOCK * (M + 1)
@@ -201,6 +202,8 @@ class TubeLbmpc:
             "qp": ((FixedPatternQp.data_size(p_mask, a_mask),), "C"),
             "T": ((m, m), "F"),  # Fortran order: dtrsm reads it in place
             "Y": ((m, n + 2), "C"),
+            "W": ((M + 1, _BLOCK, _BLOCK), "C"),
+            "H": ((n + 1, n + 1), "C"),
         }
         total = sum(math.prod(shape) for shape, _ in shapes.values())
         self._buffer = np.zeros(total)
@@ -256,28 +259,25 @@ class TubeLbmpc:
             for j in range(1, M + 1):
                 dest += iT[steps + k * M + j - 1, zbar_row[j] : zbar_row[j] + 2].tolist()
                 dest.append(int(il[2 * M + k * M + j - 1]))
+        # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its last column):
+        # q_heading and the stage position weights on ztil_j, the terminal P on ztil_M (both
+        # written every period, through the scatter), R on u_j.
+        iW = index["W"]
+        dest += iW[1:M, [3, 4], [3, 4]].ravel().tolist()  # position weights, x and y, j < M
+        dest += iW[M, 3:6, 3:6].ravel().tolist()  # terminal P, row-major
         self._lin_dest = np.array(dest, dtype=np.intp)
         self._pack = struct.Struct(f"{len(dest)}d").pack
-        # Weights, by step block: q_heading (and the period's position weights) on ztil_j,
-        # the terminal P on ztil_M, R on u_j.
-        W = np.zeros((M + 1, _BLOCK, _BLOCK))
-        W[1:M, 5, 5] = s.q_heading
-        W[:M, 6, 6], W[:M, 7, 7] = s.r_speed, s.r_yaw_rate
-        self._W = W
-        self._W_flat = W.reshape(-1)
-        flat = np.arange(W.size).reshape(W.shape)
-        self._W_position = flat[1:M, [3, 4], [3, 4]].ravel()
-        """Flat entries of W for the stage position weights (x, y of ztil_1 .. ztil_{M-1})."""
-        self._W_terminal = flat[M, 3:6, 3:6].ravel()
-        """Flat entries of W for the terminal P (row-major), rewritten every period."""
-        self._position_weights: list[float] | None = None
-        """The stage position weights now in W (they change only with the formation terms)."""
+        self._W = W = views["W"]
+        W[1:M, 5, 5] = 2.0 * s.q_heading
+        W[:M, 6, 6], W[:M, 7, 7] = 2.0 * s.r_speed, 2.0 * s.r_yaw_rate
+        self._H = views["H"]  # [[P, q], [q', .]]: P's upper triangle and q go to OSQP
+        iH = index["H"]
+        self._qp_sources = qp.value_sources(iH[:n, :n], index["Y"], iH[:n, n])
+        self._qp_values = qp.data[: qp.layout["q"].stop]
+        """OSQP's Px, Ax and q, gathered from H and Y with one take."""
         self._Y_steps = Y[:steps]
         self._Y_cost = Y[:steps, : n + 1].reshape(M + 1, _BLOCK, n + 1)
         self._WY = np.zeros((M + 1, _BLOCK, n + 1))
-        self._H = np.zeros((n + 1, n + 1))  # [[P / 2, q / 2], [., .]]
-        self._Hc, self._HcT, self._H_q = self._H[:n, :n], self._H[:n, :n].T, self._H[:n, n]
-        self._P_dense = np.zeros((n, n))
         self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
         """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
         bound = self.u_max[None, :] - self.tightening
@@ -323,9 +323,9 @@ class TubeLbmpc:
     # -- one period -----------------------------------------------------------------------------
     def _fill(self, d: QpData) -> None:
         """One plain-float pass over the period's data: both models along the linearization
-        trajectory, the rotated gains, the c = 0 rollouts, the input bounds and the separation
-        rows, scattered into T, Y's constant columns and OSQP's l and u; and the cost weights
-        that vary, into W.
+        trajectory, the rotated gains, the c = 0 rollouts, the input bounds, the separation rows
+        and the cost weights that vary, scattered into T, Y's constant columns, OSQP's l and u
+        and W.
 
         Per step j, at phi = th + tau a_w w / 2:
             A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
@@ -396,14 +396,12 @@ class TubeLbmpc:
             ref.append((xb, yb))
         if self.n_neighbours:
             self._separation(d, (out[0], out[1]), lin, ref, out)
+        # Cost weights (doubled): the stage position weights, the terminal P at the last
+        # target heading rh.
+        for w in _rows(d.position_weights)[: self.M - 1]:
+            out += (2.0 * w, 2.0 * w)
+        out += self._terminal_entries(rh, 2.0 * d.terminal_scale)
         self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
-        # Cost weights: the stage position weights when they change, the terminal P (at the
-        # last target heading rh) every period.
-        weights = _rows(d.position_weights)[: self.M - 1]
-        if weights != self._position_weights:
-            self._W_flat[self._W_position] = [w for w in weights for _ in "xy"]
-            self._position_weights = weights
-        self._W_flat[self._W_terminal] = self._terminal_entries(rh, float(d.terminal_scale))
 
     def _condense(self, d: QpData) -> None:
         """Fill T, Y and the bounds for this period (`_precompute` describes them)."""
@@ -433,11 +431,10 @@ class TubeLbmpc:
         M, n = self.M, 2 * self.M
         qp = self._qp
         self._condense(d)
-        # Cost: P = 2 Y' W Y and q = 2 Y' W y over the step rows.
+        # Cost: [[P, q], [q', .]] = Y' W Y over the step rows (W doubled); A from Y's rows.
         np.matmul(self._W, self._Y_cost, out=self._WY)
         np.dot(self._Y_cost.reshape(-1, n + 1).T, self._WY.reshape(-1, n + 1), out=self._H)
-        np.multiply(self._H_q, 2.0, out=qp.q)
-        qp.gather(np.add(self._Hc, self._HcT, out=self._P_dense), self._Y)
+        self._buffer.take(self._qp_sources, out=self._qp_values)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
             self._last_c = None

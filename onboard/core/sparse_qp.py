@@ -114,6 +114,23 @@ class FixedPatternQp:
         n, m = p_mask.shape[0], a_mask.shape[0]
         return int(np.count_nonzero(p_mask)) + int(np.count_nonzero(a_mask)) + n + 2 * m
 
+    def value_sources(
+        self, P_index: np.ndarray, A_index: np.ndarray, q_index: np.ndarray
+    ) -> np.ndarray:
+        """Where Px, Ax and q (the head of `data`, in order) come from in a caller's buffer.
+
+        Given the flat buffer position of every entry of dense P (n, n), of the array handed to
+        `gather` as A and of q (n,), returns the position of each value in `data[:Px + Ax + q]`:
+        a caller whose P, A and q live in one buffer then gathers them all with one take.
+        """
+        return np.concatenate(
+            [
+                np.asarray(P_index).ravel()[self._p_flat],
+                np.asarray(A_index).ravel()[self._a_flat],
+                np.asarray(q_index).ravel(),
+            ]
+        ).astype(np.intp)
+
     def gather(self, P_dense: np.ndarray, A_dense: np.ndarray) -> None:
         """Copy the pattern's entries of dense P (n, n) and A into Px and Ax.
 
