@@ -115,14 +115,15 @@ class _Noise:
 
 
 def _bound(beta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray, np.ndarray]:
-    beta = np.array(
-        [
-            min(max(b, lo), hi)
-            for b, lo, hi in zip(
-                beta.tolist(), noise.beta_min_list, noise.beta_max_list, strict=True
-            )
-        ]
-    )
+    """beta clipped to its bounds (the same array when inside them, the usual case) and P_p
+    with its diagonal capped, symmetrized."""
+    values = beta.tolist()
+    clipped = [
+        min(max(b, lo), hi)
+        for b, lo, hi in zip(values, noise.beta_min_list, noise.beta_max_list, strict=True)
+    ]
+    if clipped != values:
+        beta = np.array(clipped)
     d = P_p.diagonal()
     if any(v > cap for v, cap in zip(d.tolist(), noise.P_p_cap_list, strict=True)):
         scale = np.sqrt(np.minimum(1.0, noise.P_p_cap / np.maximum(d, 1e-300)))
