@@ -172,7 +172,9 @@ class Agent:
         for sx, sy in slots[1 : s.horizon + 1]:
             gx, gy = vx + 0.5 * (sx - x) - d_x, vy + 0.5 * (sy - y) - d_y
             err = remainder(atan2(gy, gx) - th, _TWO_PI)
-            v = min(math.hypot(gx, gy) / a_v * max(cos(err), 0.0), v_max)
+            toward = cos(err)
+            v = math.hypot(gx, gy) / a_v * (0.0 if toward < 0.0 else toward)
+            v = v_max if v > v_max else v
             w = err / tw
             w = -w_max if w < -w_max else w_max if w > w_max else w
             out.append((v, w))
@@ -261,7 +263,8 @@ class Agent:
                 nb_pos.append(self._no_positions)
                 nb_margin.append(self._no_margins)
                 continue
-            age = max(ages[nid], 0.0)
+            age = ages[nid]
+            age = 0.0 if age < 0.0 else age
             positions = plan.position_list(when_ns, M, max_extrapolation_s=reach_s)
             nb_pos.append(positions)
             inflation = v_max * age

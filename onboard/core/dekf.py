@@ -119,7 +119,7 @@ def _bound(beta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray
     with its diagonal capped, symmetrized."""
     values = beta.tolist()
     clipped = [
-        min(max(b, lo), hi)
+        lo if b < lo else hi if b > hi else b  # (nan passes through, as with min and max)
         for b, lo, hi in zip(values, noise.beta_min_list, noise.beta_max_list, strict=True)
     ]
     if clipped != values:
@@ -305,7 +305,8 @@ class DualEkf:
             # Innovation y ⊖ z^- (sf.y) and covariance R_p = P_s^- + R (sf.S) as the state
             # filter formed them.
             beta_prior, P_p_prior, R_p = pf.x, pf.P, sf.S
-            pf.update(sf.y + H_p.dot(beta_prior), R=R_p, H=H_p)
+            pf.R = R_p  # (as an attribute: an R argument costs filterpy an isscalar check)
+            pf.update(sf.y + H_p.dot(beta_prior), H=H_p)
             hold = _unexcited(H_p, n)
             if hold:
                 pf.x, pf.P = _consider_update(beta_prior, P_p_prior, pf.K, H_p, R_p, pf.y, hold)

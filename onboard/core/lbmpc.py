@@ -502,7 +502,7 @@ class TubeLbmpc:
                 if dist < 1e-6:
                     ax, ay = x_0 - px, y_0 - py
                     dist = hypot(ax, ay)
-                dist = max(dist, 1e-9)
+                dist = 1e-9 if dist < 1e-9 else dist
                 nx, ny = ax / dist, ay / dist
                 out += (-nx, -ny, margin - (nx * (rx - px) + ny * (ry - py)))
 
