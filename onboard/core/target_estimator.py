@@ -52,8 +52,9 @@ class TargetEstimator:
     def _predict_to(self, stamp_ns: int) -> None:
         if self._stamp_ns is None or stamp_ns <= self._stamp_ns:
             return
-        F, Q = self._model(stamp_ns - self._stamp_ns)
-        self._kf.predict(F=F, Q=Q)
+        # F and Q as attributes, not arguments: a Q argument costs filterpy an isscalar check.
+        self._kf.F, self._kf.Q = self._model(stamp_ns - self._stamp_ns)
+        self._kf.predict()
         self._stamp_ns = stamp_ns
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
