@@ -125,8 +125,9 @@ class Agent:
         self.steps = 0
 
     # -- pieces of a period ---------------------------------------------------------------------
-    # Per-horizon quantities (M + 2 points at most) are plain-float lists until they become the
-    # QP's arrays: for a handful of points a float loop is cheaper than numpy calls.
+    # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
+    # such (it reads them as floats): for a handful of points a float loop is cheaper than numpy
+    # calls.
     def _steady_inputs(
         self, slots: list[list[float]], beta: tuple[float, ...], yaw: float
     ) -> tuple[list[tuple[float, float]], list[float]]:

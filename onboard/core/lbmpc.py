@@ -18,10 +18,11 @@ with warm start; every solve is checked (status, finiteness, bounds).
 
 Speed: a period runs in a fraction of a millisecond, so the per-period code counts numpy calls.
 Everything that does not depend on the period's data is built in the constructor (the constant
-entries of the condensing system, the weights, the input-bound rows, the QP's index maps). One
-plain-float pass over the horizon linearizes both models, rotates the gains, rolls out c = 0 and
-builds the separation rows; its values reach their places in one scatter; one triangular solve
-condenses the horizon (`TubeLbmpc._precompute`); two products give the cost.
+entries of the condensing system and of the weights, the QP's index maps). One plain-float pass
+over the horizon linearizes both models, rotates the gains, rolls out c = 0, and builds the
+bounds, the separation rows and the weights that vary; its values reach their places in one
+scatter; one triangular solve condenses the horizon (`TubeLbmpc._precompute`); two products give
+the cost; one take hands P, A and q to OSQP; one product gives the solution's predictions.
 """
 
 import math
