@@ -13,7 +13,8 @@ One process, side by side on the same machine:
 The figures, per vehicle-period (one vehicle's data of one control period), next to the agent
 step median (the target is at most 10 % of it):
 - all flushes: total flush time / (periods logged x vehicles), the first flush included (it
-  logs the statics: colours, line names, the run's meta);
+  logs the run's meta; colours and line names go out when the recording opens, as in
+  `fleetmpc gcs`);
 - steady: the median flush / (periods per flush x vehicles);
 - CPU: the process's CPU time over the run, every thread included (Rerun encodes and writes in
   threads of its own, after the flush returns), less the same run with logging off.
@@ -33,7 +34,7 @@ import numpy as np
 from gcs.ground_station import GroundStation
 from gcs.lockstep import run_lockstep
 from gcs.record import FlightRecord
-from gcs.recording import open_recording
+from gcs.recording import log_statics, open_recording
 from onboard.core.plan import Plan
 from protocol.messages import (
     TARGET_ID,
@@ -129,6 +130,7 @@ def _logging(rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path) 
     cpu_without = time.process_time() - t0
     t0 = time.process_time()
     stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
+    log_statics(stream, scenario.vehicle_ids, live=True)  # as the ground station, before flight
     gs = _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=stream)
     cpu_with = time.process_time() - t0
     flush = np.asarray(gs.flush_ms)
@@ -193,8 +195,8 @@ def run(args: argparse.Namespace) -> int:
             + " ".join(f"{c:>14s}" for c in cells)
         )
     print(
-        "  (all flushes: their total time over the vehicle-periods logged, the first flush's"
-        " statics included; steady: the median flush; CPU: every thread of the process, with"
+        "  (all flushes: their total time over the vehicle-periods logged, the first one"
+        " included; steady: the median flush; CPU: every thread of the process, with"
         " logging less without)"
     )
     print(f"  (target: logging per vehicle-period <= {100 * TARGET_FRACTION:.0f} % of the step)")

@@ -45,7 +45,7 @@ from gcs.check import check_scenario
 from gcs.fleet import flight_time
 from gcs.live import LiveRecord
 from gcs.metrics import compute_metrics
-from gcs.recording import log_events, log_flight_record, open_recording
+from gcs.recording import log_events, log_flight_record, log_statics, open_recording
 from gcs.sim import format_summary
 from onboard.core.errors import ConfigError, FleetMpcError
 from onboard.planbus import open_fleet_bus
@@ -284,6 +284,7 @@ class GroundStation:
                     run_info=self.run_info,
                     start=self.logged_periods,
                     live=self.live.live_rows(self.logged_periods, done),
+                    statics=False,
                 )
                 self.flushed_vehicle_periods += (done - self.logged_periods) * len(self.links)
             self.logged_periods = done
@@ -391,6 +392,7 @@ def run(args: argparse.Namespace) -> int:
                 viewer_url=viewer_url,
                 spawn_viewer=spawn,
             )
+            log_statics(stream, scenario.vehicle_ids, live=True)
         if args.epoch_ns is not None:
             gs.set_epoch(args.epoch_ns)
         _log(f"listening on {url}; waiting for {len(gs.links)} vehicles to engage")

@@ -49,6 +49,7 @@ __all__ = [
     "fleet_blueprint",
     "log_events",
     "log_flight_record",
+    "log_statics",
     "open_recording",
     "map_from_ned",
     "sim_time_ns",
@@ -306,10 +307,9 @@ def _record_arrays(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
 
 
 def _series_names(
-    rec: FlightRecord, *, live: bool
+    ids: tuple[int, ...], *, live: bool
 ) -> dict[str, tuple[list[str], list[tuple[int, ...]]]]:
     """Line names and colours of every multi-line series entity (logged once, static)."""
-    ids = rec.vehicle_ids
     uav = [f"UAV {v}" for v in ids]
     rgb = [_colour(i) for i in range(len(ids))]
     pairs = pair_indices(len(ids))
@@ -333,9 +333,13 @@ def _series_names(
     return out
 
 
-def _log_static(stream: rr.RecordingStream, rec: FlightRecord, *, live: bool) -> None:
-    """Colours, labels and line names: logged once, at the start of a recording."""
-    ids = rec.vehicle_ids
+def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, live: bool) -> None:
+    """Colours, labels and line names: logged once, at the start of a recording.
+
+    `log_flight_record` logs them with its first slice; a live ground station logs them when it
+    opens its recording, before the fleet flies (`statics=False` then), so that the first
+    logging calls of a process, which are slow, are not paid during the flight."""
+    ids = vehicle_ids
     rgb = [_colour(i) for i in range(len(ids))]
     stream.log(
         "map/vehicles",
@@ -357,7 +361,7 @@ def _log_static(stream: rr.RecordingStream, rec: FlightRecord, *, live: bool) ->
             rr.LineStrips2D.from_fields(colors=[(0, 0, 0)], radii=[-1.0]),
             static=True,
         )
-    for path, (names, colours) in _series_names(rec, live=live).items():
+    for path, (names, colours) in _series_names(ids, live=live).items():
         stream.log(path, rr.SeriesLines(names=names, colors=colours), static=True)
 
 
@@ -498,6 +502,7 @@ def log_flight_record(
     trail_window_s: float = 20.0,
     start: int = 0,
     live: LiveRows | None = None,
+    statics: bool = True,
 ) -> None:
     """Log a FlightRecord to an open recording stream, column-wise, in one batch.
 
@@ -508,12 +513,13 @@ def log_flight_record(
     facts), colours and line names are logged when start is 0.
     live: what a live run adds to periods `start`.. (plans, setpoint rates, plan ages, the
     target prediction).
+    statics: log the colours, labels and line names with the first slice (`log_statics`).
     """
     t_ns = sim_time_ns(rec.t_s)
     if start == 0:
         _log_meta(stream, rec, run_info=run_info or {})
-    if start == 0:
-        _log_static(stream, rec, live=live is not None)
+    if start == 0 and statics:
+        log_statics(stream, rec.vehicle_ids, live=live is not None)
     if start >= len(t_ns):
         return
     columns = _Columns(t_ns[start:])

@@ -12,7 +12,7 @@ from gcs.ground_station import GroundStation
 from gcs.live import LiveRecord
 from gcs.lockstep import run_lockstep
 from gcs.metrics import compute_metrics
-from gcs.recording import log_flight_record, open_recording
+from gcs.recording import log_flight_record, log_statics, open_recording
 from gcs.rrd_reader import read_recording
 from protocol.messages import NeighbourPlanAge, PlanMessage
 
@@ -175,6 +175,7 @@ def test_ground_station_flushes_read_back_as_the_live_record(paper, lockstep, tm
     path = tmp_path / "live.rrd"
     gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
     stream = open_recording(vehicle_ids=paper.vehicle_ids, path=path)
+    log_statics(stream, paper.vehicle_ids, live=True)
     ages = {vid: [o for o in paper.vehicle_ids if o != vid] for vid in paper.vehicle_ids}
     for k in range(len(lockstep.t_s)):
         msgs = period_messages(lockstep, k, period_ns=gs.live.period_ns, horizon=5)
@@ -216,6 +217,16 @@ def test_ground_station_flushes_read_back_as_the_live_record(paper, lockstep, tm
     plan_age = rows("/series/plan_age", "Scalars:scalars")
     assert plan_age[-1] == pytest.approx([0.05] * 6)
     assert rows("/series/setpoint_rate", "Scalars:scalars")[-1] == [20.0] * 3
+    names = [
+        b.column(b.schema.names.index("SeriesLines:names")).to_pylist()[0]
+        for c in rr.chunk.RrdReader(path).stream()
+        if c.is_static and c.entity_path == "/series/plan_age"
+        for b in [c.to_record_batch()]
+    ]
+    assert names == [
+        ["UAV 1 sees 2", "UAV 1 sees 3", "UAV 2 sees 1"]
+        + ["UAV 2 sees 3", "UAV 3 sees 1", "UAV 3 sees 2"]
+    ]
     # One target prediction per flush, at its last period.
     assert sum(r is not None for r in rows("/map/target_prediction", "LineStrips2D:strips")) == (
         math.ceil(k / 7)
