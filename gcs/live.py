@@ -118,6 +118,8 @@ class LiveRecord:
         self._scenario_rows = {name: np.empty((0,)) for name in _SCENARIO_FIELDS}
         self._received_rows = {name: np.empty((0,)) for name in _RECEIVED_FIELDS + _LIVE_FIELDS}
         self._valid = 0
+        self._pairs = np.triu_indices(len(self.ids), 1)
+        """Index arrays of every vehicle pair (a, b), a < b."""
         """Periods whose received fields in the cache are current."""
 
     def _invalidate(self, period: int) -> None:
@@ -238,14 +240,12 @@ class LiveRecord:
         target_vel = np.array([v for _, v in states], dtype=float).reshape(-1, 2)
         slots, offsets = formation_reference(self._formation, target, target_vel)
         beta_truth = np.empty((len(t_s), len(self.ids), 4))
+        times = t_s.tolist()
         for i, vid in enumerate(self.ids):
             truth = sc.vehicle(vid).truth
-            for j, t in enumerate(t_s):
-                beta_truth[j, i] = (
-                    truth.speed_effectiveness,
-                    truth.yaw_rate_effectiveness,
-                    *truth.wind.at(float(t)),
-                )
+            beta_truth[:, i, 0] = truth.speed_effectiveness
+            beta_truth[:, i, 1] = truth.yaw_rate_effectiveness
+            beta_truth[:, i, 2:] = [truth.wind.at(t) for t in times]
         new = {
             "target": target,
             "target_velocity": target_vel,
@@ -333,7 +333,7 @@ class LiveRecord:
         ends = ends[1:] if k0 else ends
         grid = np.arange(first, ends[-1]) * tick_s
         pos = np.stack([self._poses(vid, grid)[:, :2] for vid in self.ids], axis=1)
-        a, b = np.triu_indices(n, 1)
+        a, b = self._pairs
         d = np.linalg.norm(pos[:, a, :] - pos[:, b, :], axis=-1)  # (ticks, pairs)
         starts = np.concatenate([[first], ends[:-1]]) - first
         out = np.full(len(ends), np.nan)

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute  # noqa: F401  (loaded here: a masked ListArray imports it, ~130 ms)
 import rerun as rr
 import rerun.blueprint as rrb
 
