@@ -82,8 +82,8 @@ RECORD_ARRAYS = (
 """Per-period FlightRecord fields stored losslessly under `flight_record`."""
 MIN_SEPARATION_COLUMN = "min_separation_known_m"
 """A `flight_record` column: the run's minimum separation as known when the row was logged (a
-growing record logs it with every slice, so the newest row has the whole run's; `meta`'s copy
-is the value at the first slice)."""
+growing record logs it with every slice, so the newest row has the whole run's). It is the only
+copy: `meta` holds what does not change."""
 
 _HEADING_ARROW_M = 2.0
 _RGB = (
@@ -288,7 +288,6 @@ def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) 
             vehicle_ids=np.asarray(rec.vehicle_ids, dtype=np.int64),
             desired_distance_m=np.asarray(rec.desired_distance_m, dtype=np.float64).ravel(),
             trail_m=np.array([rec.trail_m], dtype=np.float64),
-            min_separation_m=np.array([rec.min_separation_m], dtype=np.float64),
             speed_max_m_s=np.array([rec.speed_max_m_s], dtype=np.float64),
             yaw_rate_max_rad_s=np.array([rec.yaw_rate_max_rad_s], dtype=np.float64),
             d_safe_m=np.array([rec.d_safe_m], dtype=np.float64),
