@@ -44,7 +44,7 @@ _EYE3 = np.eye(3)
 
 def _floats(a: np.ndarray | tuple[float, ...]) -> list[float]:
     """The entries of a short vector as Python floats."""
-    return np.asarray(a, dtype=float).tolist()
+    return np.asarray(a, float).tolist()  # (dtype by position: numpy parses keywords slowly)
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
