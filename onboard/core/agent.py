@@ -272,15 +272,18 @@ class Agent:
             nb_margin.append([m + inflation for m in self._margin_m])
             if age <= stale_s:
                 kx, ky = offsets[self._fleet_index[nid]]
-                terms = [
-                    (px - (cx + kx), py - (cy + ky))
-                    for (px, py), (cx, cy) in zip(positions, slot_centres, strict=True)
-                ]
-                pull = (
-                    terms
-                    if pull is None
-                    else [(a + c, b + d) for (a, b), (c, d) in zip(pull, terms, strict=True)]
-                )
+                if pull is None:
+                    pull = [
+                        (px - (cx + kx), py - (cy + ky))
+                        for (px, py), (cx, cy) in zip(positions, slot_centres, strict=True)
+                    ]
+                else:  # the same terms, added as they are formed
+                    pull = [
+                        (a + (px - (cx + kx)), b + (py - (cy + ky)))
+                        for (a, b), (px, py), (cx, cy) in zip(
+                            pull, positions, slot_centres, strict=True
+                        )
+                    ]
                 n_terms += 1
         return nb_pos, nb_margin, pull, n_terms
 

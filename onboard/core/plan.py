@@ -44,29 +44,23 @@ class Plan:
     ) -> list[tuple[float, float]]:
         """`positions_at` as (x, y) pairs of plain floats."""
         k0 = (stamp_ns - self.stamp_ns) / self.period_ns  # in periods
-        M = self.horizon
+        M = len(self.inputs)
         period_s = self.period_ns * 1e-9
-        pos = self.states[:, :2].tolist()
-        (x_a, y_a), (x_b, y_b) = pos[M - 1], pos[M]
-        vx, vy = (x_b - x_a) / period_s, (y_b - y_a) / period_s
+        pos = self.states.tolist()
+        (x_a, y_a, _), (x_m, y_m, _) = pos[M - 1], pos[M]
+        vx, vy = (x_m - x_a) / period_s, (y_m - y_a) / period_s
         max_periods = max_extrapolation_s / period_s
-        end = float(M)
         out = []
         for j in range(count):  # plain floats: count is a horizon, a handful of points
             k = k0 + j
-            inside = 0.0 if k < 0.0 else end if k > end else k  # clip to [0, M]
-            i = int(inside)
-            i = M - 1 if i > M - 1 else i
-            frac = inside - i
-            (x0, y0), (x1, y1) = pos[i], pos[i + 1]
-            beyond = k - M
-            beyond_s = (
-                0.0 if beyond < 0.0 else max_periods if beyond > max_periods else beyond
-            ) * period_s
-            out.append(
-                (
-                    x0 * (1.0 - frac) + x1 * frac + beyond_s * vx,
-                    y0 * (1.0 - frac) + y1 * frac + beyond_s * vy,
-                )
-            )
+            if k <= 0.0:  # before the plan: its first position
+                out.append((pos[0][0], pos[0][1]))
+            elif k >= M:  # beyond its end: extrapolated, for at most max_periods
+                beyond_s = (max_periods if k - M > max_periods else k - M) * period_s
+                out.append((x_m + beyond_s * vx, y_m + beyond_s * vy))
+            else:
+                i = int(k)
+                frac = k - i
+                (x0, y0, _), (x1, y1, _) = pos[i], pos[i + 1]
+                out.append((x0 * (1.0 - frac) + x1 * frac, y0 * (1.0 - frac) + y1 * frac))
         return out
