@@ -20,9 +20,10 @@ Speed: a period runs in a fraction of a millisecond, so the per-period code coun
 Everything that does not depend on the period's data is built in the constructor (the constant
 entries of the condensing system and of the weights, the QP's index maps). One plain-float pass
 over the horizon linearizes both models, rotates the gains, rolls out c = 0, and builds the
-bounds, the separation rows and the weights that vary; its values reach their places in one
-scatter; one triangular solve condenses the horizon (`TubeLbmpc._precompute`); two products give
-the cost; one take hands P, A and q to OSQP; one product gives the solution's predictions.
+bounds, the separation rows and the terminal weight; its values reach their places in one
+scatter; one triangular solve condenses the horizon (`TubeLbmpc._precompute`); an elementwise
+product and two BLAS products give the cost; one take hands P, A and q to OSQP; one product gives
+the solution's predictions.
 """
 
 import math
@@ -164,16 +165,22 @@ class TubeLbmpc:
         Q on ztil_j, the terminal P on ztil_M, R on u_j, 0 on zbar), the cost is
         (Y c + y)' W (Y c + y) / 2 over the first 2M + 1 columns, so one product H = Y' W Y
         holds OSQP's P and q as [[P, q], [q', .]]; OSQP's A is the u and s rows of Y; and one
-        product Y [c; 0; 1] gives every prediction and input of the solution.
+        product Y [c; 0; 1] gives every prediction and input of the solution. W is diagonal but
+        for the terminal P, so it is kept as its diagonal (0 on the ztil_M rows), repeated along
+        the columns of Y (`_w`, so that the diagonal part of W Y is an elementwise product of
+        two arrays of one shape), and P_M, whose product with the ztil_M rows overwrites theirs.
+        The products run over all 2M + 2 columns of the step rows (a contiguous block whose last
+        column's products go unread), so that BLAS reads Y in place.
 
-        Persistent buffers: OSQP's values, T, Y, W and H are views into one flat buffer, so that
+        Persistent buffers: OSQP's values, T, Y, P_M and H are views into one flat buffer, so that
         the period's float pass reaches every value it computes (T's and Y's entries, the bounds
-        l and u, the weights that vary) with one scatter through a flat index map (`_lin_dest`),
+        l and u, the terminal P) with one scatter through a flat index map (`_lin_dest`),
         and P, A and q reach OSQP with one take (`_qp_sources`). Entries that never change
         (T's unit diagonal, the identity parts of A and A~, B's tau, the heading and input
         weights, the separation rows' u = +infinity) are written once. A period overwrites every
         entry that depends on its data, so nothing of an earlier period (even a non-finite one)
-        survives into the next.
+        survives into the next; the stage position weights in `_w`, which change only with the
+        number of formation terms, are rewritten whenever they differ from the last period's.
 
         Also cached: the K0 and P0 entries as floats, the tightened input box of each step, the
         packer of the float pass, and the OSQP problem with its fixed pattern.
@@ -203,8 +210,8 @@ class TubeLbmpc:
             "qp": ((FixedPatternQp.data_size(p_mask, a_mask),), "C"),
             "T": ((m, m), "F"),  # Fortran order: dtrsm reads it in place
             "Y": ((m, n + 2), "C"),
-            "W": ((M + 1, _BLOCK, _BLOCK), "C"),
-            "H": ((n + 1, n + 1), "C"),
+            "P_M": ((3, 3), "C"),
+            "H": ((n + 2, n + 2), "C"),
         }
         total = sum(math.prod(shape) for shape, _ in shapes.values())
         self._buffer = np.zeros(total)
@@ -260,25 +267,28 @@ class TubeLbmpc:
             for j in range(1, M + 1):
                 dest += iT[steps + k * M + j - 1, zbar_row[j] : zbar_row[j] + 2].tolist()
                 dest.append(int(il[2 * M + k * M + j - 1]))
-        # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its last column):
-        # q_heading and the stage position weights on ztil_j, the terminal P on ztil_M (both
-        # written every period, through the scatter), R on u_j.
-        iW = index["W"]
-        dest += iW[1:M, [3, 4], [3, 4]].ravel().tolist()  # position weights, x and y, j < M
-        dest += iW[M, 3:6, 3:6].ravel().tolist()  # terminal P, row-major
+        # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its column n):
+        # q_heading and the stage position weights (`_stage_weights`) on ztil_j, the terminal P
+        # on ztil_M (written every period, through the scatter), R on u_j.
+        dest += index["P_M"].ravel().tolist()  # terminal P, row-major
         self._lin_dest = np.array(dest, dtype=np.intp)
         self._pack = struct.Struct(f"{len(dest)}d").pack
-        self._W = W = views["W"]
-        W[1:M, 5, 5] = 2.0 * s.q_heading
-        W[:M, 6, 6], W[:M, 7, 7] = 2.0 * s.r_speed, 2.0 * s.r_yaw_rate
-        self._H = views["H"]  # [[P, q], [q', .]]: P's upper triangle and q go to OSQP
+        self._w = np.zeros((steps, n + 2))
+        self._w_steps = w = self._w.reshape(M + 1, _BLOCK, n + 2)
+        w[1:M, 5] = 2.0 * s.q_heading
+        w[:M, 6], w[:M, 7] = 2.0 * s.r_speed, 2.0 * s.r_yaw_rate
+        self._stage_weights: list[float] = [0.0] * (M - 1)
+        """The position weights of j = 1..M-1 that `_w` holds (zero until the first period)."""
+        self._P_M = views["P_M"]
+        self._H = views["H"]  # [[P, q, .], [q', ., .], ...]: P's upper triangle and q to OSQP
         iH = index["H"]
         self._qp_sources = qp.value_sources(iH[:n, :n], index["Y"], iH[:n, n])
         self._qp_values = qp.data[: qp.layout["q"].stop]
         """OSQP's Px, Ax and q, gathered from H and Y with one take."""
         self._Y_steps = Y[:steps]
-        self._Y_cost = Y[:steps, : n + 1].reshape(M + 1, _BLOCK, n + 1)
-        self._WY = np.zeros((M + 1, _BLOCK, n + 1))
+        self._WY = np.zeros((steps, n + 2))
+        terminal = slice(ztil_row[M], ztil_row[M] + 3)
+        self._Y_terminal, self._WY_terminal = Y[terminal], self._WY[terminal]
         self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
         """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
         bound = self.u_max[None, :] - self.tightening
@@ -325,8 +335,8 @@ class TubeLbmpc:
     def _fill(self, d: QpData) -> None:
         """One plain-float pass over the period's data: both models along the linearization
         trajectory, the rotated gains, the c = 0 rollouts, the input bounds, the separation rows
-        and the cost weights that vary, scattered into T, Y's constant columns, OSQP's l and u
-        and W.
+        and the terminal weight, scattered into T, Y's constant columns, OSQP's l and u and P_M;
+        then the stage position weights into `_w` if they changed.
 
         Per step j, at phi = th + tau a_w w / 2:
             A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
@@ -397,12 +407,17 @@ class TubeLbmpc:
             ref.append((xb, yb))
         if self.n_neighbours:
             self._separation(d, (out[0], out[1]), lin, ref, out)
-        # Cost weights (doubled): the stage position weights, the terminal P at the last
-        # target heading rh.
-        for w in _rows(d.position_weights)[: self.M - 1]:
-            out += (2.0 * w, 2.0 * w)
+        # The terminal P at the last target heading rh (doubled).
         out += self._terminal_entries(rh, 2.0 * d.terminal_scale)
         self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
+        self._set_stage_weights(_rows(d.position_weights)[: self.M - 1])
+
+    def _set_stage_weights(self, weights: list[float]) -> None:
+        """Write the position weights of j = 1..M-1 (doubled) into `_w` when they changed."""
+        if weights != self._stage_weights:
+            doubled = 2.0 * np.asarray(weights, float)
+            self._w_steps[1 : self.M, 3:5] = doubled[:, None, None]
+            self._stage_weights = list(weights)
 
     def _condense(self, d: QpData) -> None:
         """Fill T, Y and the bounds for this period (`_precompute` describes them)."""
@@ -433,8 +448,9 @@ class TubeLbmpc:
         qp = self._qp
         self._condense(d)
         # Cost: [[P, q], [q', .]] = Y' W Y over the step rows (W doubled); A from Y's rows.
-        np.matmul(self._W, self._Y_cost, out=self._WY)
-        np.dot(self._Y_cost.reshape(-1, n + 1).T, self._WY.reshape(-1, n + 1), out=self._H)
+        np.multiply(self._w, self._Y_steps, out=self._WY)  # W's diagonal part
+        np.dot(self._P_M, self._Y_terminal, out=self._WY_terminal)
+        np.dot(self._Y_steps.T, self._WY, out=self._H)
         self._buffer.take(self._qp_sources, out=self._qp_values)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
