@@ -10,7 +10,9 @@ PX4 — setpoints must already stream (> 2 Hz for >= 1 s: the runner's streamer 
 arm and DO_SET_MODE OFFBOARD (COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6);
 ArduPilot — SET_MESSAGE_INTERVAL for the streams, GUIDED, arm with retries until accepted,
 takeoff. Setpoints are SET_POSITION_TARGET_LOCAL_NED with type_mask 1479 (velocity + yaw rate),
-frame BODY_NED (8) for PX4 and BODY_OFFSET_NED (9) for ArduPilot, vx = forward speed.
+frame BODY_NED (8) for PX4 and BODY_OFFSET_NED (9) for ArduPilot, vx = forward speed; a hold is
+type_mask 3576 (position only) in LOCAL_NED, which both autopilots fly with their own position
+controller (`send_position_setpoint`).
 
 A reader thread decodes everything that arrives; every field acted on is validated (random
 payloads often decode as valid messages). `state()` returns the latest validated snapshot;
@@ -36,7 +38,9 @@ from protocol.mavlink_map import (
     MavResult,
     ModeFlag,
     Px4MainMode,
+    SetpointFields,
     custom_mode_of,
+    encode_position_setpoint,
     encode_setpoint,
     mode_from_custom,
     setpoint_message_args,
@@ -77,6 +81,8 @@ class LinkState:
     """Local position North [m]."""
     east_m: float = math.nan
     """Local position East [m]."""
+    down_m: float = math.nan
+    """Local position Down [m] (minus the altitude above home)."""
     yaw_rad: float = math.nan
     """Heading [rad], clockwise from North."""
     armed: bool = False
@@ -140,6 +146,10 @@ class AutopilotLink(ABC):
     @abstractmethod
     def send_setpoint(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         """Send one body-frame forward speed + yaw rate setpoint (never raises)."""
+
+    @abstractmethod
+    def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
+        """Send one LOCAL_NED point to fly to and hold (never raises)."""
 
     @abstractmethod
     def engage(self, *, timeout_s: float) -> bool:
@@ -226,7 +236,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             return
         if kind == "LOCAL_POSITION_NED":
             if not (
-                _finite(msg.x, msg.y, bound=_MAX_POSITION_M)
+                _finite(msg.x, msg.y, msg.z, bound=_MAX_POSITION_M)
                 and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
             ):
                 self._update(rejected=st.rejected + 1)
@@ -235,6 +245,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             self._update(
                 north_m=float(msg.x),
                 east_m=float(msg.y),
+                down_m=float(msg.z),
                 position_boot_ns=t_ns,
                 time_boot_ns=max(t_ns, st.time_boot_ns),
                 received_ns=self._now_ns(),
@@ -306,9 +317,19 @@ class MavlinkAutopilotLink(AutopilotLink):
         if not (math.isfinite(speed_m_s) and math.isfinite(yaw_rate_rad_s)):
             speed_m_s, yaw_rate_rad_s = 0.0, 0.0
         px4 = self.state().autopilot != Autopilot.ARDUPILOTMEGA
-        sp = encode_setpoint(
-            speed_m_s, yaw_rate_rad_s, frame=Frame.BODY_NED if px4 else Frame.BODY_OFFSET_NED
+        self._send_fields(
+            encode_setpoint(
+                speed_m_s, yaw_rate_rad_s, frame=Frame.BODY_NED if px4 else Frame.BODY_OFFSET_NED
+            )
         )
+
+    def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
+        if not _finite(north_m, east_m, down_m, bound=_MAX_POSITION_M):
+            self.send_setpoint(speed_m_s=0.0, yaw_rate_rad_s=0.0)
+            return
+        self._send_fields(encode_position_setpoint(north_m, east_m, down_m))
+
+    def _send_fields(self, sp: SetpointFields) -> None:
         target = self._target()
         boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & _MAX_BOOT_MS
         mav = self._conn.mav
@@ -455,6 +476,8 @@ class FakeAutopilotLink(AutopilotLink):
         self._now_ns = 0
         self._last_setpoint_ns: int | None = None
         self.command = (0.0, 0.0)
+        self.hold_point: tuple[float, float, float] | None = None
+        """The last position setpoint (North, East, Down), until a velocity replaces it."""
         self.setpoint_times_ns: list[int] = []
         self.closed = False
         self.hold_requests = 0
@@ -471,6 +494,7 @@ class FakeAutopilotLink(AutopilotLink):
             position_boot_ns=self._now_ns,
             north_m=self._pose[0],
             east_m=self._pose[1],
+            down_m=0.0,
             yaw_rad=math.remainder(self._pose[2], 2 * math.pi),
             **extra,
         )
@@ -478,6 +502,15 @@ class FakeAutopilotLink(AutopilotLink):
     def send_setpoint(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         with self._cond:
             self.command = (float(speed_m_s), float(yaw_rate_rad_s))
+            self.hold_point = None
+            self._last_setpoint_ns = self._now_ns
+            self.setpoint_times_ns.append(self._now_ns)
+            self.setpoints_sent += 1
+
+    def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
+        with self._cond:
+            self.command = (0.0, 0.0)
+            self.hold_point = (float(north_m), float(east_m), float(down_m))
             self._last_setpoint_ns = self._now_ns
             self.setpoint_times_ns.append(self._now_ns)
             self.setpoints_sent += 1
@@ -502,7 +535,9 @@ class FakeAutopilotLink(AutopilotLink):
             if flying and (last is None or self._now_ns - last >= self._loss_timeout_ns):
                 self._update(mode=FlightMode.HOLD)
                 flying = False
-            if flying:
+            if flying and self.hold_point is not None:
+                self._pose[0], self._pose[1] = self.hold_point[:2]  # an ideal position hold
+            elif flying:
                 v, w = self.command
                 dt = dt_ns * 1e-9
                 self._pose[0] += v * math.cos(self._pose[2]) * dt

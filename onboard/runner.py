@@ -17,9 +17,12 @@ steps the agent at stamp k·τ with the latest pose, the newest target observati
 neighbours' latest plans, hands the command to the `SetpointStreamer` (a separate thread that
 sends the latest command at a fixed rate whatever the loop does), and publishes the plan and a
 status (with the step's wall time and the setpoint rate actually sent). Before the first step
-the streamer sends zeros, which is what PX4 needs to accept OFFBOARD, and the vehicle is engaged
-after the warm-up whether or not the epoch is known yet: a ground station waits for that. An
-exception in a step never leaves the loop: the command becomes zero and the status says why.
+the streamer holds the vehicle where the runner found it (position setpoints at the current
+altitude: the autopilot's own position controller keeps it there against the wind, and the
+stream is what PX4 needs to accept OFFBOARD), and the vehicle is engaged after the warm-up
+whether or not the epoch is known yet: a ground station waits for that. So every vehicle starts
+the fleet's first period where it was when its agent connected. An exception in a step never
+leaves the loop: the command becomes zero and the status says why.
 Mode loss is reported, not fought.
 """
 
@@ -217,7 +220,11 @@ def gap_stats_ms(times_ns: list[int]) -> dict[str, float]:
 
 
 class SetpointStreamer:
-    """Sends the latest command to the autopilot at a fixed rate from its own thread."""
+    """Sends the latest command to the autopilot at a fixed rate from its own thread.
+
+    The command is a velocity (`set_command`) or a point to hold (`hold_position`, sent at the
+    altitude the link last reported; zeros until it reports one); the newest call wins.
+    """
 
     def __init__(
         self,
@@ -233,6 +240,7 @@ class SetpointStreamer:
         self._now = monotonic_ns
         self._lock = threading.Lock()
         self._command = (0.0, 0.0)
+        self._hold: tuple[float, float] | None = None
         self._stop = threading.Event()
         self.send_times_ns: list[int] = []
         self._thread = threading.Thread(target=self._loop, name="setpoints", daemon=True)
@@ -240,6 +248,12 @@ class SetpointStreamer:
     def set_command(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         with self._lock:
             self._command = (float(speed_m_s), float(yaw_rate_rad_s))
+            self._hold = None
+
+    def hold_position(self, *, north_m: float, east_m: float) -> None:
+        """Stream position setpoints at (North, East) from now on, until `set_command`."""
+        with self._lock:
+            self._hold = (float(north_m), float(east_m))
 
     def rate_hz(self, *, window_ns: int) -> float:
         """Setpoints sent per second of the streamer's clock over its last `window_ns`."""
@@ -257,10 +271,14 @@ class SetpointStreamer:
         next_s = time.monotonic()
         while not self._stop.is_set():
             with self._lock:
-                v, w = self._command
+                (v, w), hold = self._command, self._hold
+            down = self._link.state().down_m if hold is not None else math.nan
             # A link must not raise, but never let the stream die.
             with contextlib.suppress(Exception):
-                self._link.send_setpoint(speed_m_s=v, yaw_rate_rad_s=w)
+                if math.isfinite(down):
+                    self._link.send_position_setpoint(north_m=hold[0], east_m=hold[1], down_m=down)
+                else:
+                    self._link.send_setpoint(speed_m_s=v, yaw_rate_rad_s=w)
             self.send_times_ns.append(self._now())
             next_s += self._period_s
             delay = next_s - time.monotonic()
@@ -525,11 +543,13 @@ class FleetRunner:
         """Step until `stop` is set, fleet time reaches `stop_at_fleet_ns` or `failure` is set.
 
         The vehicle is engaged after the warm-up whether or not the fleet epoch is known yet;
-        steps start once it is (until then the streamer keeps sending zeros).
+        steps start once it is (until then the streamer holds the vehicle where it was found).
         """
         s = self.settings
         self._streamer = streamer
         state = self.link.state()
+        if state.has_pose:
+            streamer.hold_position(north_m=state.north_m, east_m=state.east_m)
         first_boot_ns = state.time_boot_ns
         while not stop.is_set():
             state = self.link.wait_state(newer_than_ns=state.time_boot_ns, timeout_s=0.2)

@@ -3,6 +3,8 @@
 Everything here is plain integers and pure functions (no pymavlink): the numbers PX4 and ArduPilot
 put on the wire, the flight-mode encodings, and the one conversion between a unicycle command
 (forward speed V, yaw rate omega) and the fields of SET_POSITION_TARGET_LOCAL_NED.
+A position setpoint (`TypeMask.POSITION`, LOCAL_NED only) asks the autopilot's own position
+controller to fly to and hold a point: what an agent streams while the fleet waits to start.
 
 Frames (x North, y East, z Down; yaw clockwise from North seen from above):
 - LOCAL_NED (1): velocity in the local NED frame; yaw is an absolute heading.
@@ -33,6 +35,7 @@ __all__ = [
     "CopterMode",
     "FlightMode",
     "Frame",
+    "MAX_PLAUSIBLE_POSITION_M",
     "MAX_PLAUSIBLE_SPEED_M_S",
     "MAX_PLAUSIBLE_YAW_RAD",
     "MAX_PLAUSIBLE_YAW_RATE_RAD_S",
@@ -41,6 +44,7 @@ __all__ = [
     "MavState",
     "ModeFlag",
     "Px4AutoSubMode",
+    "PositionDemand",
     "Px4MainMode",
     "Rejection",
     "SetpointFields",
@@ -51,6 +55,7 @@ __all__ = [
     "check_setpoint",
     "custom_mode_of",
     "decode_setpoint",
+    "encode_position_setpoint",
     "encode_setpoint",
     "geodetic_from_ned",
     "mode_from_custom",
@@ -86,6 +91,8 @@ class TypeMask(IntEnum):
     """vx, vy, vz, yaw_rate used; ignored: position 1|2|4, acceleration 64|128|256, yaw 1024."""
     VELOCITY_YAW = 2503
     """vx, vy, vz and yaw used: ignore position, acceleration and yaw_rate (2048)."""
+    POSITION = 3576
+    """x, y, z used (LOCAL_NED only): ignore velocity 8|16|32, acceleration, yaw and yaw_rate."""
 
 
 SUPPORTED_TYPE_MASKS = frozenset(int(m) for m in TypeMask)
@@ -304,7 +311,7 @@ class Rejection(Enum):
 
 @dataclass(frozen=True)
 class SetpointFields:
-    """The SET_POSITION_TARGET_LOCAL_NED fields a velocity setpoint uses."""
+    """The SET_POSITION_TARGET_LOCAL_NED fields a velocity or position setpoint uses."""
 
     frame: int
     """MAV_FRAME (see Frame)."""
@@ -320,6 +327,12 @@ class SetpointFields:
     """Yaw setpoint [rad] (used with TypeMask.VELOCITY_YAW)."""
     yaw_rate_rad_s: float = 0.0
     """Yaw-rate setpoint [rad/s] (used with TypeMask.VELOCITY_YAW_RATE)."""
+    x_m: float = 0.0
+    """Position North [m] (used with TypeMask.POSITION)."""
+    y_m: float = 0.0
+    """Position East [m] (used with TypeMask.POSITION)."""
+    z_m: float = 0.0
+    """Position Down [m] (used with TypeMask.POSITION)."""
 
 
 def setpoint_message_args(
@@ -328,7 +341,7 @@ def setpoint_message_args(
     """Positional arguments of pymavlink's SET_POSITION_TARGET_LOCAL_NED encode/send for `sp`.
 
     Field order: time_boot_ms, target system, target component, frame, type_mask, x, y, z,
-    vx, vy, vz, afx, afy, afz, yaw, yaw_rate (position and acceleration unused, sent as 0).
+    vx, vy, vz, afx, afy, afz, yaw, yaw_rate (acceleration unused, sent as 0).
     """
     return (
         time_boot_ms,
@@ -336,9 +349,9 @@ def setpoint_message_args(
         target_component,
         sp.frame,
         sp.type_mask,
-        0.0,
-        0.0,
-        0.0,
+        sp.x_m,
+        sp.y_m,
+        sp.z_m,
         sp.vx_m_s,
         sp.vy_m_s,
         sp.vz_m_s,
@@ -368,6 +381,20 @@ MAX_PLAUSIBLE_YAW_RATE_RAD_S = 50.0
 """Yaw rates beyond this are treated as corrupt, not clamped."""
 MAX_PLAUSIBLE_YAW_RAD = 4.0 * math.pi
 """Yaw setpoints beyond this magnitude are treated as corrupt."""
+MAX_PLAUSIBLE_POSITION_M = 1.0e5
+"""Position setpoints farther than this from home (any axis) are treated as corrupt."""
+
+
+@dataclass(frozen=True)
+class PositionDemand:
+    """What a position setpoint asks of the autopilot's position controller."""
+
+    north_m: float
+    """Point to fly to and hold, North [m]."""
+    east_m: float
+    """Point to fly to and hold, East [m]."""
+    altitude_m: float
+    """Altitude above home to hold [m] (the setpoint's z is Down)."""
 
 
 def check_setpoint(sp: SetpointFields) -> Rejection | None:
@@ -376,6 +403,15 @@ def check_setpoint(sp: SetpointFields) -> Rejection | None:
         return Rejection.UNSUPPORTED_FRAME
     if sp.type_mask not in SUPPORTED_TYPE_MASKS:
         return Rejection.UNSUPPORTED_MASK
+    if sp.type_mask == TypeMask.POSITION:
+        if sp.frame != Frame.LOCAL_NED:
+            return Rejection.UNSUPPORTED_FRAME  # a body-frame point would move with the vehicle
+        position = (sp.x_m, sp.y_m, sp.z_m)
+        if not all(math.isfinite(v) for v in position):
+            return Rejection.NON_FINITE
+        if max(abs(v) for v in position) > MAX_PLAUSIBLE_POSITION_M:
+            return Rejection.IMPLAUSIBLE
+        return None
     yaw_value = sp.yaw_rad if sp.type_mask == TypeMask.VELOCITY_YAW else sp.yaw_rate_rad_s
     values = (sp.vx_m_s, sp.vy_m_s, sp.vz_m_s, yaw_value)
     if not all(math.isfinite(v) for v in values):
@@ -398,16 +434,19 @@ def decode_setpoint(
     heading_rad: float,
     yaw_gain_1_s: float,
     yaw_relative_in_body: bool = False,
-) -> UnicycleDemand | Rejection:
-    """The unicycle demand of a velocity setpoint at the current heading, or why it is rejected.
+) -> UnicycleDemand | PositionDemand | Rejection:
+    """The demand of a setpoint at the current heading, or why it is rejected.
 
-    The forward speed is the horizontal velocity projected on the heading (the lateral part is
+    A position setpoint is a `PositionDemand` (heading-independent). For a velocity setpoint the
+    forward speed is the horizontal velocity projected on the heading (the lateral part is
     dropped: a unicycle cannot fly it). With TypeMask.VELOCITY_YAW the yaw rate is
     `yaw_gain_1_s` times the wrapped heading error.
     """
     rejection = check_setpoint(sp)
     if rejection is not None:
         return rejection
+    if sp.type_mask == TypeMask.POSITION:
+        return PositionDemand(north_m=sp.x_m, east_m=sp.y_m, altitude_m=-sp.z_m)
     body = sp.frame != Frame.LOCAL_NED
     if body:
         speed = sp.vx_m_s
@@ -444,6 +483,17 @@ def encode_setpoint(
         vy_m_s=vy,
         vz_m_s=-climb_rate_m_s,
         yaw_rate_rad_s=yaw_rate_rad_s,
+    )
+
+
+def encode_position_setpoint(north_m: float, east_m: float, down_m: float) -> SetpointFields:
+    """SET_POSITION_TARGET_LOCAL_NED fields (mask 3576): fly to and hold a point, yaw unchanged."""
+    return SetpointFields(
+        frame=int(Frame.LOCAL_NED),
+        type_mask=int(TypeMask.POSITION),
+        x_m=north_m,
+        y_m=east_m,
+        z_m=down_m,
     )
 
 

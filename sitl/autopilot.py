@@ -12,9 +12,14 @@ Profiles:
   setpoints at any altitude, so the usual arm -> setpoint -> offboard flow works without a takeoff.
   TAKEOFF climbs to the takeoff altitude and then switches to HOLD.
 - ArduPilot (Copter): boots in STABILIZE. Arming and the modes that need a position are refused
-  until the position estimate is ready (`position_ready_ns` after boot). GUIDED velocity targets
-  are used only once airborne (take off with the takeoff command first) and stop (zero velocity,
-  mode stays GUIDED) after `guided_timeout_ns` without a new one.
+  until the position estimate is ready (`position_ready_ns` after boot). GUIDED targets are used
+  only once airborne and the takeoff (the takeoff command comes first) is complete; after
+  `guided_timeout_ns` without a new one the vehicle holds position (mode stays GUIDED).
+Position control. A flying vehicle that is not given a velocity demand holds its position, as a
+real autopilot's position controller does against the wind: in HOLD, during a takeoff climb or a
+landing, in GUIDED without a fresh target, and in OFFBOARD/GUIDED on a position setpoint (which
+names the point to fly to and hold). `step` then reports the point in `holding`, and the runner
+moves the plant there (`TruthPlant.fly_to`) instead of flying the unicycle.
 Both: LAND descends and disarms at touchdown; disarming in the air needs the force flag; a vehicle
 disarmed in the air falls at `fall_rate_m_s`. The vertical axis is a separate 1-D kinematic
 channel (altitude above home); the estimator is perfect (noise is added only to what is reported).
@@ -31,6 +36,7 @@ from protocol.mavlink_map import (
     LandedState,
     MavResult,
     MavState,
+    PositionDemand,
     Rejection,
     SetpointFields,
     Severity,
@@ -73,6 +79,8 @@ PROFILE_MODES: dict[Profile, frozenset[FlightMode]] = {
 
 _NEEDS_POSITION = frozenset({FlightMode.POSITION, FlightMode.HOLD, FlightMode.OFFBOARD})
 _ALTITUDE_EPS_M = 1e-6
+_ALTITUDE_TIME_CONSTANT_S = 1.0
+"""Time constant of the altitude hold on a position setpoint (clamped to the climb limits) [s]."""
 
 
 @dataclass(frozen=True)
@@ -168,6 +176,10 @@ class Autopilot:
         self._takeoff_target_m: float | None = None
         self._stream = _Stream()
         self._notices: list[Notice] = []
+        self._hold_point: tuple[float, float] | None = None
+        self.holding: tuple[float, float] | None = None
+        """The (North, East) point the position controller flies to this tick; None while a
+        velocity demand is flown or the vehicle cannot fly horizontally (set by `step`)."""
 
     # ----------------------------------------------------------------------------- queries
     @property
@@ -293,8 +305,19 @@ class Autopilot:
         return MavResult.ACCEPTED
 
     # ----------------------------------------------------------------------------- time
-    def step(self, now_ns: int, tick_ns: int, *, heading_rad: float) -> tuple[float, float]:
-        """Decide the (speed, yaw-rate) demand for the plant tick starting at `now_ns`."""
+    def step(
+        self,
+        now_ns: int,
+        tick_ns: int,
+        *,
+        heading_rad: float,
+        position_m: tuple[float, float] | None = None,
+    ) -> tuple[float, float]:
+        """Decide the (speed, yaw-rate) demand for the plant tick starting at `now_ns`.
+
+        With the vehicle's true `position_m`, a flying vehicle without a velocity demand holds
+        position: the demand is (0, 0) and `holding` names the point (see the module docstring).
+        """
         c = self.config
         fresh = self._fresh_setpoint(now_ns)
         if self.px4 and self.mode == FlightMode.OFFBOARD and fresh is None:
@@ -303,11 +326,25 @@ class Autopilot:
             self._notify(
                 Severity.CRITICAL, f"Offboard lost: no setpoint for {timeout_s:.1f} s, Hold"
             )
+        if not self.px4 and self._takeoff_target_m is not None:
+            fresh = None  # ArduPilot finishes its takeoff before it reads GUIDED targets
         demand = self._decode(fresh, heading_rad)
         self._climb(demand, tick_ns * 1e-9)
         horizontal = self.armed and (self.px4 or not self.landed)
-        if demand is None or not horizontal:
+        self.holding = None
+        if not horizontal:
+            self._hold_point = None
             return 0.0, 0.0
+        if isinstance(demand, PositionDemand):
+            self._hold_point = None
+            self.holding = (demand.north_m, demand.east_m)
+            return 0.0, 0.0
+        if demand is None:
+            if self._hold_point is None and position_m is not None:
+                self._hold_point = (float(position_m[0]), float(position_m[1]))
+            self.holding = self._hold_point
+            return 0.0, 0.0
+        self._hold_point = None
         speed = min(max(demand.speed_m_s, -c.speed_limit_m_s), c.speed_limit_m_s)
         yaw_rate = min(max(demand.yaw_rate_rad_s, -c.yaw_rate_limit_rad_s), c.yaw_rate_limit_rad_s)
         return speed, yaw_rate
@@ -321,7 +358,9 @@ class Autopilot:
         timeout_ns = c.offboard_loss_timeout_ns if self.px4 else c.guided_timeout_ns
         return s.setpoint if now_ns - s.last_ns < timeout_ns else None
 
-    def _decode(self, setpoint: SetpointFields | None, heading_rad: float) -> UnicycleDemand | None:
+    def _decode(
+        self, setpoint: SetpointFields | None, heading_rad: float
+    ) -> UnicycleDemand | PositionDemand | None:
         if setpoint is None:
             return None
         demand = decode_setpoint(
@@ -332,7 +371,7 @@ class Autopilot:
         )
         return None if isinstance(demand, Rejection) else demand
 
-    def _climb(self, demand: UnicycleDemand | None, dt_s: float) -> None:
+    def _climb(self, demand: UnicycleDemand | PositionDemand | None, dt_s: float) -> None:
         """Vertical channel: pick a climb rate for this tick and integrate the altitude."""
         c = self.config
         climbing_modes = (FlightMode.TAKEOFF, FlightMode.OFFBOARD)
@@ -346,6 +385,9 @@ class Autopilot:
             rate = -c.descent_rate_m_s
         elif target is not None:
             rate = c.climb_rate_m_s
+        elif self.mode == FlightMode.OFFBOARD and isinstance(demand, PositionDemand):
+            wanted = (demand.altitude_m - self.altitude_m) / _ALTITUDE_TIME_CONSTANT_S
+            rate = min(max(wanted, -c.descent_rate_m_s), c.climb_rate_m_s)
         elif self.mode == FlightMode.OFFBOARD and demand is not None:
             rate = min(max(demand.climb_rate_m_s, -c.descent_rate_m_s), c.climb_rate_m_s)
         else:

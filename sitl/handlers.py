@@ -56,10 +56,13 @@ def _integer(value: float, lo: int, hi: int) -> int | None:
 
 
 def setpoint_fields(m: mavlink.MAVLink_set_position_target_local_ned_message) -> SetpointFields:
-    """The fields of a SET_POSITION_TARGET_LOCAL_NED a velocity setpoint uses (unvalidated)."""
+    """The fields of a SET_POSITION_TARGET_LOCAL_NED a setpoint uses (unvalidated)."""
     return SetpointFields(
         frame=m.coordinate_frame,
         type_mask=m.type_mask,
+        x_m=m.x,
+        y_m=m.y,
+        z_m=m.z,
         vx_m_s=m.vx,
         vy_m_s=m.vy,
         vz_m_s=m.vz,

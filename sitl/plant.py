@@ -83,6 +83,10 @@ class TruthParams:
         positive("yaw_rate_limit_rad_s", self.yaw_rate_limit_rad_s)
 
 
+POSITION_TIME_CONSTANT_S = 1.0
+"""Time constant of the simulated autopilot's horizontal position hold [s]."""
+
+
 class TruthPlant:
     """One vehicle's true horizontal motion.
 
@@ -93,6 +97,7 @@ class TruthPlant:
         self.params = params
         self._s = [finite("x_m", x_m), finite("y_m", y_m), finite("yaw_rad", yaw_rad), 0.0, 0.0]
         self._cmd = (0.0, 0.0)
+        self._held_velocity: tuple[float, float] | None = None  # set by fly_to, cleared by advance
         self.time_ns = 0
 
     @property
@@ -119,6 +124,8 @@ class TruthPlant:
     @property
     def ground_velocity_m_s(self) -> tuple[float, float]:
         """True ground velocity (North, East) [m/s], wind included."""
+        if self._held_velocity is not None:
+            return self._held_velocity
         wx, wy = self.params.wind.at(self.time_ns * 1e-9)
         v, th = self._s[3], self._s[2]
         return v * math.cos(th) + wx, v * math.sin(th) + wy
@@ -185,6 +192,35 @@ class TruthPlant:
             if track is not None:
                 track.append((x, y))
         self._s = [x, y, th, v, w]
+        self._held_velocity = None
+
+    def fly_to(
+        self,
+        target_m: tuple[float, float],
+        tick_ns: int,
+        *,
+        speed_m_s: float,
+        time_constant_s: float = POSITION_TIME_CONSTANT_S,
+    ) -> None:
+        """One tick of the autopilot's position controller: straight towards `target_m`.
+
+        A multicopter holding a point is not a unicycle: it moves sideways, rejects the wind and
+        keeps its heading. The approach is first order (`time_constant_s`), at most `speed_m_s`;
+        the unicycle's achieved speed and yaw rate are zero afterwards.
+        """
+        h = tick_ns * 1e-9
+        x, y, th = self._s[0], self._s[1], self._s[2]
+        dx, dy = target_m[0] - x, target_m[1] - y
+        distance = math.hypot(dx, dy)
+        move = min(distance * -math.expm1(-h / time_constant_s), speed_m_s * h)
+        vx = vy = 0.0
+        if distance > 0.0:
+            vx, vy = dx * move / (distance * h), dy * move / (distance * h)
+            x, y = x + vx * h, y + vy * h
+        self._held_velocity = (vx, vy)
+        self._s = [x, y, th, 0.0, 0.0]
+        self._cmd = (0.0, 0.0)
+        self.time_ns += tick_ns
 
     def measure(self, rng: np.random.Generator) -> np.ndarray:
         """A noisy measurement of (x_m, y_m, yaw_rad); noise is Gaussian truncated at 3 sigma."""

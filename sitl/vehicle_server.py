@@ -4,7 +4,8 @@ Each loop iteration: wait until the next plant tick or until a socket is readabl
 plant tick by tick up to the clock's time (the autopilot picks each tick's command, telemetry due
 at that tick is sent, stamped with its simulated time); then read and handle every pending
 message. Mode and arming changes are announced at once with a HEARTBEAT, events with STATUSTEXT.
-A parked vehicle (on the ground and not flying) does not move: wind only drifts a flying one.
+A parked vehicle (on the ground and not flying) does not move: wind only drifts a flying one, and
+only while it flies a velocity demand; otherwise the autopilot holds or flies to a point.
 Nothing raises out of the loop: a failing handler is counted and the loop goes on.
 """
 
@@ -252,11 +253,16 @@ class VehicleServer:
     def _advance_to(self, now_ns: int) -> None:
         tick = self.config.tick_ns
         while self.plant.time_ns + tick <= now_ns:
-            heading = float(self.plant.state[2])
-            speed, yaw_rate = self.autopilot.step(self.plant.time_ns, tick, heading_rad=heading)
+            x, y, heading = self.plant.pose
+            ap = self.autopilot
+            speed, yaw_rate = ap.step(
+                self.plant.time_ns, tick, heading_rad=heading, position_m=(x, y)
+            )
             self.plant.command(speed, yaw_rate)
             if self.parked:
                 self.plant.time_ns += tick  # time passes, the parked vehicle does not drift
+            elif ap.holding is not None:
+                self.plant.fly_to(ap.holding, tick, speed_m_s=ap.config.speed_limit_m_s)
             else:
                 self.plant.advance(tick)
             self.counters.ticks += 1

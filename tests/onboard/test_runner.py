@@ -135,6 +135,7 @@ def test_run_streams_engages_and_stops_at_the_requested_time(paper) -> None:
     assert runner.engaged and runner.engage_attempted
     assert link.state().mode == FlightMode.OFFBOARD
     assert 14 <= runner.steps <= 16
+    assert link.hold_point is None, "the steps' velocities replace the hold"
     gaps = gap_stats_ms(streamer.send_times_ns)
     assert gaps["count"] > 20
     assert gaps["max"] < 100.0  # the stream never stalls behind the loop
@@ -145,6 +146,47 @@ def test_run_streams_engages_and_stops_at_the_requested_time(paper) -> None:
     assert 0.0 < status.setpoint_rate_hz <= 205.0, status.setpoint_rate_hz
     plan = listener.latest_plan_messages(last, 0)[1]
     assert 0 < plan.status.solve_time_us < 1_000_000
+
+
+def test_until_the_epoch_the_vehicle_holds_where_the_runner_found_it(paper) -> None:
+    """Engaged but waiting for the fleet epoch, the agent streams position setpoints at the
+    pose it started from (the autopilot holds it against the wind). Once steps run, velocities
+    replace them (`test_run_streams_engages_and_stops_at_the_requested_time`)."""
+    hub = MemoryHubs().hub(FLEET)
+    link = FakeAutopilotLink(system_id=1, north_m=3.0, east_m=-4.0)
+    link.connect(timeout_s=0.1)
+    bus = InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=1)
+    clock = FleetClock(awaiting_epoch=True)  # and none is announced
+    settings = RunnerSettings(period_ns=paper.controller.period_ns, warmup_ns=500_000_000)
+    runner = FleetRunner(build_agents(paper)[0], link=link, bus=bus, settings=settings, clock=clock)
+    streamer = SetpointStreamer(link, period_s=0.005)
+    stop = threading.Event()
+
+    def autopilot() -> None:
+        while not stop.is_set():
+            link.advance(50_000_000, steps=2)
+            time.sleep(0.005)
+
+    threads = [
+        threading.Thread(target=autopilot),
+        threading.Thread(target=runner.run, args=(stop, streamer)),
+    ]
+    streamer.start()
+    for thread in threads:
+        thread.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while not runner.engaged and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)
+        assert runner.engaged and runner.steps == 0
+        assert link.hold_point == (3.0, -4.0, 0.0)
+        assert link.state().mode == FlightMode.OFFBOARD
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(timeout=2.0)
+        streamer.stop()
 
 
 def test_setpoint_rate_counts_the_sends_of_the_last_window() -> None:

@@ -22,6 +22,7 @@ from protocol.mavlink_map import (  # noqa: E402
     MavResult,
     MavState,
     ModeFlag,
+    PositionDemand,
     Rejection,
     SetpointFields,
     Severity,
@@ -30,12 +31,14 @@ from protocol.mavlink_map import (  # noqa: E402
     base_mode,
     custom_mode_of,
     decode_setpoint,
+    encode_position_setpoint,
     encode_setpoint,
     geodetic_from_ned,
     mode_from_custom,
     ned_from_geodetic,
     px4_custom_mode,
     px4_split_custom_mode,
+    setpoint_message_args,
     wrap_pi,
 )
 
@@ -167,10 +170,33 @@ def test_yaw_setpoints_turn_the_short_way(target, heading_rad):
         (SetpointFields(8, 1479, 1.0, yaw_rate_rad_s=math.inf), Rejection.NON_FINITE),
         (SetpointFields(8, 1479, 1e20), Rejection.IMPLAUSIBLE),
         (SetpointFields(8, 2503, 1.0, yaw_rad=100.0), Rejection.IMPLAUSIBLE),
+        (SetpointFields(8, 3576, x_m=1.0), Rejection.UNSUPPORTED_FRAME),
+        (SetpointFields(1, 3576, z_m=math.nan), Rejection.NON_FINITE),
+        (SetpointFields(1, 3576, y_m=2e5), Rejection.IMPLAUSIBLE),
     ],
 )
 def test_bad_setpoints_are_rejected_with_a_reason(sp, why):
     assert decode_setpoint(sp, heading_rad=0.0, yaw_gain_1_s=1.0) == why
+
+
+@given(north=finite, east=finite, down=finite)
+def test_position_setpoint_round_trip_on_the_wire(north, east, down):
+    """Mask 3576 (ArduPilot's and PX4's position-only mask) carries the point in x, y, z."""
+    sp = encode_position_setpoint(north, east, down)
+    assert sp.type_mask == TypeMask.POSITION == 3576 and sp.frame == Frame.LOCAL_NED
+    args = setpoint_message_args(sp, time_boot_ms=7, target_system=1)
+    mav = M.MAVLink(None, srcSystem=255)
+    msg = mav.decode(bytearray(mav.set_position_target_local_ned_encode(*args).pack(mav)))
+    assert (msg.x, msg.y, msg.z, msg.type_mask) == (
+        pytest.approx(north, rel=1e-6, abs=1e-5),
+        pytest.approx(east, rel=1e-6, abs=1e-5),
+        pytest.approx(down, rel=1e-6, abs=1e-5),
+        3576,
+    )
+    # Velocity and yaw are unused: NaN there (as MAVSDK sends) is not checked.
+    sp = SetpointFields(1, 3576, vx_m_s=math.nan, yaw_rate_rad_s=math.nan, x_m=north, z_m=down)
+    demand = decode_setpoint(sp, heading_rad=1.0, yaw_gain_1_s=1.0)
+    assert demand == PositionDemand(north_m=north, east_m=0.0, altitude_m=-down)
 
 
 def test_unused_fields_are_not_checked():

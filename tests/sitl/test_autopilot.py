@@ -15,6 +15,7 @@ from protocol.mavlink_map import (
     Rejection,
     SetpointFields,
     TypeMask,
+    encode_position_setpoint,
     encode_setpoint,
 )
 from sitl.autopilot import Autopilot, AutopilotConfig, Profile
@@ -228,6 +229,35 @@ def test_ardupilot_guided_flies_only_in_the_air_and_stops_after_3_s():
     stopped_at = sim.now - TICK_NS
     assert t_last + 3 * S <= stopped_at < t_last + 3 * S + TICK_NS
     assert sim.ap.mode == FlightMode.OFFBOARD and sim.ap.armed
+
+
+def test_a_flying_vehicle_without_a_velocity_holds_a_point():
+    """HOLD, an ArduPilot takeoff climb, a GUIDED timeout and a position setpoint all hand the
+    plant to the position controller (`holding`); a velocity demand takes it back."""
+    sim = Sim(position_ready_ns=0)
+    sim.ap.arm(sim.now)
+    sim.demand = sim.ap.step(sim.now, TICK_NS, heading_rad=0.0, position_m=(1.0, 2.0))
+    assert sim.demand == (0.0, 0.0) and sim.ap.holding == (1.0, 2.0)  # PX4 HOLD, armed
+    sim.ap.step(sim.now, TICK_NS, heading_rad=0.0, position_m=(9.0, 9.0))
+    assert sim.ap.holding == (1.0, 2.0), "the point is latched, not the current position"
+    point = encode_position_setpoint(5.0, -3.0, -2.0)
+    sim.run(1100 * MS, setpoint=point)
+    assert sim.ap.set_mode(FlightMode.OFFBOARD, sim.now) == MavResult.ACCEPTED
+    sim.run(3 * S, setpoint=point)
+    assert sim.ap.holding == (5.0, -3.0) and sim.ap.altitude_m == pytest.approx(2.0, abs=0.2)
+    sim.run(200 * MS, setpoint=FORWARD)
+    assert sim.demand == pytest.approx((1.0, 0.2)) and sim.ap.holding is None
+
+    ardu = Sim(profile=Profile.ARDUPILOT, position_ready_ns=0, takeoff_altitude_m=3.0)
+    ardu.ap.set_mode(FlightMode.OFFBOARD, ardu.now)
+    ardu.ap.arm(ardu.now)
+    ardu.ap.takeoff(ardu.now)
+    for _ in range(10):
+        ardu.ap.receive_setpoint(FORWARD, ardu.now)
+        ardu.demand = ardu.ap.step(ardu.now, TICK_NS, heading_rad=0.0, position_m=(0.0, 12.0))
+        ardu.clock.advance(TICK_NS)
+    assert ardu.ap.altitude_m > 0.0 and ardu.demand == (0.0, 0.0)
+    assert ardu.ap.holding == (0.0, 12.0), "the takeoff climb holds the point"
 
 
 def test_ardupilot_ignores_setpoints_outside_guided():

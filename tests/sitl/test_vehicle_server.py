@@ -13,7 +13,12 @@ from protocol.mavlink_map import (
     MavResult,
     MavState,
     ModeFlag,
+    SetpointFields,
+    encode_position_setpoint,
+    encode_setpoint,
     ned_from_geodetic,
+    px4_split_custom_mode,
+    setpoint_message_args,
 )
 from protocol.scenario import load_scenario
 from sitl.autopilot import AutopilotConfig, Profile
@@ -26,6 +31,7 @@ M = mavlink
 DATA = Path(__file__).parent / "data"
 PAPER = Path(__file__).resolve().parents[2] / "scenarios" / "paper.toml"
 S = 1_000_000_000
+OFFBOARD = PX4_CUSTOM_MODE_OF[FlightMode.OFFBOARD]
 ONBOARD = ((M.MAVLINK_MSG_ID_HEARTBEAT, 1.0), *PX4_ONBOARD_RATES_HZ.items())
 
 
@@ -260,9 +266,45 @@ def test_measurement_noise_and_a_parked_vehicle_that_does_not_drift():
         assert np.abs(x).max() <= 3 * 0.05 + 1e-6  # truncated at 3 sigma
         assert yaw.std() == pytest.approx(0.01, rel=0.15)
         assert {(m.vx, m.vy) for m in lp} == {(0.0, 0.0)}
-        # Armed (PX4 may fly offboard from the ground), the wind moves it.
-        rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        moving = of_type(rig.run(2 * S), "LOCAL_POSITION_NED")[-1]
+    finally:
+        rig.close()
+
+
+def _fly(rig: Rig, sp: SetpointFields, duration_ns: int) -> list:
+    """Send `sp` every 0.1 s of simulated time for `duration_ns`; what the client received."""
+    out = []
+    for _ in range(duration_ns // (S // 10)):
+        args = setpoint_message_args(sp, time_boot_ms=0, target_system=1)
+        rig.client.send(lambda mav, args=args: mav.set_position_target_local_ned_encode(*args))
+        out.extend(rig.run(S // 10))
+    return out
+
+
+def test_the_autopilot_holds_position_against_the_wind_unless_flying_a_velocity():
+    """Armed in HOLD, then on a position setpoint the wind moves nothing; on a zero velocity
+    setpoint (the unicycle's own command) it drifts with the wind, as the truth model says."""
+    rig = Rig(scenario=PAPER)  # wind (0.3, -0.2) m/s, speed limit 2 m/s
+    plant = rig.server.plant
+    try:
+        rig.run(S)
+        rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)  # PX4 armed on the ground flies
+        start = plant.position_m
+        rig.run(3 * S)
+        assert plant.position_m == pytest.approx(start, abs=1e-12), "HOLD holds the point"
+        # A position setpoint: flown to at most 2 m/s, then held; heading and altitude kept.
+        heading = plant.pose[2]
+        _fly(rig, encode_position_setpoint(3.0, 4.0, 0.0), 2 * S)  # 1.1 s warm-up + 0.9 s
+        rig.command(M.MAV_CMD_DO_SET_MODE, 1, *px4_split_custom_mode(OFFBOARD))
+        assert rig.server.autopilot.mode == FlightMode.OFFBOARD
+        assert plant.position_m == pytest.approx(start, abs=1e-12)
+        msgs = _fly(rig, encode_position_setpoint(3.0, 4.0, 0.0), 12 * S)
+        lp = of_type(msgs, "LOCAL_POSITION_NED")
+        assert max(math.hypot(m.vx, m.vy) for m in lp) <= 2.0 + 1e-6  # float32 on the wire
+        assert plant.position_m == pytest.approx((3.0, 4.0), abs=0.01)
+        assert (lp[-1].vx, lp[-1].vy) == (pytest.approx(0.0, abs=0.01),) * 2
+        assert plant.pose[2] == heading and rig.server.autopilot.altitude_m == 0.0
+        # A zero velocity setpoint is a unicycle command: the wind moves the vehicle.
+        moving = of_type(_fly(rig, encode_setpoint(0.0, 0.0), 2 * S), "LOCAL_POSITION_NED")[-1]
         assert (moving.vx, moving.vy) == (pytest.approx(0.3), pytest.approx(-0.2))
     finally:
         rig.close()
