@@ -197,6 +197,7 @@ class Agent:
         Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s
         from 0 (in its own direction), rolled out with the learned model and scored by the
         squared distance of its positions to the goal (M points); returns (states, inputs).
+        A rollout stops once its partial score reaches the best so far (the score only grows).
         """
         s = self.settings
         tau = s.period_s
@@ -224,6 +225,8 @@ class Agent:
                 states.append((x, y, th))
                 inputs.append((v, w))
                 cost += (x - gx) ** 2 + (y - gy) ** 2
+                if cost >= best_cost:
+                    break
             if cost < best_cost:
                 best, best_cost = (states, inputs), cost
         assert best is not None
