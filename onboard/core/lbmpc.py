@@ -172,15 +172,16 @@ class TubeLbmpc:
         The products run over all 2M + 2 columns of the step rows (a contiguous block whose last
         column's products go unread), so that BLAS reads Y in place.
 
-        Persistent buffers: OSQP's values, T, Y, P_M and H are views into one flat buffer, so that
-        the period's float pass reaches every value it computes (T's and Y's entries, the bounds
-        l and u, the terminal P) with one scatter through a flat index map (`_lin_dest`),
-        and P, A and q reach OSQP with one take (`_qp_sources`). Entries that never change
-        (T's unit diagonal, the identity parts of A and A~, B's tau, the heading and input
-        weights, the separation rows' u = +infinity) are written once. A period overwrites every
-        entry that depends on its data, so nothing of an earlier period (even a non-finite one)
-        survives into the next; the stage position weights in `_w`, which change only with the
-        number of formation terms, are rewritten whenever they differ from the last period's.
+        Persistent buffers: OSQP's values, T, Y, P_M and H are views into one flat buffer, so
+        that the period's float pass reaches every value it computes (T's and Y's entries, the
+        bounds l and u, the terminal P) with one scatter through a flat index map (`_lin_dest`),
+        and P, A and q reach OSQP with one take (`_qp_sources`). Entries that never change (T's
+        unit diagonal, the identity parts of A and A~, B's tau, K_j's heading column, which the
+        rotation leaves as K0's, the heading and input weights, the separation rows'
+        u = +infinity) are written once. A period overwrites every entry that depends on its
+        data, so nothing of an earlier period (even a non-finite one) survives into the next;
+        the stage position weights in `_w`, which change only with the number of formation
+        terms, are rewritten whenever they differ from the last period's.
 
         Also cached: the K0 and P0 entries as floats, the tightened input box of each step, the
         packer of the float pass, and the OSQP problem with its fixed pattern.
@@ -237,6 +238,7 @@ class TubeLbmpc:
         T[np.arange(m), np.arange(m)] = 1.0
         for j in range(M):
             T[zbar_row[j + 1] + 2, u_row[j] + 1] = -self.tau  # B[2, 1] (B~[2, 1] varies)
+            T[u_row[j] : u_row[j] + 2, zbar_row[j] + 2] = -self.K0[:, 2]  # (not rotated)
             for r in range(3):  # the identity parts of A_j and A~_j
                 T[zbar_row[j + 1] + r, zbar_row[j] + r] = -1.0
                 T[ztil_row[j + 1] + r, ztil_row[j] + r] = -1.0
@@ -250,7 +252,7 @@ class TubeLbmpc:
             zb, zt, u = zbar_row[j], ztil_row[j], u_row[j]
             zb1, zt1 = zbar_row[j + 1], ztil_row[j + 1]
             for entries in (
-                iT[u : u + 2, zb : zb + 3],  # K_j
+                iT[u : u + 2, zb : zb + 2],  # K_j's position columns
                 iY[u : u + 2, n + 1],  # u_s,j
                 il[2 * j : 2 * j + 2],  # its bounds, lower
                 iu[2 * j : 2 * j + 2],  # and upper
@@ -357,7 +359,7 @@ class TubeLbmpc:
         a_v, a_w, d_x, d_y = _rows(d.beta)
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
-        k00, k01, k02, k10, k11, k12 = self._K0_entries
+        k00, k01, _, k10, k11, _ = self._K0_entries
         sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
         xb, yb, hb = _rows(d.z0)
         xt, yt, ht = xb, yb, hb
@@ -375,8 +377,8 @@ class TubeLbmpc:
         for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
             c, s = cos(th), sin(th)
             out += (
-                k01 * s - k00 * c, -k00 * s - k01 * c, -k02,  # -K_j
-                k11 * s - k10 * c, -k10 * s - k11 * c, -k12,
+                k01 * s - k00 * c, -k00 * s - k01 * c,  # -K_j's position columns
+                k11 * s - k10 * c, -k10 * s - k11 * c,
                 us_v, us_w,  # u_s,j
                 lo_v - us_v, lo_w - us_w, hi_v - us_v, hi_w - us_w,  # input rows' l, u
             )  # fmt: skip
