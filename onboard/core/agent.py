@@ -138,20 +138,21 @@ class Agent:
         """
         tau = self.settings.period_s
         a_v, a_w, d_x, d_y = beta
+        hypot, atan2, pi = math.hypot, math.atan2, math.pi
         speeds, headings = [], []
-        last = raw_last = 0.0
-        for j, ((x0, y0), (x1, y1)) in enumerate(zip(slots[:-1], slots[1:], strict=False)):
+        last = raw_last = None
+        x0, y0 = slots[0]
+        for x1, y1 in slots[1:]:
             gx, gy = (x1 - x0) / tau - d_x, (y1 - y0) / tau - d_y
-            speed = math.hypot(gx, gy)
-            raw = math.atan2(gy, gx) if speed >= 1e-3 else yaw
-            last = raw if j == 0 else last + (raw - raw_last + math.pi) % _TWO_PI - math.pi
-            raw_last = raw
+            speed = hypot(gx, gy)
+            raw = atan2(gy, gx) if speed >= 1e-3 else yaw
+            last = raw if raw_last is None else last + (raw - raw_last + pi) % _TWO_PI - pi
+            raw_last, x0, y0 = raw, x1, y1
             speeds.append(speed)
             headings.append(last)
-        u_s = [
-            (speeds[j] / a_v, (headings[j + 1] - headings[j]) / (tau * a_w))
-            for j in range(self.settings.horizon)
-        ]
+        tw = tau * a_w
+        steps = zip(speeds[: self.settings.horizon], headings, headings[1:], strict=False)
+        u_s = [(v / a_v, (h1 - h0) / tw) for v, h0, h1 in steps]  # (M pairs)
         return u_s, headings
 
     def _pursuit_inputs(

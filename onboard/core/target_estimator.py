@@ -59,7 +59,7 @@ class TargetEstimator:
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
         """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
-        p = np.asarray(position_m, dtype=float)
+        p = np.asarray(position_m, float)
         if p.shape != (2,) or not all(map(math.isfinite, p.tolist())):
             return False
         if self._stamp_ns is None:
