@@ -414,9 +414,9 @@ class TubeLbmpc:
         self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
         self._set_stage_weights(_rows(d.position_weights)[: self.M - 1])
 
-    def _set_stage_weights(self, weights: list[float]) -> None:
+    def _set_stage_weights(self, weights: Sequence[float]) -> None:
         """Write the position weights of j = 1..M-1 (doubled) into `_w` when they changed."""
-        if weights != self._stage_weights:
+        if list(weights) != self._stage_weights:  # (a list, whatever sequence they came in)
             doubled = 2.0 * np.asarray(weights, float)
             self._w_steps[1 : self.M, 3:5] = doubled[:, None, None]
             self._stage_weights = list(weights)
