@@ -104,7 +104,8 @@ class Agent:
         self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
         self.u_max = self.mpc.u_max
         M = controller.horizon
-        self._u_min = -self.u_max
+        self._input_box = (np.tile(-self.u_max, (M, 1)), np.tile(self.u_max, (M, 1)))
+        """U's bounds for the M planned inputs (full shape: broadcasting costs a ufunc more)."""
         self._no_positions = [(0.0, 0.0)] * M
         """An absent neighbour's positions (ignored: its margins are infinite)."""
         self._no_margins = [math.inf] * M
@@ -399,7 +400,8 @@ class Agent:
         )
         sol = self.mpc.solve(data)
         if sol.ok:
-            inputs = np.minimum(np.maximum(sol.inputs, self._u_min), self.u_max)
+            lower, upper = self._input_box
+            inputs = np.minimum(np.maximum(sol.inputs, lower), upper)
             states, c, status = sol.learned.copy(), sol.c, "solved"
         else:
             self.fallbacks += 1
@@ -412,9 +414,9 @@ class Agent:
                 np.zeros((M, 2)),
                 f"fallback: {sol.status}",
             )
-        heading = states[:, 2]
-        np.remainder(heading + math.pi, _TWO_PI, out=heading)  # wrap to [-pi, pi)
-        heading -= math.pi
+        states[:, 2] = [  # wrapped to [-pi, pi), in floats (M + 1 of them)
+            (h + math.pi) % _TWO_PI - math.pi for h in states[:, 2].tolist()
+        ]
         plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, states, inputs)
         self._last_plan = plan
         self._last_command = inputs[0].copy()

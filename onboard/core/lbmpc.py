@@ -23,7 +23,7 @@ over the horizon linearizes both models, rotates the gains, rolls out c = 0, and
 bounds, the separation rows and the terminal weight; its values reach their places in one
 scatter; one triangular solve condenses the horizon (`TubeLbmpc._precompute`); an elementwise
 product and two BLAS products give the cost; one take hands P, A and q to OSQP; one product gives
-the solution's predictions.
+the solution's predictions and inputs, and one take sorts them by kind into contiguous arrays.
 """
 
 import math
@@ -291,6 +291,12 @@ class TubeLbmpc:
         self._WY = np.zeros((steps, n + 2))
         terminal = slice(ztil_row[M], ztil_row[M] + 3)
         self._Y_terminal, self._WY_terminal = Y[terminal], self._WY[terminal]
+        self._by_kind = np.array(
+            [u_row[j] + i for j in range(M) for i in range(2)]
+            + [ztil_row[j] + i for j in range(M + 1) for i in range(3)]
+            + [zbar_row[j] + i for j in range(M + 1) for i in range(3)]
+        )
+        """The step rows as the solution hands them out: inputs, learned, nominal predictions."""
         self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
         """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
         bound = self.u_max[None, :] - self.tightening
@@ -470,9 +476,10 @@ class TubeLbmpc:
             x = np.zeros(n)
         # Predictions and inputs at c = x: the step rows of Y times [c; 0; 1].
         self._x_ext[:n] = x
-        y = self._Y_steps.dot(self._x_ext).reshape(M + 1, _BLOCK)
-        inputs = y[:M, 6:]
-        u0, w0 = inputs[0].tolist()
+        # (Gathered by kind, so that each comes out as a contiguous array.)
+        y = self._Y_steps.dot(self._x_ext).take(self._by_kind)
+        inputs, learned, nominal = y[:n], y[n : n + 3 * M + 3], y[n + 3 * M + 3 :]
+        u0, w0 = inputs[:2].tolist()
         v_lim, w_lim = self._first_input_limit
         if ok and (abs(u0) > v_lim or abs(w0) > w_lim):
             ok, status = False, "first input outside U"
@@ -482,9 +489,9 @@ class TubeLbmpc:
             ok=ok,
             status=status,
             c=x.reshape(M, 2),
-            inputs=inputs,
-            nominal=y[:, :3],
-            learned=y[:, 3:6],
+            inputs=inputs.reshape(M, 2),
+            nominal=nominal.reshape(M + 1, 3),
+            learned=learned.reshape(M + 1, 3),
             iterations=iterations,
         )
 
