@@ -71,6 +71,9 @@ from pymavlink import mavutil  # noqa: E402
 
 __all__ = ["GroundStation", "add_arguments", "run"]
 
+EXIT_WITHOUT_TEARDOWN = True
+"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+
 GCS_SYSTEM_ID = 255
 """MAVLink system id of the ground station (the conventional GCS id)."""
 _STATUS_WALL_S = 0.5

@@ -39,6 +39,9 @@ from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
 
+EXIT_WITHOUT_TEARDOWN = True
+"""Its children are stopped and its files closed when `run` returns (see `gcs.cli.entry`)."""
+
 _STOP_ORDER = (("gcs",), ("agent", "target"), ("sitl", "router"))
 """Shutdown stages: the ground station (it closes the recording), then the agents (they command
 HOLD while their autopilots still run) with the target, then the vehicles and the router."""
@@ -93,6 +96,7 @@ class Fleet:
         self.logs = run_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.children: list[_Child] = []
+        self.stage_s: dict[str, float] = {}
 
     def start(self, spec: ProcessSpec) -> _Child:
         log = self.logs / f"{spec.name}.log"
@@ -130,8 +134,12 @@ class Fleet:
         return None
 
     def stop(self) -> dict[str, int | None]:
-        """Stop every child (SIGTERM by role order, then SIGKILL); return the exit codes."""
+        """Stop every child (SIGTERM by role order, then SIGKILL); return the exit codes.
+
+        `stage_s` keeps each stage's wall time (the first role of the stage names it).
+        """
         for roles in _STOP_ORDER:
+            t0 = time.monotonic()
             group = [c for c in self.children if c.spec.role in roles and c.proc.poll() is None]
             for c in group:
                 c.proc.send_signal(signal.SIGTERM)
@@ -142,6 +150,7 @@ class Fleet:
                 except subprocess.TimeoutExpired:
                     c.proc.kill()
                     c.proc.wait(timeout=5.0)
+            self.stage_s[roles[0]] = time.monotonic() - t0
         return {c.spec.name: c.proc.returncode for c in self.children}
 
 
@@ -281,7 +290,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"fleetmpc up: FAILED: {failure}; the tail of its log:", file=sys.stderr)
         print(_tail(failure.child.log), file=sys.stderr)
     if interrupted.is_set() and rc is None:
-        print(f"fleetmpc up: interrupted; every process stopped in {stop_s:.1f} s", file=sys.stderr)
+        stages = ", ".join(f"{role} {t:.1f} s" for role, t in fleet.stage_s.items())
+        print(
+            f"fleetmpc up: interrupted; every process stopped in {stop_s:.1f} s ({stages})",
+            file=sys.stderr,
+        )
     if metrics.is_file():
         print(format_summary(json.loads(metrics.read_text())))
         print(f"metrics: {metrics}\nrecording: {rrd}")

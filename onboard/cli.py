@@ -32,6 +32,9 @@ from protocol.scenario import load_scenario, mavlink_url
 
 __all__ = ["add_arguments", "run"]
 
+EXIT_WITHOUT_TEARDOWN = True
+"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")

@@ -17,6 +17,9 @@ from protocol.zenoh_config import DEFAULT_HOST, DEFAULT_PORT, disable_scouting, 
 
 __all__ = ["main", "open_router", "router_config", "serve"]
 
+EXIT_WITHOUT_TEARDOWN = True
+"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+
 
 def router_config(*, port: int, host: str = DEFAULT_HOST) -> zenoh.Config:
     """Config of a router listening on tcp/HOST:PORT, connecting nowhere, scouting off."""

@@ -27,6 +27,9 @@ from sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 
 __all__ = ["add_arguments", "build_config", "run"]
 
+EXIT_WITHOUT_TEARDOWN = True
+"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+
 PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
 """PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
 PX4_GCS_LOCAL_BASE_PORT = 18570

@@ -31,6 +31,9 @@ from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run", "wait_for_epoch"]
 
+EXIT_WITHOUT_TEARDOWN = True
+"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+
 _SPEED_RTOL = 1e-6
 
 

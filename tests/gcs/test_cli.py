@@ -1,7 +1,12 @@
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 from gcs.cli import main
 from gcs.figures import FIGURE_FILES
+
+ROOT = Path(__file__).resolve().parents[2]
 
 KEYS = {
     "scenario",
@@ -80,3 +85,20 @@ def test_bad_scenario_is_a_clear_error(tmp_path, capsys):
     bad.write_text('name = "x"\n[[vehicles]]\nid = 1\ninitial = [0, 0]\n')
     assert main(["check", str(bad)]) == 2
     assert "vehicles[0].initial" in capsys.readouterr().err
+
+
+def test_a_fleet_process_exits_without_teardown_and_loses_no_output(tmp_path):
+    """`entry` ends a fleet process (here `target`, on a configuration error) with os._exit
+    after its atexit hooks: the exit status and everything printed survive."""
+    missing = str(tmp_path / "missing.toml")
+    code = (
+        "import atexit, sys; atexit.register(lambda: print('atexit ran'))\n"
+        f"sys.argv[1:] = ['target', '--scenario', {missing!r}]\n"
+        "from gcs.cli import entry; entry()"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2, done.stderr
+    assert "fleetmpc target: error:" in done.stderr and "missing.toml" in done.stderr
+    assert done.stdout == "atexit ran\n"
