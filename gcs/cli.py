@@ -40,10 +40,10 @@ def entry() -> None:
     """The console script (and ``python -m gcs.cli``): `main`, then exit with its status.
 
     A fleet process (its module sets ``EXIT_WITHOUT_TEARDOWN``: agent, gcs, target, sitl,
-    zenoh-router, and `up`, which stops them) has closed and flushed everything it wrote when `run` returns, so after the
-    atexit hooks it leaves with `os._exit`: the interpreter's teardown of its Zenoh, Rerun and
-    pymavlink objects took 0.5-2.5 s per process when a whole fleet stopped at once, longer than
-    the rest of `fleetmpc up`'s shutdown.
+    zenoh-router, and `up`, which stops them) has closed and flushed everything it wrote when
+    `run` returns, so after the atexit hooks it leaves with `os._exit`: the interpreter's
+    teardown of its Zenoh, Rerun and pymavlink objects took 0.5-2.5 s per process when a whole
+    fleet stopped at once, longer than the rest of `fleetmpc up`'s shutdown.
     """
     code, module = _dispatch(None)
     if getattr(module, "EXIT_WITHOUT_TEARDOWN", False):
