@@ -169,6 +169,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="instead: the ground station logging cost per vehicle-period (gcs.bench_logging)",
     )
+    parser.add_argument(
+        "--flush-s",
+        type=float,
+        nargs="+",
+        default=[0.5, 1.0],
+        metavar="S",
+        help="with --gcs-logging: the ground station's flush intervals to compare [wall s]",
+    )
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=4.0,
+        help="with --gcs-logging: the fleet speed the flush intervals are taken at",
+    )
 
 
 def _load() -> list[float]:

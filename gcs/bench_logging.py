@@ -7,7 +7,8 @@ One process, side by side on the same machine:
 2. a `GroundStation` fed what a live ground station would receive from that run (each vehicle's
    position, plan and status every period, the target's observation), flushed to an `.rrd` file
    every `P` periods, as `fleetmpc gcs --flush-s F --speed S` flushes every F * S / period
-   periods; each flush is timed as the ground station times it (draining the inbox, plans,
+   periods (`fleetmpc bench --gcs-logging --flush-s F [F ...] --speed S`, default 0.5 and 1 s
+   at x4); each flush is timed as the ground station times it (draining the inbox, plans,
    status series, events, the record's new periods, the target prediction).
 
 The figures, per vehicle-period (one vehicle's data of one control period), next to the agent
@@ -35,6 +36,7 @@ from gcs.ground_station import GroundStation
 from gcs.lockstep import run_lockstep
 from gcs.record import FlightRecord
 from gcs.recording import log_statics, open_recording
+from onboard.core.errors import FleetMpcError
 from onboard.core.plan import Plan
 from protocol.messages import (
     TARGET_ID,
@@ -148,6 +150,10 @@ def _logging(rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path) 
 
 
 def run(args: argparse.Namespace) -> int:
+    for name, values in (("--flush-s", args.flush_s), ("--speed", [args.speed])):
+        bad = [v for v in values if not (v > 0 and np.isfinite(v))]
+        if bad:
+            raise FleetMpcError(f"{name}: must be > 0, got {bad[0]:g}")
     sc = load_scenario(args.scenario)
     run_lockstep(sc)  # warm-up: the first run in a process pays for first calls
     rec = run_lockstep(sc)
@@ -155,7 +161,8 @@ def run(args: argparse.Namespace) -> int:
     period_s = sc.controller.period_ns * 1e-9
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for flush_s, speed in ((0.5, 4.0), (1.0, 4.0)):
+        for flush_s in args.flush_s:
+            speed = args.speed
             periods = max(1, round(flush_s * speed / period_s))
             row = _logging(rec, sc, periods_per_flush=periods, rrd=Path(tmp) / f"{periods}.rrd")
             row |= {"flush_s": flush_s, "speed": speed}
