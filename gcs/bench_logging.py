@@ -18,7 +18,8 @@ step median (the target is at most 10 % of it):
   `fleetmpc gcs`);
 - steady: the median flush / (periods per flush x vehicles);
 - CPU: the process's CPU time over the run, every thread included (Rerun encodes and writes in
-  threads of its own, after the flush returns), less the same run with logging off.
+  threads of its own, after the flush returns), less the same run with logging off (medians of
+  three alternating pairs).
 A flush costs mostly per entity, not per row, so the figures fall as the flushes grow. Wall-clock
 and CPU times; nothing is asserted.
 """
@@ -124,27 +125,36 @@ def _feed(rec: FlightRecord, scenario, *, periods_per_flush: int, stream) -> Gro
     return gs
 
 
-def _logging(rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path) -> dict:
+def _logging(
+    rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path, repeats: int = 3
+) -> dict:
     """Flush times, and the CPU time of the whole process (every thread, Rerun's encoder and
-    file writer included) with logging less the same run without it."""
-    t0 = time.process_time()
-    _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=None)
-    cpu_without = time.process_time() - t0
-    t0 = time.process_time()
-    stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
-    log_statics(stream, scenario.vehicle_ids, live=True)  # as the ground station, before flight
-    gs = _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=stream)
-    cpu_with = time.process_time() - t0
-    flush = np.asarray(gs.flush_ms)
+    file writer included) with logging less the same run without it: `repeats` pairs run
+    alternately, medians compared (a single pair's difference is noisy, even negative)."""
+    cpu_without, cpu_with, flush = [], [], []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=None)
+        cpu_without.append(time.process_time() - t0)
+        t0 = time.process_time()
+        stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
+        log_statics(stream, scenario.vehicle_ids, live=True)  # as the ground station, before flight
+        gs = _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=stream)
+        cpu_with.append(time.process_time() - t0)
+        flush.extend(gs.flush_ms)
+    flush = np.asarray(flush)
+    vehicle_periods = gs.flushed_vehicle_periods
     per_flush = periods_per_flush * len(scenario.vehicles)
+    cpu_s = float(np.median(cpu_with) - np.median(cpu_without))
     return {
         "periods_per_flush": periods_per_flush,
-        "flushes": len(flush),
+        "flushes": len(flush) // repeats,
+        "repeats": repeats,
         "flush_median_ms": float(np.median(flush)),
         "flush_p99_ms": float(np.percentile(flush, 99)),
-        "ms_per_vehicle_period": float(flush.sum() / gs.flushed_vehicle_periods),
+        "ms_per_vehicle_period": float(flush.sum() / repeats / vehicle_periods),
         "steady_ms_per_vehicle_period": float(np.median(flush)) / per_flush,
-        "cpu_ms_per_vehicle_period": (cpu_with - cpu_without) * 1e3 / gs.flushed_vehicle_periods,
+        "cpu_ms_per_vehicle_period": cpu_s * 1e3 / vehicle_periods,
         "rrd_kib": rrd.stat().st_size / 1024,
     }
 
