@@ -117,9 +117,9 @@ class LiveRecord:
         self._target_pending: TargetObservation | None = None
         self._scenario_rows = {name: np.empty((0,)) for name in _SCENARIO_FIELDS}
         self._received_rows = {name: np.empty((0,)) for name in _RECEIVED_FIELDS + _LIVE_FIELDS}
-        self._valid = 0
         self._pairs = np.triu_indices(len(self.ids), 1)
         """Index arrays of every vehicle pair (a, b), a < b."""
+        self._valid = 0
         """Periods whose received fields in the cache are current."""
 
     def _invalidate(self, period: int) -> None:

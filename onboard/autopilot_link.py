@@ -500,17 +500,17 @@ class FakeAutopilotLink(AutopilotLink):
         )
 
     def send_setpoint(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
-        with self._cond:
-            self.command = (float(speed_m_s), float(yaw_rate_rad_s))
-            self.hold_point = None
-            self._last_setpoint_ns = self._now_ns
-            self.setpoint_times_ns.append(self._now_ns)
-            self.setpoints_sent += 1
+        self._received((float(speed_m_s), float(yaw_rate_rad_s)), None)
 
     def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
+        self._received((0.0, 0.0), (float(north_m), float(east_m), float(down_m)))
+
+    def _received(
+        self, command: tuple[float, float], hold_point: tuple[float, float, float] | None
+    ) -> None:
+        """The autopilot's side of one setpoint: what it flies, and when it came."""
         with self._cond:
-            self.command = (0.0, 0.0)
-            self.hold_point = (float(north_m), float(east_m), float(down_m))
+            self.command, self.hold_point = command, hold_point
             self._last_setpoint_ns = self._now_ns
             self.setpoint_times_ns.append(self._now_ns)
             self.setpoints_sent += 1
