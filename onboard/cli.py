@@ -11,8 +11,9 @@ explicit endpoints (`protocol.zenoh_config.options_from_args`), scouting off;
 file. Fleet time (`onboard.runner`): ``--epoch-ns`` gives the epoch, ``--wait-epoch`` takes the
 first one the ground station announces on the bus; the agent connects, streams and engages
 either way, and steps once the epoch is known. An announced speed other than ``--speed`` is an
-error (exit 2). SIGINT/SIGTERM: ask the autopilot to HOLD, close the Zenoh session and the link,
-print a JSON summary on stdout, exit 0.
+error (exit 2). SIGINT/SIGTERM: hold the vehicle where it is (`onboard.runner.wind_down`: position
+setpoints for 50 ms, then HOLD), close the Zenoh session and the link, print a JSON summary on
+stdout, exit 0.
 """
 
 import argparse
@@ -20,14 +21,13 @@ import json
 import signal
 import sys
 import threading
-import time
 from pathlib import Path
 
 from onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from onboard.core.agent import Agent
 from onboard.core.errors import ConfigError
 from onboard.planbus import open_fleet_bus
-from onboard.runner import FleetClock, FleetRunner, RunnerSettings, SetpointStreamer
+from onboard.runner import FleetClock, FleetRunner, RunnerSettings, SetpointStreamer, wind_down
 from protocol.scenario import load_scenario, mavlink_url
 
 __all__ = ["add_arguments", "run"]
@@ -136,13 +136,8 @@ def run(args: argparse.Namespace) -> int:
         _log(str(e))
         return 2
     finally:
-        if streamer is not None:
-            streamer.set_command(speed_m_s=0.0, yaw_rate_rad_s=0.0)
-            time.sleep(0.05)
-            streamer.stop()
         if link is not None:
-            if runner is not None and runner.engaged:
-                link.hold()
+            wind_down(link, streamer, engaged=runner is not None and runner.engaged)
             link.close()
         if bus is not None:
             bus.close()

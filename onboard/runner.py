@@ -59,6 +59,7 @@ __all__ = [
     "RunnerSettings",
     "SetpointStreamer",
     "gap_stats_ms",
+    "wind_down",
 ]
 
 _MAX_NEIGHBOURS = 8
@@ -291,6 +292,28 @@ class SetpointStreamer:
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=1.0)
+
+
+def wind_down(
+    link: AutopilotLink, streamer: SetpointStreamer | None, *, engaged: bool, settle_s: float = 0.05
+) -> None:
+    """The agent's last act on its vehicle: leave it holding where it is.
+
+    The stream switches to position setpoints where the link last saw the vehicle (zero velocity
+    when it never reported a pose) for `settle_s` of wall time, so the last command the autopilot
+    flies is a point, not the agent's last velocity, then stops; an engaged vehicle is then asked
+    to HOLD (a real autopilot would otherwise fall back to its failsafe when the stream ends).
+    """
+    if streamer is not None:
+        state = link.state()
+        if state.has_pose:
+            streamer.hold_position(north_m=state.north_m, east_m=state.east_m)
+        else:
+            streamer.set_command(speed_m_s=0.0, yaw_rate_rad_s=0.0)
+        time.sleep(settle_s)
+        streamer.stop()
+    if engaged:
+        link.hold()
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,7 @@
 """FleetRunner on fakes: steps on the autopilot's clock, publishes, streams, never raises."""
 
+import dataclasses
+import math
 import threading
 import time
 
@@ -18,6 +20,7 @@ from onboard.runner import (
     RunnerSettings,
     SetpointStreamer,
     gap_stats_ms,
+    wind_down,
 )
 from protocol.mavlink_map import FlightMode
 from protocol.messages import GROUND_STATION_ID
@@ -330,3 +333,32 @@ def test_an_epoch_at_another_speed_stops_the_run(paper) -> None:
     assert not runner.sync.clock.ready and runner.steps == 0
     assert any(line.startswith("error: speed") for line in logged), logged
     assert runner.summary()["failure"] == runner.failure
+
+
+def test_winding_down_leaves_the_vehicle_holding_where_it_is() -> None:
+    """The last setpoints are a point where the vehicle was, not its last velocity, and an
+    engaged vehicle is asked to HOLD; without a pose the stream falls back to zero velocity."""
+    link = FakeAutopilotLink(north_m=3.0, east_m=-4.0)
+    link.connect(timeout_s=0.1)
+    streamer = SetpointStreamer(link, period_s=0.005)
+    streamer.set_command(speed_m_s=1.5, yaw_rate_rad_s=0.2)
+    streamer.start()
+    wind_down(link, streamer, engaged=True, settle_s=0.05)
+    assert link.hold_point == (3.0, -4.0, 0.0) and link.command == (0.0, 0.0)
+    assert link.hold_requests == 1
+    sent = link.setpoints_sent
+    time.sleep(0.03)
+    assert link.setpoints_sent == sent  # the stream has stopped
+
+    class NoPose(FakeAutopilotLink):
+        def state(self):
+            return dataclasses.replace(super().state(), north_m=math.nan)
+
+    link = NoPose()
+    link.connect(timeout_s=0.1)
+    streamer = SetpointStreamer(link, period_s=0.005)
+    streamer.set_command(speed_m_s=1.5, yaw_rate_rad_s=0.2)
+    streamer.start()
+    wind_down(link, streamer, engaged=False, settle_s=0.05)
+    assert link.hold_point is None and link.command == (0.0, 0.0)
+    assert link.hold_requests == 0
