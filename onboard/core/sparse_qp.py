@@ -104,6 +104,11 @@ class FixedPatternQp:
         settings.max_iter = max_iter
         settings.warm_starting = True
         settings.polishing = False
+        # Termination is checked every 5 iterations, not OSQP's default 25: a solve that
+        # converges between two checks stops up to 20 iterations sooner (paper.toml: mean 54 ->
+        # 46 iterations, median 25 either way), and a check on a problem this small costs less
+        # than the iterations it saves.
+        settings.check_termination = 5
         self._solver = _ext.OSQPSolver(
             _ext.CSC(P), np.zeros(n), _ext.CSC(A), -np.ones(m), np.ones(m), m, n, settings
         )
