@@ -11,8 +11,12 @@ same paths):
 
 - `map/vehicles`: every vehicle's position (Points2D) and heading (Arrows2D), one instance
   per vehicle in fleet order, coloured and labelled by a static logged once;
-- `map/trails` (the last `trail_window_s` of each path) and `map/formation_links` (every
-  pair) as LineStrips2D; `map/target` and `map/slots` (one per vehicle) as Points2D;
+- `map/trails` (LineStrips2D): each vehicle's step since the previous period, a two-point
+  strip per vehicle and period; the blueprint shows this entity over the last `trail_window_s`
+  before the time cursor (a visible time range on it alone), so the steps join into trails
+  while a period costs one segment per vehicle, not the whole window;
+- `map/formation_links` (every pair) as LineStrips2D; `map/target` and `map/slots` (one per
+  vehicle) as Points2D;
 - `series/separation` (one line per pair), `series/centre_distance`,
   `series/formation_error`, `series/c_norm`, `series/solve_time_ms` (one line per vehicle),
   `series/beta/<param>` (per vehicle: learned, then truth) as Scalars, the lines named and
@@ -21,8 +25,9 @@ same paths):
 - live runs only: `map/plans` (each agent's planned horizon, LineStrips2D),
   `map/target_prediction` (the ground station's prediction of the target over the horizon),
   `series/plan_age` [s] (one line per vehicle and neighbour) and `series/setpoint_rate` [Hz];
-- `meta` (static AnyValues) and `flight_record` (AnyValues, float64, one row per period): what
-  `gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
+- `meta` (static AnyValues) and `flight_record` (AnyValues: one `periods` column, a float64
+  list per period that packs every per-period FlightRecord field in `record_layout`'s order):
+  what `gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
 
 Map frame: the viewer's 2-D x is East and its y is South (the viewer's y points down), so North
 is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that conversion lives.
@@ -46,13 +51,16 @@ __all__ = [
     "BETA_PARAMS",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
+    "RECORD_COLUMN",
     "TIMELINE",
+    "TRAIL_WINDOW_S",
     "fleet_blueprint",
     "log_events",
     "log_flight_record",
     "log_statics",
     "open_recording",
     "map_from_ned",
+    "record_layout",
     "sim_time_ns",
     "write_recording",
 ]
@@ -80,10 +88,37 @@ RECORD_ARRAYS = (
     "slot_offsets_world",
 )
 """Per-period FlightRecord fields stored losslessly under `flight_record`."""
+RECORD_COLUMN = "periods"
+"""The `flight_record` component: one float64 list per period, the parts of `record_layout`
+one after the other (qp_ok as 1.0 / 0.0)."""
 MIN_SEPARATION_COLUMN = "min_separation_known_m"
-"""A `flight_record` column: the run's minimum separation as known when the row was logged (a
-growing record logs it with every slice, so the newest row has the whole run's). It is the only
-copy: `meta` holds what does not change."""
+"""The last part of a `flight_record` row: the run's minimum separation as known when the row
+was logged (a growing record logs it with every slice, so the newest row has the whole run's).
+It is the only copy: `meta` holds what does not change."""
+
+
+def record_layout(n_vehicles: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """(name, per-period shape) of each part of a `flight_record` row, in order, for N vehicles:
+    the RECORD_ARRAYS, then MIN_SEPARATION_COLUMN (one value)."""
+    n = n_vehicles
+    shapes = {
+        "truth": (n, 3),
+        "target": (2,),
+        "target_velocity": (2,),
+        "slots": (n, 2),
+        "command": (n, 2),
+        "c": (n, 2),
+        "beta": (n, 4),
+        "beta_truth": (n, 4),
+        "qp_ok": (n,),
+        "step_time_ms": (n,),
+        "slot_offsets_world": (n, 2),
+    }
+    return (*((name, shapes[name]) for name in RECORD_ARRAYS), (MIN_SEPARATION_COLUMN, (1,)))
+
+
+TRAIL_WINDOW_S = 20.0
+"""Default length of the trail the map shows behind each vehicle [s]."""
 
 _HEADING_ARROW_M = 2.0
 _RGB = (
@@ -113,8 +148,16 @@ def _colour(i: int) -> tuple[int, int, int]:
     return _RGB[i % len(_RGB)]
 
 
-def fleet_blueprint(*, vehicle_ids: tuple[int, ...]) -> rrb.Blueprint:
-    """The viewer layout: the map on the left, the time series on the right."""
+def fleet_blueprint(
+    *, vehicle_ids: tuple[int, ...], trail_window_s: float = TRAIL_WINDOW_S
+) -> rrb.Blueprint:
+    """The viewer layout: the map on the left, the time series on the right; the map shows
+    `map/trails` over the last `trail_window_s` [s] before the time cursor."""
+    trail = rrb.VisibleTimeRanges(
+        timeline=TIMELINE,
+        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-trail_window_s),
+        end=rrb.TimeRangeBoundary.cursor_relative(),
+    )
     series = [
         rrb.TimeSeriesView(origin="series/separation", name="separation [m]"),
         rrb.TimeSeriesView(origin="series/centre_distance", name="centre distance [m]"),
@@ -137,7 +180,11 @@ def fleet_blueprint(*, vehicle_ids: tuple[int, ...]) -> rrb.Blueprint:
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial2DView(origin="map", name=f"map ({len(vehicle_ids)} UAVs)"),
+                rrb.Spatial2DView(
+                    origin="map",
+                    name=f"map ({len(vehicle_ids)} UAVs)",
+                    overrides={"/map/trails": trail},
+                ),
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],
             ),
@@ -159,6 +206,8 @@ _INDEX = pa.field(
 _SCALARS = rr.Scalars.descriptor_scalars()
 _POSITIONS = rr.Points2D.descriptor_positions()
 _STRIPS = rr.LineStrips2D.descriptor_strips()
+_ORIGINS = rr.Arrows2D.descriptor_origins()
+_VECTORS = rr.Arrows2D.descriptor_vectors()
 
 
 def _offsets(lengths: np.ndarray) -> pa.Array:
@@ -171,8 +220,9 @@ def _xy(points: np.ndarray) -> pa.Array:
     return pa.FixedSizeListArray.from_arrays(flat, type=_F32_XY)
 
 
-_FIELDS: dict[tuple[str, str, pa.DataType], pa.Field] = {}
-"""Schema fields by (entity path, component, type): the same few dozen every flush."""
+_FIELDS: dict[tuple[str, str], pa.Field] = {}
+"""Schema fields by (entity path, component): the same few dozen every flush (keyed without the
+Arrow type, whose hash costs some 8 us; a field is made anew if its column's type differs)."""
 
 
 class _Columns:
@@ -187,21 +237,23 @@ class _Columns:
         self.rows = len(self.t_ns)
         self._fields = [_INDEX]
         self._arrays = [pa.array(self.t_ns.astype("timedelta64[ns]"))]
-        self._uniform: dict[int, pa.Array] = {}
+        self._uniform: dict[tuple[int, int], pa.Array] = {}
         self._scalars: list[tuple[str, np.ndarray]] = []
 
-    def _rows_of(self, m: int) -> pa.Array:
-        """Offsets of `rows` lists of m items each."""
-        if m not in self._uniform:
-            self._uniform[m] = pa.array(np.arange(0, self.rows * m + 1, m, dtype=np.int32))
-        return self._uniform[m]
+    def _rows_of(self, m: int, per_row: int = 1) -> pa.Array:
+        """Offsets of `rows` x `per_row` lists of m items each."""
+        key = (m, per_row)
+        if key not in self._uniform:
+            end = self.rows * per_row * m
+            self._uniform[key] = pa.array(np.arange(0, end + 1, m, dtype=np.int32))
+        return self._uniform[key]
 
     def add(self, path: str, descriptor: rr.ComponentDescriptor | str, column: pa.Array) -> None:
         """A list array of `rows` rows (an archetype's descriptor, or a bare name: AnyValues)."""
         component = descriptor if isinstance(descriptor, str) else descriptor.component
-        key = (path, component, column.type)
+        key = (path, component)
         f = _FIELDS.get(key)
-        if f is None:
+        if f is None or not f.type.equals(column.type):
             meta = {"rerun:kind": "data", "rerun:entity_path": path, "rerun:component": component}
             if not isinstance(descriptor, str):
                 meta["rerun:archetype"] = descriptor.archetype
@@ -260,6 +312,11 @@ class _Columns:
             column = pa.ListArray.from_arrays(_offsets(counts), strips, mask=pa.array(missing))
         self.add(path, _STRIPS, column)
 
+    def segments(self, path: str, points: np.ndarray, per_row: int) -> None:
+        """LineStrips2D of two points each, `per_row` of them in every row."""
+        strips = pa.ListArray.from_arrays(self._rows_of(2, per_row), _xy(points), type=_STRIP)
+        self.add(path, _STRIPS, pa.ListArray.from_arrays(self._rows_of(per_row), strips))
+
     def values(self, path: str, name: str, rows: np.ndarray) -> None:
         """AnyValues component `name`: (rows, m) float64 or bool, one list of m per row."""
         m = rows.shape[1]
@@ -297,13 +354,13 @@ def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) 
     )
 
 
-def _record_arrays(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
-    for name in RECORD_ARRAYS:
-        a = np.asarray(getattr(rec, name))[start:]
-        a = a.astype(np.bool_) if name == "qp_ok" else a.astype(np.float64)
-        columns.values("flight_record", name, a.reshape(columns.rows, -1))
-    known = np.full((columns.rows, 1), rec.min_separation_m, dtype=np.float64)
-    columns.values("flight_record", MIN_SEPARATION_COLUMN, known)
+def _record_rows(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
+    """Periods start.. of the record as `flight_record` rows (`record_layout`)."""
+    rows = columns.rows
+    parts = [np.asarray(getattr(rec, name))[start:].reshape(rows, -1) for name in RECORD_ARRAYS]
+    parts.append(np.full((rows, 1), rec.min_separation_m))
+    packed = np.concatenate(parts, axis=1, dtype=np.float64)
+    columns.values("flight_record", RECORD_COLUMN, packed)
 
 
 def _series_names(
@@ -365,55 +422,27 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, liv
         stream.log(path, rr.SeriesLines(names=names, colors=colours), static=True)
 
 
-def _trail_points(pos: np.ndarray, *, first: np.ndarray, start: int) -> tuple:
-    """Trails of rows start.. of pos (K, N, 2): in each row, vehicle by vehicle, the points
-    pos[first[k] .. k, i]; returns the points and the strip lengths (rows x N)."""
-    k_all, n = pos.shape[:2]
-    rows = np.arange(start, k_all)
-    lengths = rows + 1 - first[rows]
-    begin = np.repeat(np.cumsum(lengths) - lengths, lengths)
-    times = np.arange(lengths.sum()) - begin + np.repeat(first[rows], lengths)
-    row_of = np.repeat(np.arange(len(rows)), lengths)
-    # Every (vehicle, time) point, ordered by row, then vehicle, then time.
-    flat = (times[None, :] * n + np.arange(n)[:, None]).ravel()
-    key = (row_of[None, :] * n + np.arange(n)[:, None]).ravel()
-    points = pos.reshape(-1, 2)[flat[np.argsort(key, kind="stable")]]
-    return points, np.repeat(lengths, n)
-
-
-def _map(
-    columns: _Columns,
-    rec: FlightRecord,
-    *,
-    t_ns: np.ndarray,
-    trail_window_s: float,
-    start: int,
-) -> None:
+def _map(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
     k, n = rec.truth.shape[:2]
-    pos = map_from_ned(rec.truth[:, :, :2])
-    rows = slice(start, k)
-    yaw = rec.truth[rows, :, 2]
+    before = max(start - 1, 0)
+    pos = map_from_ned(rec.truth[before:, :, :2])  # periods before .. k - 1
+    here = pos[start - before :]
+    previous = pos[:-1] if start else np.concatenate([pos[:1], pos[:-1]])
+    yaw = rec.truth[start:, :, 2]
     heading = map_from_ned(_HEADING_ARROW_M * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1))
-    step_ns = t_ns[1] - t_ns[0] if k > 1 else 1  # one control period: records are on its grid
-    window = max(1, int(round(trail_window_s * 1e9 / max(step_ns, 1))))
-    first = np.maximum(np.arange(k) - window + 1, 0)
-    here = pos[rows].reshape(-1, 2)
-    columns.xy("map/vehicles", _POSITIONS, here, per_row=n)
-    columns.xy("map/vehicles", rr.Arrows2D.descriptor_origins(), here, per_row=n)
-    columns.xy("map/vehicles", rr.Arrows2D.descriptor_vectors(), heading.reshape(-1, 2), per_row=n)
-    trail, lengths = _trail_points(pos, first=first, start=start)
-    columns.strips("map/trails", trail, lengths, per_row=n)
-    columns.xy("map/slots", _POSITIONS, map_from_ned(rec.slots[rows]).reshape(-1, 2), per_row=n)
-    columns.xy("map/target", _POSITIONS, map_from_ned(rec.target[rows]))
+    flat = here.reshape(-1, 2)
+    columns.xy("map/vehicles", _POSITIONS, flat, per_row=n)
+    columns.xy("map/vehicles", _ORIGINS, flat, per_row=n)
+    columns.xy("map/vehicles", _VECTORS, heading.reshape(-1, 2), per_row=n)
+    steps = np.stack([previous, here], axis=2)  # (K, N, 2 points, 2)
+    columns.segments("map/trails", steps.reshape(-1, 2), per_row=n)
+    columns.xy("map/slots", _POSITIONS, map_from_ned(rec.slots[start:]).reshape(-1, 2), per_row=n)
+    columns.xy("map/target", _POSITIONS, map_from_ned(rec.target[start:]))
     pairs = pair_indices(n)
     if pairs:
-        links = np.stack([pos[rows][:, [a, b]] for a, b in pairs], axis=1)  # (K, P, 2, 2)
-        columns.strips(
-            "map/formation_links",
-            links.reshape(-1, 2),
-            np.full(links.shape[0] * len(pairs), 2),
-            per_row=len(pairs),
-        )
+        a, b = np.array(pairs).T
+        links = np.stack([here[:, a], here[:, b]], axis=2)  # (K, P, 2 points, 2)
+        columns.segments("map/formation_links", links.reshape(-1, 2), per_row=len(pairs))
 
 
 _PER_VEHICLE_SERIES = ("formation_error", "c_norm", "solve_time_ms")
@@ -499,7 +528,6 @@ def log_flight_record(
     rec: FlightRecord,
     *,
     run_info: dict | None = None,
-    trail_window_s: float = 20.0,
     start: int = 0,
     live: LiveRows | None = None,
     statics: bool = True,
@@ -507,10 +535,9 @@ def log_flight_record(
     """Log a FlightRecord to an open recording stream, column-wise, in one batch.
 
     run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
-    trail_window_s: length of the trail drawn behind each vehicle [s].
     start: log only periods `start`.. (a live ground station logs a growing record in slices;
-    earlier periods still draw the trails). The static `meta` (the record's constants and the run
-    facts), colours and line names are logged when start is 0.
+    the trail's first step starts at period `start` - 1). The static `meta` (the record's
+    constants and the run facts), colours and line names are logged when start is 0.
     live: what a live run adds to periods `start`.. (plans, setpoint rates, plan ages, the
     target prediction).
     statics: log the colours, labels and line names with the first slice (`log_statics`).
@@ -523,8 +550,8 @@ def log_flight_record(
     if start >= len(t_ns):
         return
     columns = _Columns(t_ns[start:])
-    _record_arrays(columns, rec, start=start)
-    _map(columns, rec, t_ns=t_ns, trail_window_s=trail_window_s, start=start)
+    _record_rows(columns, rec, start=start)
+    _map(columns, rec, start=start)
     _series(columns, rec, start=start)
     if live is not None:
         if live.plans.shape[0] != columns.rows:
@@ -543,14 +570,16 @@ def open_recording(
     viewer_url: str | None = None,
     spawn_viewer: bool = False,
     recording_id: str | None = None,
+    trail_window_s: float = TRAIL_WINDOW_S,
 ) -> rr.RecordingStream:
     """A recording stream with its blueprint, teed to an `.rrd` file and/or a viewer.
 
     `viewer_url`: a running viewer's gRPC URL (``rerun+http://HOST:9876/proxy``);
-    `spawn_viewer`: start a local viewer (the `rerun` executable) and stream to it.
+    `spawn_viewer`: start a local viewer (the `rerun` executable) and stream to it;
+    `trail_window_s`: length of the trail the map shows behind each vehicle [s].
     """
     stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()))
-    blueprint = fleet_blueprint(vehicle_ids=vehicle_ids)
+    blueprint = fleet_blueprint(vehicle_ids=vehicle_ids, trail_window_s=trail_window_s)
     if spawn_viewer:
         stream.spawn(default_blueprint=blueprint)
         viewer_url = viewer_url or "rerun+http://127.0.0.1:9876/proxy"
@@ -571,11 +600,16 @@ def write_recording(
     *,
     recording_id: str | None = None,
     run_info: dict | None = None,
-    trail_window_s: float = 20.0,
+    trail_window_s: float = TRAIL_WINDOW_S,
 ) -> str:
     """Write a FlightRecord and its blueprint to an `.rrd` file; return the recording id."""
-    stream = open_recording(vehicle_ids=rec.vehicle_ids, path=path, recording_id=recording_id)
-    log_flight_record(stream, rec, run_info=run_info, trail_window_s=trail_window_s)
+    stream = open_recording(
+        vehicle_ids=rec.vehicle_ids,
+        path=path,
+        recording_id=recording_id,
+        trail_window_s=trail_window_s,
+    )
+    log_flight_record(stream, rec, run_info=run_info)
     stream.flush()
     stream.disconnect()
     return stream.get_recording_id()

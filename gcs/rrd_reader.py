@@ -1,9 +1,10 @@
 """Rebuild a FlightRecord from a Rerun recording written by `gcs.recording`.
 
 Reads the `meta` and `flight_record` entities with rerun-sdk's chunk reader
-(`rr.chunk.RrdReader(path).stream()`); the float64 arrays come back bit for bit, and the sample
-times as `sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`). The run's minimum
-separation is the newest row's `min_separation_known_m` (a live recording grows in slices).
+(`rr.chunk.RrdReader(path).stream()`); each `flight_record` row is unpacked by
+`gcs.recording.record_layout`, the float64 arrays come back bit for bit, and the sample times as
+`sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`). The run's minimum separation is
+the newest row's `min_separation_known_m` (a live recording grows in slices).
 """
 
 import json
@@ -14,7 +15,7 @@ import pyarrow as pa
 import rerun as rr
 
 from gcs.record import FlightRecord
-from gcs.recording import MIN_SEPARATION_COLUMN, RECORD_ARRAYS, TIMELINE
+from gcs.recording import MIN_SEPARATION_COLUMN, RECORD_COLUMN, TIMELINE, record_layout
 from onboard.core.errors import FleetMpcError
 
 __all__ = ["RecordingError", "RecordingRun", "read_recording"]
@@ -62,20 +63,18 @@ def read_recording(path: str | Path) -> RecordingRun:
         raise RecordingError(f"{p}: not a readable Rerun recording ({e})") from e
     meta: dict[str, pa.Array] = {}
     times: list[np.ndarray] = []
-    columns = (*RECORD_ARRAYS, MIN_SEPARATION_COLUMN)
-    values: dict[str, list[np.ndarray]] = {name: [] for name in columns}
+    packed: list[pa.Array] = []
     for chunk in chunks:
         if chunk.entity_path == _META_ENTITY:
             meta.update(_data_columns(chunk.to_record_batch()))
         elif chunk.entity_path == _RECORD_ENTITY:
             batch = chunk.to_record_batch()
             data = _data_columns(batch)
-            if set(data) != set(columns):
-                raise RecordingError(f"{p}: a flight_record chunk lacks some of {columns}")
+            if RECORD_COLUMN not in data:
+                raise RecordingError(f"{p}: a flight_record chunk has no {RECORD_COLUMN!r}")
             t = batch.column(batch.schema.get_field_index(TIMELINE))
             times.append(t.cast(pa.int64()).to_numpy())
-            for name in columns:
-                values[name].extend(_rows(data[name]))
+            packed.append(data[RECORD_COLUMN])
     if not meta or not times:
         raise RecordingError(f"{p}: no fleetmpc flight record (meta / flight_record) in it")
 
@@ -84,31 +83,40 @@ def read_recording(path: str | Path) -> RecordingRun:
     t_ns = t_ns[order]
     ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
     n, k = len(ids), len(t_ns)
+    layout = record_layout(n)
+    width = sum(int(np.prod(shape)) for _, shape in layout)
+    flat = np.concatenate([c.flatten().to_numpy(zero_copy_only=False) for c in packed])
+    if flat.size != k * width:
+        raise RecordingError(f"{p}: flight_record rows are not {width} values for {n} vehicles")
+    rows = flat.reshape(k, width)[order]
+    parts: dict[str, np.ndarray] = {}
+    at = 0
+    for name, shape in layout:
+        size = int(np.prod(shape))
+        parts[name] = rows[:, at : at + size].reshape(k, *shape).copy()
+        at += size
 
     def scalar(name: str) -> float:
         return float(_rows(meta[name])[0][0])
-
-    def per_period(name: str, shape: tuple[int, ...]) -> np.ndarray:
-        return np.stack(values[name])[order].reshape(k, *shape)
 
     record = FlightRecord(
         scenario=str(meta["scenario"][0][0]),
         vehicle_ids=ids,
         t_s=t_ns * 1e-9,
-        truth=per_period("truth", (n, 3)),
-        target=per_period("target", (2,)),
-        target_velocity=per_period("target_velocity", (2,)),
-        slots=per_period("slots", (n, 2)),
-        command=per_period("command", (n, 2)),
-        c=per_period("c", (n, 2)),
-        beta=per_period("beta", (n, 4)),
-        beta_truth=per_period("beta_truth", (n, 4)),
-        qp_ok=per_period("qp_ok", (n,)).astype(bool),
-        step_time_ms=per_period("step_time_ms", (n,)),
+        truth=parts["truth"],
+        target=parts["target"],
+        target_velocity=parts["target_velocity"],
+        slots=parts["slots"],
+        command=parts["command"],
+        c=parts["c"],
+        beta=parts["beta"],
+        beta_truth=parts["beta_truth"],
+        qp_ok=parts["qp_ok"].astype(bool),
+        step_time_ms=parts["step_time_ms"],
         desired_distance_m=_rows(meta["desired_distance_m"])[0].reshape(n, n),
         trail_m=scalar("trail_m"),
-        slot_offsets_world=per_period("slot_offsets_world", (n, 2)),
-        min_separation_m=float(per_period(MIN_SEPARATION_COLUMN, ())[-1]),
+        slot_offsets_world=parts["slot_offsets_world"],
+        min_separation_m=float(parts[MIN_SEPARATION_COLUMN][-1, 0]),
         speed_max_m_s=scalar("speed_max_m_s"),
         yaw_rate_max_rad_s=scalar("yaw_rate_max_rad_s"),
         d_safe_m=scalar("d_safe_m"),

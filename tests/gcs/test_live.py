@@ -114,6 +114,18 @@ def test_a_record_logged_in_slices_reads_back_whole(lockstep, tmp_path) -> None:
     back = read_recording(path).record
     for name in ("t_s", "truth", "command", "c", "beta", "slots", "qp_ok"):
         np.testing.assert_array_equal(getattr(back, name), getattr(lockstep, name), err_msg=name)
+    # Each slice's trail steps start where the previous slice ended.
+    steps = [
+        row
+        for c in rr.chunk.RrdReader(path).stream()
+        if c.entity_path == "/map/trails" and not c.is_static
+        for b in [c.to_record_batch()]
+        for row in b.column(b.schema.names.index("LineStrips2D:strips")).to_pylist()
+    ]
+    east_south = np.stack([lockstep.truth[..., 1], -lockstep.truth[..., 0]], axis=-1)
+    previous = np.concatenate([east_south[:1], east_south[:-1]])
+    want = np.stack([previous, east_south], axis=2)  # (K, N, 2 points, 2)
+    np.testing.assert_allclose(np.array(steps), want, atol=1e-4)
 
 
 def _assert_same_record(got, want) -> None:

@@ -13,7 +13,7 @@ from gcs.figures import FIGURE_FILES
 from gcs.lockstep import run_lockstep
 from gcs.metrics import compute_metrics, pair_indices
 from gcs.record import FlightRecord
-from gcs.recording import BETA_PARAMS, TIMELINE, write_recording
+from gcs.recording import BETA_PARAMS, TIMELINE, TRAIL_WINDOW_S, write_recording
 from gcs.report import METRICS_FILE
 from gcs.rrd_reader import RecordingError, read_recording
 
@@ -112,6 +112,35 @@ def test_every_entity_family_is_in_the_file(run, rrd):
     got = batch.column(batch.schema.names.index("SeriesLines:names")).to_pylist()[0]
     assert got == [f"UAV {v}" for v in ids] + [f"UAV {v} truth" for v in ids]
     assert rr.chunk.RrdReader(path).blueprints(), "no blueprint sent with the recording"
+
+
+def test_trails_are_steps_the_blueprint_shows_over_the_trail_window(run, rrd):
+    """Each period logs every vehicle's step since the previous period; the map view shows
+    `map/trails` alone over the last TRAIL_WINDOW_S, so the steps join into trails."""
+    rec, _ = run
+    path, _, _, _ = rrd
+    (trails,) = [c for c in _chunks_by_entity(path)["/map/trails"] if not c.is_static]
+    batch = trails.to_record_batch()
+    strips = batch.column(batch.schema.names.index("LineStrips2D:strips")).to_pylist()
+    n = len(rec.vehicle_ids)
+    assert len(strips) == len(rec.t_s) and all(len(row) == n for row in strips)
+    for k in (0, 1, 17):
+        for i in range(n):
+            north, east = rec.truth[max(k - 1, 0), i, :2]
+            north_now, east_now = rec.truth[k, i, :2]
+            want = [[east, -north], [east_now, -north_now]]
+            assert strips[k][i] == [pytest.approx(p, abs=1e-4) for p in want], (k, i)
+    reader = rr.chunk.RrdReader(path)
+    (blueprint,) = reader.blueprints()
+    ranges = [
+        b.column(b.schema.names.index("VisibleTimeRanges:ranges")).to_pylist()
+        for c in reader.stream(store=blueprint)
+        if c.entity_path.endswith("/ViewContents/overrides/map/trails/visualizers")
+        for b in [c.to_record_batch()]
+    ]
+    window_ns = round(TRAIL_WINDOW_S * 1e9)
+    want = {"timeline": TIMELINE, "range": {"start": -window_ns, "end": 0}}
+    assert ranges == [[[want]]]
 
 
 def test_qp_fallback_becomes_a_warning_event(run, tmp_path, strict_rerun):
