@@ -16,8 +16,8 @@ One process, side by side on the same machine:
 The figures, per vehicle-period (one vehicle's data of one control period), next to the agent
 step median (the target is at most 10 % of it):
 - all flushes: the logging time of every flush / (periods logged x vehicles), the first flush
-  included (it logs the run's meta; colours and line names go out when the recording opens, as
-  in `fleetmpc gcs`);
+  included (the run's meta, colours and line names go out when the recording opens, as in
+  `fleetmpc gcs`);
 - steady: the median flush's logging time / (periods per flush x vehicles);
 - CPU: the process's CPU time over the run and its metrics, every thread included (Rerun encodes
   and writes in threads of its own, after the flush returns), less the same without logging
@@ -38,7 +38,7 @@ import numpy as np
 from gcs.ground_station import GroundStation
 from gcs.lockstep import run_lockstep
 from gcs.record import FlightRecord
-from gcs.recording import log_statics, open_recording
+from gcs.recording import open_recording
 from onboard.core.errors import FleetMpcError
 from onboard.core.plan import Plan
 from protocol.messages import (
@@ -113,11 +113,10 @@ def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
         gs.inbox.put(message)
 
 
-def _feed(rec: FlightRecord, scenario, *, periods_per_flush: int, stream) -> GroundStation:
-    """A ground station fed the run period by period, flushed every `periods_per_flush`, and
+def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int, stream) -> None:
+    """The ground station fed the run period by period, flushed every `periods_per_flush`, and
     its metrics computed, as a ground station ends; the stream (if any) flushed, so Rerun has
     encoded and written everything, and left open."""
-    gs = GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
     for k in range(len(rec.t_s)):
         _receive(gs, rec, k)
         if (k + 1) % periods_per_flush == 0:
@@ -126,7 +125,6 @@ def _feed(rec: FlightRecord, scenario, *, periods_per_flush: int, stream) -> Gro
     gs.metrics()
     if stream is not None:
         stream.flush()
-    return gs
 
 
 def _logging(
@@ -135,19 +133,21 @@ def _logging(
     """Flush times, and the CPU time of the whole process (every thread, Rerun's encoder and
     file writer included) with logging less the same run without it: `repeats` pairs run
     alternately, medians compared (a single pair's difference is noisy, even negative). As in
-    `fleetmpc gcs`, the recording is opened and its statics logged before the flight: that is
-    not timed (some 20 ms of CPU, 50 ms the first time, which a 30 s run would count as
-    logging)."""
+    `fleetmpc gcs`, the ground station is made and the recording opened, with its meta and
+    statics, before the flight: that is not timed (some 20 ms of CPU, 50 ms the first time,
+    which a 30 s run would count as logging)."""
     cpu_without, cpu_with, flush, logging = [], [], [], []
     for _ in range(repeats):
+        gs = GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
         t0 = time.process_time()
-        _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=None)
+        _feed(gs, rec, periods_per_flush=periods_per_flush, stream=None)
         cpu_without.append(time.process_time() - t0)
+        gs = GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
         stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
-        log_statics(stream, scenario.vehicle_ids, live=True)  # as the ground station, before flight
+        gs.start_recording(stream)  # as the ground station, before the flight
         stream.flush()
         t0 = time.process_time()
-        gs = _feed(rec, scenario, periods_per_flush=periods_per_flush, stream=stream)
+        _feed(gs, rec, periods_per_flush=periods_per_flush, stream=stream)
         cpu_with.append(time.process_time() - t0)
         stream.disconnect()
         flush.extend(gs.flush_ms)

@@ -46,7 +46,13 @@ from gcs.check import check_scenario
 from gcs.fleet import flight_time
 from gcs.live import LiveRecord
 from gcs.metrics import compute_metrics
-from gcs.recording import log_events, log_flight_record, log_statics, open_recording
+from gcs.recording import (
+    log_events,
+    log_flight_record,
+    log_meta,
+    log_statics,
+    open_recording,
+)
 from gcs.sim import format_summary
 from onboard.core.errors import ConfigError, FleetMpcError
 from onboard.planbus import open_fleet_bus
@@ -276,6 +282,12 @@ class GroundStation:
                 self.live.add_target(message)
 
     # -- logging ----------------------------------------------------------------------------------
+    def start_recording(self, stream) -> None:
+        """Log what a recording holds before the flight: the run's `meta`, colours, labels and
+        line names (the flushes log only the periods)."""
+        log_meta(stream, self.live.constants(), run_info=self.run_info)
+        log_statics(stream, self.scenario.vehicle_ids, live=True)
+
     def flush(self, stream) -> None:
         """Log what arrived since the last flush, in column batches."""
         t0 = time.perf_counter()
@@ -293,7 +305,6 @@ class GroundStation:
                 log_flight_record(
                     stream,
                     rec,
-                    run_info=self.run_info,
                     start=self.logged_periods,
                     live=self.live.live_rows(self.logged_periods, done),
                     statics=False,
@@ -409,7 +420,7 @@ def run(args: argparse.Namespace) -> int:
                 viewer_url=viewer_url,
                 spawn_viewer=spawn,
             )
-            log_statics(stream, scenario.vehicle_ids, live=True)
+            gs.start_recording(stream)
         if args.epoch_ns is not None:
             gs.set_epoch(args.epoch_ns)
         _log(f"listening on {url}; waiting for {len(gs.links)} vehicles to engage")

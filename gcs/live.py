@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gcs.record import FlightRecord, LiveRows
+from gcs.record import FlightRecord, LiveRows, RunConstants
 from onboard.core.formation import Formation
 from onboard.core.target_estimator import TargetEstimator
 from protocol.messages import PlanMessage, StatusMessage, TargetObservation
@@ -355,7 +355,6 @@ class LiveRecord:
 
     def record(self, periods: int | None = None) -> FlightRecord:
         """The FlightRecord of periods 0 .. `periods` - 1 (default: every complete period)."""
-        sc = self.scenario
         k_n = self.complete_periods() if periods is None else periods
         if k_n < 1:
             raise ValueError("no complete control period yet")
@@ -368,13 +367,20 @@ class LiveRecord:
         with np.errstate(invalid="ignore"):
             min_separation = np.fmin.reduce(rows.pop("separation_min"))
         return FlightRecord(
-            scenario=sc.name,
-            vehicle_ids=self.ids,
             t_s=np.arange(k_n) * self.period_ns * 1e-9,
             **rows,
+            min_separation_m=float(min_separation),
+            **self.constants().as_fields(),
+        )
+
+    def constants(self) -> RunConstants:
+        """What the record holds that is the same in every period."""
+        sc = self.scenario
+        return RunConstants(
+            scenario=sc.name,
+            vehicle_ids=self.ids,
             desired_distance_m=self._formation.desired_distances(),
             trail_m=sc.formation.trail_m,
-            min_separation_m=float(min_separation),
             speed_max_m_s=sc.controller.speed_max_m_s,
             yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
             d_safe_m=sc.controller.d_safe_m,

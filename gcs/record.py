@@ -2,11 +2,11 @@
 
 The input of the metrics and the figures."""
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["FlightRecord", "LiveRows"]
+__all__ = ["FlightRecord", "LiveRows", "RunConstants"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,3 +68,28 @@ class LiveRows:
     target_prediction: np.ndarray | None
     """The ground station's prediction of the target over the horizon (M + 1, 2) North, East
     [m], made at the last row's time (None without a target observation)."""
+
+
+@dataclass(frozen=True, eq=False)
+class RunConstants:
+    """What a FlightRecord of a run holds that is the same in every period (known before the
+    flight: a recording logs it when it opens)."""
+
+    scenario: str
+    vehicle_ids: tuple[int, ...]
+    desired_distance_m: np.ndarray
+    """Desired distance between slots (N, N) [m]."""
+    trail_m: float
+    """Desired target-to-centre distance d_s [m]."""
+    speed_max_m_s: float
+    yaw_rate_max_rad_s: float
+    d_safe_m: float
+
+    @classmethod
+    def of(cls, rec: FlightRecord) -> "RunConstants":
+        """The constants of a record."""
+        return cls(**{f.name: getattr(rec, f.name) for f in fields(cls)})
+
+    def as_fields(self) -> dict:
+        """The constants by FlightRecord field name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}

@@ -19,7 +19,8 @@ same paths):
   vehicle) as Points2D;
 - `series/separation` (one line per pair), `series/centre_distance`,
   `series/formation_error`, `series/c_norm`, `series/solve_time_ms` (one line per vehicle),
-  `series/beta/<param>` (per vehicle: learned, then truth) as Scalars, the lines named and
+  `series/beta/effectiveness` and `series/beta/drift_m_s` (`BETA_SERIES`: two parameters each,
+  learned, then truth, per parameter and vehicle) as Scalars, the lines named and
   coloured by a static SeriesLines;
 - `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
 - live runs only: `map/plans` (each agent's planned horizon, LineStrips2D),
@@ -38,17 +39,17 @@ import uuid
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.compute  # noqa: F401  (loaded here: a masked ListArray imports it, ~130 ms)
 import rerun as rr
 import rerun.blueprint as rrb
 
 from gcs.metrics import pair_indices
-from gcs.record import FlightRecord, LiveRows
+from gcs.record import FlightRecord, LiveRows, RunConstants
+from gcs.rerun_batch import ColumnBatch
 
 __all__ = [
     "APPLICATION_ID",
     "BETA_PARAMS",
+    "BETA_SERIES",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
     "RECORD_COLUMN",
@@ -57,6 +58,7 @@ __all__ = [
     "fleet_blueprint",
     "log_events",
     "log_flight_record",
+    "log_meta",
     "log_statics",
     "open_recording",
     "map_from_ned",
@@ -74,6 +76,10 @@ BETA_PARAMS = (
     "drift_east_m_s",
 )
 """Names of the four beta entries, in FlightRecord.beta's order."""
+BETA_SERIES = (("effectiveness", (0, 1)), ("drift_m_s", (2, 3)))
+"""Entities `series/beta/<name>` and the beta entries each holds: its lines are, per vehicle,
+the first entry learned, then the second; then the same of the truth."""
+_BETA_LINE_NAMES = ("speed", "yaw rate", "drift North", "drift East")
 RECORD_ARRAYS = (
     "truth",
     "target",
@@ -164,15 +170,9 @@ def fleet_blueprint(
         rrb.TimeSeriesView(origin="series/formation_error", name="formation error [m]"),
         rrb.TimeSeriesView(origin="series/c_norm", name="||c||"),
         rrb.TimeSeriesView(
-            name="effectiveness (learned, truth)",
-            origin="series/beta",
-            contents=[f"series/beta/{p}" for p in BETA_PARAMS[:2]],
+            origin="series/beta/effectiveness", name="effectiveness (learned, truth)"
         ),
-        rrb.TimeSeriesView(
-            name="drift [m/s] (learned, truth)",
-            origin="series/beta",
-            contents=[f"series/beta/{p}" for p in BETA_PARAMS[2:]],
-        ),
+        rrb.TimeSeriesView(origin="series/beta/drift_m_s", name="drift [m/s] (learned, truth)"),
         rrb.TimeSeriesView(origin="series/solve_time_ms", name="agent step [ms]"),
         rrb.TimeSeriesView(origin="series/plan_age", name="neighbour plan age [s]"),
         rrb.TimeSeriesView(origin="series/setpoint_rate", name="setpoint rate [Hz]"),
@@ -194,167 +194,33 @@ def fleet_blueprint(
     )
 
 
-_F32_XY = pa.list_(pa.field("item", pa.float32(), nullable=False), 2)
-"""Arrow type of one 2-D position or vector (rerun.datatypes.Vec2D)."""
-_STRIP = pa.list_(pa.field("item", _F32_XY, nullable=False))
-"""Arrow type of one line strip (rerun.components.LineStrip2D)."""
-_INDEX = pa.field(
-    TIMELINE, pa.duration("ns"), metadata={"rerun:kind": "index", "rerun:index_name": TIMELINE}
-)
-
-
-_SCALARS = rr.Scalars.descriptor_scalars()
 _POSITIONS = rr.Points2D.descriptor_positions()
-_STRIPS = rr.LineStrips2D.descriptor_strips()
 _ORIGINS = rr.Arrows2D.descriptor_origins()
 _VECTORS = rr.Arrows2D.descriptor_vectors()
 
 
-def _offsets(lengths: np.ndarray) -> pa.Array:
-    return pa.array(np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32))
-
-
-def _xy(points: np.ndarray) -> pa.Array:
-    """(M, 2) -> M Vec2D (float32)."""
-    flat = pa.array(np.ascontiguousarray(points, dtype=np.float32).ravel())
-    return pa.FixedSizeListArray.from_arrays(flat, type=_F32_XY)
-
-
-_FIELDS: dict[tuple[str, str], pa.Field] = {}
-"""Schema fields by (entity path, component): the same few dozen every flush (keyed without the
-Arrow type, whose hash costs some 8 us; a field is made anew if its column's type differs)."""
-
-
-class _Columns:
-    """Component columns of many entities on one `sim_time` index, sent as one record batch.
-
-    Each column is a list array with one row per time; its `rerun:entity_path` metadata names its
-    entity, so `rr.chunk.Chunk.from_record_batch` makes one chunk per entity of it.
-    """
-
-    def __init__(self, t_ns: np.ndarray) -> None:
-        self.t_ns = np.asarray(t_ns, dtype=np.int64)
-        self.rows = len(self.t_ns)
-        self._fields = [_INDEX]
-        self._arrays = [pa.array(self.t_ns.astype("timedelta64[ns]"))]
-        self._uniform: dict[tuple[int, int], pa.Array] = {}
-        self._scalars: list[tuple[str, np.ndarray]] = []
-
-    def _rows_of(self, m: int, per_row: int = 1) -> pa.Array:
-        """Offsets of `rows` x `per_row` lists of m items each."""
-        key = (m, per_row)
-        if key not in self._uniform:
-            end = self.rows * per_row * m
-            self._uniform[key] = pa.array(np.arange(0, end + 1, m, dtype=np.int32))
-        return self._uniform[key]
-
-    def add(self, path: str, descriptor: rr.ComponentDescriptor | str, column: pa.Array) -> None:
-        """A list array of `rows` rows (an archetype's descriptor, or a bare name: AnyValues)."""
-        component = descriptor if isinstance(descriptor, str) else descriptor.component
-        key = (path, component)
-        f = _FIELDS.get(key)
-        if f is None or not f.type.equals(column.type):
-            meta = {"rerun:kind": "data", "rerun:entity_path": path, "rerun:component": component}
-            if not isinstance(descriptor, str):
-                meta["rerun:archetype"] = descriptor.archetype
-                meta["rerun:component_type"] = descriptor.component_type
-            f = _FIELDS[key] = pa.field(f"{path}:{component}", column.type, metadata=meta)
-        self._fields.append(f)
-        self._arrays.append(column)
-
-    def scalars(self, path: str, values: np.ndarray) -> None:
-        """Scalars: values (rows,) or (rows, lines), one line per column (an entity with
-        several lines names them with a static SeriesLines). A row with no finite value stays
-        empty (null); a series with no finite value at all is not logged."""
-        values = np.asarray(values, dtype=np.float64)
-        self._scalars.append((path, values.reshape(self.rows, -1)))
-
-    def _add_scalars(self) -> None:
-        """Every Scalars series, converted to Arrow in one array."""
-        if not self._scalars:
-            return
-        flat = pa.array(np.concatenate([v.ravel() for _, v in self._scalars]))
-        at = 0
-        for path, values in self._scalars:
-            missing = ~np.isfinite(values).any(axis=1)
-            size = values.size
-            if not missing.all():
-                mask = pa.array(missing) if missing.any() else None
-                column = pa.ListArray.from_arrays(
-                    self._rows_of(values.shape[1]), flat.slice(at, size), mask=mask
-                )
-                self.add(path, _SCALARS, column)
-            at += size
-        self._scalars = []
-
-    def xy(
-        self, path: str, descriptor: rr.ComponentDescriptor, points: np.ndarray, per_row: int = 1
-    ) -> None:
-        """(rows x per_row, 2): `per_row` positions / vectors in every row."""
-        self.add(path, descriptor, pa.ListArray.from_arrays(self._rows_of(per_row), _xy(points)))
-
-    def strips(
-        self,
-        path: str,
-        points: np.ndarray,
-        strip_lengths: np.ndarray,
-        per_row: int,
-        missing: np.ndarray | None = None,
-    ):
-        """LineStrips2D: `per_row` strips in every row that is not `missing` (a missing row is
-        null: nothing logged at that time, so the viewer keeps the previous strips), of
-        `strip_lengths` points of `points`."""
-        strips = pa.ListArray.from_arrays(_offsets(strip_lengths), _xy(points), type=_STRIP)
-        if missing is None or not missing.any():
-            column = pa.ListArray.from_arrays(self._rows_of(per_row), strips)
-        else:
-            counts = np.where(missing, 0, per_row)
-            column = pa.ListArray.from_arrays(_offsets(counts), strips, mask=pa.array(missing))
-        self.add(path, _STRIPS, column)
-
-    def segments(self, path: str, points: np.ndarray, per_row: int) -> None:
-        """LineStrips2D of two points each, `per_row` of them in every row."""
-        strips = pa.ListArray.from_arrays(self._rows_of(2, per_row), _xy(points), type=_STRIP)
-        self.add(path, _STRIPS, pa.ListArray.from_arrays(self._rows_of(per_row), strips))
-
-    def values(self, path: str, name: str, rows: np.ndarray) -> None:
-        """AnyValues component `name`: (rows, m) float64 or bool, one list of m per row."""
-        m = rows.shape[1]
-        flat = pa.array(np.ascontiguousarray(rows).ravel())
-        self.add(path, name, pa.ListArray.from_arrays(self._rows_of(m), flat))
-
-    def chunks(self) -> list:
-        self._add_scalars()
-        if len(self._arrays) == 1:
-            return []
-        batch = pa.RecordBatch.from_arrays(self._arrays, schema=pa.schema(self._fields))
-        return rr.chunk.Chunk.from_record_batch(batch)
-
-
-def _send(stream: rr.RecordingStream, groups: list[_Columns]) -> None:
-    chunks = [c for group in groups for c in group.chunks()]
-    if chunks:
-        rr.send_chunks(chunks, recording=stream)
-
-
-def _log_meta(stream: rr.RecordingStream, rec: FlightRecord, *, run_info: dict) -> None:
+def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: dict) -> None:
+    """The static `meta`: the run's constants and facts about it (JSON-able: learning, seed,
+    ...) that are not in the record. `log_flight_record` logs it with its first slice; a live
+    ground station logs it when it opens its recording, before the fleet flies."""
+    c = constants
     stream.log(
         "meta",
         rr.AnyValues(
-            scenario=rec.scenario,
-            vehicle_ids=np.asarray(rec.vehicle_ids, dtype=np.int64),
-            desired_distance_m=np.asarray(rec.desired_distance_m, dtype=np.float64).ravel(),
-            trail_m=np.array([rec.trail_m], dtype=np.float64),
-            speed_max_m_s=np.array([rec.speed_max_m_s], dtype=np.float64),
-            yaw_rate_max_rad_s=np.array([rec.yaw_rate_max_rad_s], dtype=np.float64),
-            d_safe_m=np.array([rec.d_safe_m], dtype=np.float64),
+            scenario=c.scenario,
+            vehicle_ids=np.asarray(c.vehicle_ids, dtype=np.int64),
+            desired_distance_m=np.asarray(c.desired_distance_m, dtype=np.float64).ravel(),
+            trail_m=np.array([c.trail_m], dtype=np.float64),
+            speed_max_m_s=np.array([c.speed_max_m_s], dtype=np.float64),
+            yaw_rate_max_rad_s=np.array([c.yaw_rate_max_rad_s], dtype=np.float64),
+            d_safe_m=np.array([c.d_safe_m], dtype=np.float64),
             run_info_json=json.dumps(run_info, sort_keys=True),
         ),
         static=True,
     )
 
 
-def _record_rows(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
+def _record_rows(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
     """Periods start.. of the record as `flight_record` rows (`record_layout`)."""
     rows = columns.rows
     parts = [np.asarray(getattr(rec, name))[start:].reshape(rows, -1) for name in RECORD_ARRAYS]
@@ -384,18 +250,21 @@ def _series_names(
         )
     for name in _PER_VEHICLE_SERIES:
         out[f"series/{name}"] = (uav, rgb)
-    for param in BETA_PARAMS:
-        truth = [f"UAV {v} truth" for v in ids]
-        out[f"series/beta/{param}"] = (uav + truth, rgb + [(*c, 110) for c in rgb])
+    for name, entries in BETA_SERIES:
+        # The second entry's lines a lighter shade of the vehicle's colour; the truth's faint.
+        learned = [f"UAV {v} {_BETA_LINE_NAMES[e]}" for e in entries for v in ids]
+        shades = rgb + [tuple((x + 255) // 2 for x in c) for c in rgb]
+        colours = shades + [(*c, 110) for c in shades]
+        out[f"series/beta/{name}"] = (learned + [f"{line} truth" for line in learned], colours)
     return out
 
 
 def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, live: bool) -> None:
     """Colours, labels and line names: logged once, at the start of a recording.
 
-    `log_flight_record` logs them with its first slice; a live ground station logs them when it
-    opens its recording, before the fleet flies (`statics=False` then), so that the first
-    logging calls of a process, which are slow, are not paid during the flight."""
+    `log_flight_record` logs them with its first slice; a live ground station logs them (and
+    `log_meta`) when it opens its recording, before the fleet flies (`statics=False` then), so
+    that the first logging calls of a process, which are slow, are not paid during the flight."""
     ids = vehicle_ids
     rgb = [_colour(i) for i in range(len(ids))]
     stream.log(
@@ -422,67 +291,88 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, liv
         stream.log(path, rr.SeriesLines(names=names, colors=colours), static=True)
 
 
-def _map(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
-    k, n = rec.truth.shape[:2]
+def _map(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
+    n = len(rec.vehicle_ids)
     before = max(start - 1, 0)
     pos = map_from_ned(rec.truth[before:, :, :2])  # periods before .. k - 1
     here = pos[start - before :]
     previous = pos[:-1] if start else np.concatenate([pos[:1], pos[:-1]])
     yaw = rec.truth[start:, :, 2]
-    heading = map_from_ned(_HEADING_ARROW_M * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1))
-    flat = here.reshape(-1, 2)
-    columns.xy("map/vehicles", _POSITIONS, flat, per_row=n)
-    columns.xy("map/vehicles", _ORIGINS, flat, per_row=n)
-    columns.xy("map/vehicles", _VECTORS, heading.reshape(-1, 2), per_row=n)
+    heading = np.empty_like(here)
+    np.multiply(np.sin(yaw), _HEADING_ARROW_M, out=heading[..., 0])  # East
+    np.multiply(np.cos(yaw), -_HEADING_ARROW_M, out=heading[..., 1])  # South
+    columns.points("map/vehicles", _POSITIONS, here, per_row=n)
+    columns.points("map/vehicles", _ORIGINS, here, per_row=n)
+    columns.points("map/vehicles", _VECTORS, heading, per_row=n)
     steps = np.stack([previous, here], axis=2)  # (K, N, 2 points, 2)
-    columns.segments("map/trails", steps.reshape(-1, 2), per_row=n)
-    columns.xy("map/slots", _POSITIONS, map_from_ned(rec.slots[start:]).reshape(-1, 2), per_row=n)
-    columns.xy("map/target", _POSITIONS, map_from_ned(rec.target[start:]))
-    pairs = pair_indices(n)
-    if pairs:
-        a, b = np.array(pairs).T
+    columns.strips("map/trails", steps, points_per_strip=2, per_row=n)
+    columns.points("map/slots", _POSITIONS, map_from_ned(rec.slots[start:]), per_row=n)
+    columns.points("map/target", _POSITIONS, map_from_ned(rec.target[start:]), per_row=1)
+    a, b = _pair_arrays(n)
+    if len(a):
         links = np.stack([here[:, a], here[:, b]], axis=2)  # (K, P, 2 points, 2)
-        columns.segments("map/formation_links", links.reshape(-1, 2), per_row=len(pairs))
+        columns.strips("map/formation_links", links, points_per_strip=2, per_row=len(a))
+
+
+def _pair_arrays(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Index arrays (a, b) of every vehicle pair, in `pair_indices` order."""
+    a, b = np.array(pair_indices(n), dtype=np.intp).reshape(-1, 2).T
+    return a, b
 
 
 _PER_VEHICLE_SERIES = ("formation_error", "c_norm", "solve_time_ms")
 """Series entities with one line per vehicle, besides beta and the live-only ones."""
 
 
-def _series(columns: _Columns, rec: FlightRecord, *, start: int) -> None:
+def _norm2(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm over a last axis of length 2."""
+    return np.hypot(v[..., 0], v[..., 1])
+
+
+def _series(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
     pos = rec.truth[start:, :, :2]
-    pairs = pair_indices(len(rec.vehicle_ids))
-    if pairs:
-        d = [np.linalg.norm(pos[:, a] - pos[:, b], axis=1) for a, b in pairs]
-        columns.scalars("series/separation", np.stack(d, axis=1))
+    a, b = _pair_arrays(len(rec.vehicle_ids))
+    if len(a):
+        columns.scalars("series/separation", _norm2(pos[:, a] - pos[:, b]))
     centre = np.mean(pos - rec.slot_offsets_world[start:], axis=1)
-    columns.scalars("series/centre_distance", np.linalg.norm(centre - rec.target[start:], axis=1))
-    columns.scalars("series/formation_error", np.linalg.norm(pos - rec.slots[start:], axis=2))
-    columns.scalars("series/c_norm", np.linalg.norm(rec.c[start:], axis=2))
+    columns.scalars("series/centre_distance", _norm2(centre - rec.target[start:]))
+    columns.scalars("series/formation_error", _norm2(pos - rec.slots[start:]))
+    columns.scalars("series/c_norm", _norm2(rec.c[start:]))
     columns.scalars("series/solve_time_ms", rec.step_time_ms[start:])
-    for p, param in enumerate(BETA_PARAMS):
-        both = np.concatenate([rec.beta[start:, :, p], rec.beta_truth[start:, :, p]], axis=1)
-        columns.scalars(f"series/beta/{param}", both)
+    k = len(rec.t_s) - start
+    for name, (p, q) in BETA_SERIES:
+        # (K, N, 2 entries) -> (K, entry, vehicle), learned then truth
+        learned = rec.beta[start:, :, p : q + 1].transpose(0, 2, 1).reshape(k, -1)
+        truth = rec.beta_truth[start:, :, p : q + 1].transpose(0, 2, 1).reshape(k, -1)
+        columns.scalars(f"series/beta/{name}", np.concatenate([learned, truth], axis=1))
 
 
-def _live(columns: _Columns, live: LiveRows) -> None:
+def _live(columns: ColumnBatch, live: LiveRows) -> None:
     """Plans, setpoint rates, plan ages and the target prediction of a live slice."""
-    k, n = live.plans.shape[:2]
+    k, n, m = live.plans.shape[:3]
     has = np.isfinite(live.plans).all(axis=(2, 3))  # (K, N)
-    if has.any():
-        points = map_from_ned(live.plans[has].reshape(-1, 2))
-        lengths = np.where(has, live.plans.shape[2], 0).ravel()
-        columns.strips("map/plans", points, lengths, per_row=n, missing=~has.any(axis=1))
+    if has.all():
+        points = map_from_ned(live.plans)
+        columns.strips("map/plans", points, points_per_strip=m, per_row=n)
+    elif has.any():
+        points = map_from_ned(live.plans[has])
+        lengths = np.where(has, m, 0).ravel()
+        columns.strips(
+            "map/plans", points, points_per_strip=lengths, per_row=n, present=has.any(axis=1)
+        )
     columns.scalars("series/setpoint_rate", live.setpoint_rate_hz)
     if live.plan_age_s.shape[2]:
-        columns.scalars("series/plan_age", live.plan_age_s.reshape(k, -1))
+        columns.scalars("series/plan_age", live.plan_age_s)
     if live.target_prediction is not None:
-        prediction = map_from_ned(np.asarray(live.target_prediction).reshape(-1, 2))
-        missing = np.arange(k) < k - 1  # the prediction is made at the last row's time
+        prediction = map_from_ned(np.asarray(live.target_prediction))
+        present = np.arange(k) == k - 1  # the prediction is made at the last row's time
         columns.strips(
-            "map/target_prediction", prediction, np.array([len(prediction)]), per_row=1,
-            missing=missing,
-        )  # fmt: skip
+            "map/target_prediction",
+            prediction,
+            points_per_strip=len(prediction),
+            per_row=1,
+            present=present,
+        )
 
 
 def log_events(
@@ -502,6 +392,7 @@ def log_events(
 
 
 def _qp_events(rec: FlightRecord, *, t_ns: np.ndarray, start: int) -> list[tuple[int, str, str]]:
+    """Events of periods start.. (at times t_ns)."""
     events = []
     if start == 0:
         events.append(
@@ -515,7 +406,7 @@ def _qp_events(rec: FlightRecord, *, t_ns: np.ndarray, start: int) -> list[tuple
     for k, i in zip(k_idx, i_idx, strict=True):
         events.append(
             (
-                int(t_ns[start + k]),
+                int(t_ns[k]),
                 "WARN",
                 f"UAV {rec.vehicle_ids[i]}: QP failed, fallback input applied",
             )
@@ -536,20 +427,19 @@ def log_flight_record(
 
     run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
     start: log only periods `start`.. (a live ground station logs a growing record in slices;
-    the trail's first step starts at period `start` - 1). The static `meta` (the record's
-    constants and the run facts), colours and line names are logged when start is 0.
+    the trail's first step starts at period `start` - 1).
     live: what a live run adds to periods `start`.. (plans, setpoint rates, plan ages, the
     target prediction).
-    statics: log the colours, labels and line names with the first slice (`log_statics`).
+    statics: log the static `meta` (`log_meta`: the record's constants and the run facts),
+    colours, labels and line names (`log_statics`) with the first slice (start 0).
     """
-    t_ns = sim_time_ns(rec.t_s)
-    if start == 0:
-        _log_meta(stream, rec, run_info=run_info or {})
     if start == 0 and statics:
+        log_meta(stream, RunConstants.of(rec), run_info=run_info or {})
         log_statics(stream, rec.vehicle_ids, live=live is not None)
-    if start >= len(t_ns):
+    if start >= len(rec.t_s):
         return
-    columns = _Columns(t_ns[start:])
+    t_ns = sim_time_ns(rec.t_s[start:])
+    columns = ColumnBatch(TIMELINE, t_ns)
     _record_rows(columns, rec, start=start)
     _map(columns, rec, start=start)
     _series(columns, rec, start=start)
@@ -559,7 +449,7 @@ def log_flight_record(
                 f"live rows: {live.plans.shape[0]} periods for a slice of {columns.rows}"
             )
         _live(columns, live)
-    _send(stream, [columns])
+    columns.send(stream)
     log_events(stream, _qp_events(rec, t_ns=t_ns, start=start))
 
 

@@ -12,7 +12,7 @@ from gcs.ground_station import GroundStation
 from gcs.live import LiveRecord
 from gcs.lockstep import run_lockstep
 from gcs.metrics import compute_metrics
-from gcs.recording import log_flight_record, log_statics, open_recording
+from gcs.recording import log_flight_record, open_recording
 from gcs.rrd_reader import read_recording
 from protocol.messages import NeighbourPlanAge, PlanMessage
 
@@ -187,7 +187,7 @@ def test_ground_station_flushes_read_back_as_the_live_record(paper, lockstep, tm
     path = tmp_path / "live.rrd"
     gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
     stream = open_recording(vehicle_ids=paper.vehicle_ids, path=path)
-    log_statics(stream, paper.vehicle_ids, live=True)
+    gs.start_recording(stream)
     ages = {vid: [o for o in paper.vehicle_ids if o != vid] for vid in paper.vehicle_ids}
     for k in range(len(lockstep.t_s)):
         msgs = period_messages(lockstep, k, period_ns=gs.live.period_ns, horizon=5)

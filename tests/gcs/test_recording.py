@@ -13,7 +13,7 @@ from gcs.figures import FIGURE_FILES
 from gcs.lockstep import run_lockstep
 from gcs.metrics import compute_metrics, pair_indices
 from gcs.record import FlightRecord
-from gcs.recording import BETA_PARAMS, TIMELINE, TRAIL_WINDOW_S, write_recording
+from gcs.recording import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, write_recording
 from gcs.report import METRICS_FILE
 from gcs.rrd_reader import RecordingError, read_recording
 
@@ -80,7 +80,7 @@ def test_every_entity_family_is_in_the_file(run, rrd):
     expected = {"/map/target", "/map/formation_links", "/series/centre_distance", "/events"}
     expected |= {"/map/vehicles", "/map/trails", "/map/slots", "/series/separation"}
     expected |= {"/series/formation_error", "/series/c_norm", "/series/solve_time_ms"}
-    expected |= {f"/series/beta/{p}" for p in BETA_PARAMS}
+    expected |= {f"/series/beta/{name}" for name, _ in BETA_SERIES}
     chunks = _chunks_by_entity(path)
     assert expected <= set(chunks), sorted(expected - set(chunks))
     assert not {"/map/plans", "/series/plan_age"} & set(chunks), "live-only entities logged"
@@ -107,10 +107,18 @@ def test_every_entity_family_is_in_the_file(run, rrd):
     a, b = rec.truth[5, 0, :2], rec.truth[5, 1, :2]
     assert len(lines[5]) == len(pair_indices(len(ids)))
     assert lines[5][0] == pytest.approx(np.hypot(*(a - b)), rel=1e-12)
-    (names,) = [c for c in chunks["/series/beta/speed_effectiveness"] if c.is_static]
+    # Beta: per vehicle, the two parameters learned, then their truth.
+    (names,) = [c for c in chunks["/series/beta/effectiveness"] if c.is_static]
     batch = names.to_record_batch()
     got = batch.column(batch.schema.names.index("SeriesLines:names")).to_pylist()[0]
-    assert got == [f"UAV {v}" for v in ids] + [f"UAV {v} truth" for v in ids]
+    learned = [f"UAV {v} speed" for v in ids] + [f"UAV {v} yaw rate" for v in ids]
+    assert got == learned + [f"{line} truth" for line in learned]
+    (beta,) = [c for c in chunks["/series/beta/effectiveness"] if not c.is_static]
+    batch = beta.to_record_batch()
+    lines = batch.column(batch.schema.names.index("Scalars:scalars")).to_pylist()
+    n = len(ids)
+    assert lines[9][n + 2] == rec.beta[9, 2, 1]  # UAV 3's learned yaw-rate effectiveness
+    assert lines[9][3 * n + 1] == rec.beta_truth[9, 1, 1]  # UAV 2's true one
     assert rr.chunk.RrdReader(path).blueprints(), "no blueprint sent with the recording"
 
 

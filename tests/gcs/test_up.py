@@ -125,7 +125,7 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     for family in ("separation", "formation_error", "c_norm", "solve_time_ms"):
         expected.add(f"/series/{family}")
     expected |= {"/series/setpoint_rate", "/series/plan_age"}
-    expected |= {"/series/beta/speed_effectiveness", "/series/beta/drift_east_m_s"}
+    expected |= {"/series/beta/effectiveness", "/series/beta/drift_m_s"}
     assert expected <= entities, sorted(expected - entities)
     assert rr.chunk.RrdReader(rrd).blueprints(), "no blueprint in the recording"
 
