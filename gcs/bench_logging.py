@@ -8,17 +8,21 @@ One process, side by side on the same machine:
    position, plan and status every period, the target's observation), flushed to an `.rrd` file
    every `P` periods, as `fleetmpc gcs --flush-s F --speed S` flushes every F * S / period
    periods (`fleetmpc bench --gcs-logging --flush-s F [F ...] --speed S`, default 0.5 and 1 s
-   at x4); each flush is timed as the ground station times it: the whole flush, and its Rerun
-   logging (events, the record's new periods, plans, rates, ages and the target prediction),
-   which is what logging adds: draining the inbox and building the record's periods the ground
-   station does for its metrics in any case (at the end, if no flush did).
+   at x4), the time series and flight_record rows every `series_every` flushes as the ground
+   station's default `--series-flush-s` makes them; each flush is timed as the ground station
+   times it: the whole flush, and its Rerun logging (events, the record's new periods, plans,
+   rates, ages and the target prediction), which is what logging adds: draining the inbox and
+   building the record's periods the ground station does for its metrics in any case (at the
+   end, if no flush did).
 
 The figures, per vehicle-period (one vehicle's data of one control period), next to the agent
 step median (the target is at most 10 % of it):
 - all flushes: the logging time of every flush / (periods logged x vehicles), the first flush
   included (the run's meta, colours and line names go out when the recording opens, as in
   `fleetmpc gcs`);
-- steady: the median flush's logging time / (periods per flush x vehicles);
+- steady: the median logging time of a cycle of flushes that logs the time series once (one
+  flush when they go out with every flush; the first cycles before the final flush) /
+  (periods per cycle x vehicles);
 - CPU: the process's CPU time over the run and its metrics, every thread included (Rerun encodes
   and writes in threads of its own, after the flush returns), less the same without logging
   (medians of three alternating pairs).
@@ -35,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs.ground_station import GroundStation
+from gcs.ground_station import GroundStation, series_every
 from gcs.lockstep import run_lockstep
 from gcs.record import FlightRecord
 from gcs.recording import open_recording
@@ -121,14 +125,33 @@ def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int, strea
         _receive(gs, rec, k)
         if (k + 1) % periods_per_flush == 0:
             gs.flush(stream)
-    gs.flush(stream)
+    gs.flush(stream, final=True)
     gs.metrics()
     if stream is not None:
         stream.flush()
 
 
+def _steady_ms(runs: list[list[float]], every: int) -> float:
+    """Median logging time [ms] of the cycles of `every` flushes before each run's final flush
+    (of the flushes before it if a run has no whole cycle)."""
+    cycles = [
+        sum(run[i : i + every]) / every
+        for run in runs
+        for i in range(0, len(run) - every, every)  # whole cycles, the final flush left out
+    ]
+    if not cycles:
+        cycles = [float(np.mean(run[:-1] or run)) for run in runs]
+    return float(np.median(cycles))
+
+
 def _logging(
-    rec: FlightRecord, scenario, *, periods_per_flush: int, rrd: Path, repeats: int = 3
+    rec: FlightRecord,
+    scenario,
+    *,
+    periods_per_flush: int,
+    series_every: int,
+    rrd: Path,
+    repeats: int = 3,
 ) -> dict:
     """Flush times, and the CPU time of the whole process (every thread, Rerun's encoder and
     file writer included) with logging less the same run without it: `repeats` pairs run
@@ -137,12 +160,18 @@ def _logging(
     statics, before the flight: that is not timed (some 20 ms of CPU, 50 ms the first time,
     which a 30 s run would count as logging)."""
     cpu_without, cpu_with, flush, logging = [], [], [], []
+    runs: list[list[float]] = []
+
+    def station() -> GroundStation:
+        duration_s = float(rec.t_s[-1])
+        return GroundStation(scenario, speed=1.0, duration_s=duration_s, series_every=series_every)
+
     for _ in range(repeats):
-        gs = GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
+        gs = station()
         t0 = time.process_time()
         _feed(gs, rec, periods_per_flush=periods_per_flush, stream=None)
         cpu_without.append(time.process_time() - t0)
-        gs = GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
+        gs = station()
         stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
         gs.start_recording(stream)  # as the ground station, before the flight
         stream.flush()
@@ -152,19 +181,21 @@ def _logging(
         stream.disconnect()
         flush.extend(gs.flush_ms)
         logging.extend(gs.log_ms)
+        runs.append(gs.log_ms)
     flush, logging = np.asarray(flush), np.asarray(logging)
     vehicle_periods = gs.flushed_vehicle_periods
     per_flush = periods_per_flush * len(scenario.vehicles)
     cpu_s = float(np.median(cpu_with) - np.median(cpu_without))
     return {
         "periods_per_flush": periods_per_flush,
+        "series_every": series_every,
         "flushes": len(flush) // repeats,
         "repeats": repeats,
         "flush_median_ms": float(np.median(flush)),
         "logging_median_ms": float(np.median(logging)),
         "logging_p99_ms": float(np.percentile(logging, 99)),
         "ms_per_vehicle_period": float(logging.sum() / repeats / vehicle_periods),
-        "steady_ms_per_vehicle_period": float(np.median(logging)) / per_flush,
+        "steady_ms_per_vehicle_period": _steady_ms(runs, series_every) / per_flush,
         "cpu_ms_per_vehicle_period": cpu_s * 1e3 / vehicle_periods,
         "rrd_kib": rrd.stat().st_size / 1024,
     }
@@ -185,7 +216,13 @@ def run(args: argparse.Namespace) -> int:
         for flush_s in args.flush_s:
             speed = args.speed
             periods = max(1, round(flush_s * speed / period_s))
-            row = _logging(rec, sc, periods_per_flush=periods, rrd=Path(tmp) / f"{periods}.rrd")
+            row = _logging(
+                rec,
+                sc,
+                periods_per_flush=periods,
+                series_every=series_every(flush_s=flush_s),
+                rrd=Path(tmp) / f"{periods}.rrd",
+            )
             row |= {"flush_s": flush_s, "speed": speed}
             for key in ("", "steady_", "cpu_"):
                 fraction = row[f"{key}ms_per_vehicle_period"] / step_median_ms
@@ -204,15 +241,18 @@ def run(args: argparse.Namespace) -> int:
         f"{len(rec.t_s)} periods; agent step median {step_median_ms:.3f} ms (same process)"
     )
     print(
-        f"  {'flush every':24s} {'flush':>8s} {'logging':>16s}   "
+        f"  {'flush every (series every)':33s} {'flush':>8s} {'logging':>16s}   "
         f"{'logging ms / vehicle-period (of agent step)':>44s}"
     )
     print(
-        f"  {'':24s} {'median':>8s} {'median':>8s} {'p99':>7s}   "
+        f"  {'':33s} {'median':>8s} {'median':>8s} {'p99':>7s}   "
         f"{'all flushes':>14s} {'steady':>14s} {'CPU':>14s}"
     )
     for r in rows:
-        name = f"{r['periods_per_flush']} periods ({r['flush_s']:g} s at x{r['speed']:g})"
+        name = (
+            f"{r['periods_per_flush']} periods ({r['flush_s']:g} s at x{r['speed']:g}) "
+            f"({r['series_every']})"
+        )
         cells = [
             f"{r[key]:.3f} ({100 * r[key] / step_median_ms:.0f}%)"
             for key in (
@@ -222,14 +262,15 @@ def run(args: argparse.Namespace) -> int:
             )
         ]
         print(
-            f"  {name:24s} {r['flush_median_ms']:>8.2f} {r['logging_median_ms']:>8.2f} "
+            f"  {name:33s} {r['flush_median_ms']:>8.2f} {r['logging_median_ms']:>8.2f} "
             f"{r['logging_p99_ms']:>7.2f}   " + " ".join(f"{c:>14s}" for c in cells)
         )
     print(
         "  (ms; logging: the flush's Rerun calls, not draining the bus or building the record,"
         " which the metrics need anyway; all flushes: their logging time over the"
-        " vehicle-periods logged, the first one included; steady: the median flush's; CPU:"
-        " every thread of the process, with logging less without, metrics included in both)"
+        " vehicle-periods logged, the first one included; steady: the median cycle's, a cycle"
+        " logging the time series once; CPU: every thread of the process, with logging less"
+        " without, metrics included in both)"
     )
     print(f"  (target: logging per vehicle-period <= {100 * TARGET_FRACTION:.0f} % of the step)")
     if args.json:

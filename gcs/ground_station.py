@@ -17,10 +17,13 @@ What it does, in order:
    ``time_boot_ms``), plans, statuses and target observations into a `gcs.live.LiveRecord` and
    logs them to Rerun in batches (the entity layout of `gcs.recording`), teed to an ``.rrd`` file
    and/or a viewer; mode changes and STATUSTEXT become events;
-   every ``--flush-s`` wall seconds (default 1), logging only the periods completed since the
-   previous flush (in the metrics per vehicle-period: the Rerun logging as
-   ``gcs_log_ms_per_vehicle_period``, the whole flush, the bus drained and the record's new
-   periods built too, as ``gcs_flush_ms_per_vehicle_period``);
+   every ``--flush-s`` wall seconds (default 1), logging the map of the periods completed
+   since the previous flush, and every ``--series-flush-s`` (default 4) the time series and
+   the flight_record rows of the periods since their previous logging, all of them in the
+   last flush (a logging call costs per column and entity, not per row: bigger batches of
+   what need not be seen at once cost less); in the metrics per vehicle-period: the Rerun
+   logging as ``gcs_log_ms_per_vehicle_period``, the whole flush, the bus drained and the
+   record's new periods built too, as ``gcs_flush_ms_per_vehicle_period``;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
    summary as `fleetmpc sim` and writes the same metrics JSON.
@@ -76,7 +79,7 @@ from protocol.scenario import Scenario, load_scenario
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
-__all__ = ["GroundStation", "add_arguments", "run"]
+__all__ = ["SERIES_FLUSH_S", "GroundStation", "add_arguments", "run", "series_every"]
 
 EXIT_WITHOUT_TEARDOWN = True
 """A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
@@ -87,6 +90,13 @@ _STATUS_WALL_S = 0.5
 _LINK_LOST_WALL_S = 3.0
 _AFTER_END_SIM_S = 0.5
 """Telemetry collected past the last period, so it can be interpolated."""
+SERIES_FLUSH_S = 4.0
+"""Default wall seconds between two loggings of the time series and the flight_record rows."""
+
+
+def series_every(*, flush_s: float, series_flush_s: float = SERIES_FLUSH_S) -> int:
+    """Flushes per logging of the time series, for flushes every `flush_s` [wall s]."""
+    return max(1, round(series_flush_s / flush_s))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -127,6 +137,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=1.0,
         help="wall seconds between two Rerun logging batches (default 1)",
+    )
+    parser.add_argument(
+        "--series-flush-s",
+        type=float,
+        default=SERIES_FLUSH_S,
+        help="wall seconds between two loggings of the time series and the flight record, a"
+        f" multiple of --flush-s (default {SERIES_FLUSH_S:g}; the map goes out with every flush)",
     )
     parser.add_argument(
         "--gate-formation-m",
@@ -171,7 +188,11 @@ class VehicleLink:
 class GroundStation:
     """The ground station's state and loop; `run` drives it from the command line."""
 
-    def __init__(self, scenario: Scenario, *, speed: float, duration_s: float) -> None:
+    def __init__(
+        self, scenario: Scenario, *, speed: float, duration_s: float, series_every: int = 1
+    ) -> None:
+        if not series_every >= 1:
+            raise ConfigError("series_every", f"must be >= 1 flush, got {series_every}")
         self.scenario = scenario
         self.speed = speed
         self.duration_s = duration_s
@@ -181,6 +202,15 @@ class GroundStation:
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.epoch_ns: int | None = None
         self.logged_periods = 0
+        """Periods whose map has been logged."""
+        self.series_every = series_every
+        """Flushes (with new periods) per logging of the time series and the flight_record rows:
+        they are all logged, in bigger slices, since a logging call costs per column and per
+        entity rather than per row; the map is logged by every flush."""
+        self.series_logged = 0
+        """Periods whose time series and flight_record rows have been logged."""
+        self._flushes = 0
+        """Flushes that had new periods."""
         self.flush_ms: list[float] = []
         """Wall time of each flush [ms]."""
         self.log_ms: list[float] = []
@@ -288,29 +318,39 @@ class GroundStation:
         log_meta(stream, self.live.constants(), run_info=self.run_info)
         log_statics(stream, self.scenario.vehicle_ids, live=True)
 
-    def flush(self, stream) -> None:
-        """Log what arrived since the last flush, in column batches."""
+    def flush(self, stream, *, final: bool = False) -> None:
+        """Log what arrived since the last flush, in column batches: the map of the new periods,
+        and every `series_every` flushes (and in the `final` one) the time series and the
+        flight_record rows of the periods since they were last logged."""
         t0 = time.perf_counter()
         self.drain_bus()
         events, self._events = self._events, []
         done = min(self.live.complete_periods(), self.periods)
+        new = done > self.logged_periods
+        self._flushes += new
+        due = final or (new and self._flushes % self.series_every == 0)
+        series = due and done > self.series_logged
+        series_start = self.series_logged if series else done
         rec = None
-        if stream is not None and done > self.logged_periods:
+        if stream is not None and (new or series_start < done):
             rec = self.live.record(done)
         t1 = time.perf_counter()
         if stream is not None:
             log_events(stream, events)
-        if done > self.logged_periods:
-            if rec is not None:
-                log_flight_record(
-                    stream,
-                    rec,
-                    start=self.logged_periods,
-                    live=self.live.live_rows(self.logged_periods, done),
-                    statics=False,
-                )
-                self.flushed_vehicle_periods += (done - self.logged_periods) * len(self.links)
-            self.logged_periods = done
+        if rec is not None:
+            first = min(self.logged_periods, series_start)  # live rows from here
+            log_flight_record(
+                stream,
+                rec,
+                start=self.logged_periods,
+                series_start=series_start,
+                live=self.live.live_rows(first, done),
+                statics=False,
+            )
+            self.flushed_vehicle_periods += (done - self.logged_periods) * len(self.links)
+        self.logged_periods = max(done, self.logged_periods)
+        if series:
+            self.series_logged = done
         t2 = time.perf_counter()
         self.flush_ms.append((t2 - t0) * 1e3)
         self.log_ms.append((t2 - t1) * 1e3)
@@ -397,7 +437,7 @@ def _write_json(path: Path, data: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
-    for name in ("engage_timeout", "lead", "flush_s"):
+    for name in ("engage_timeout", "lead", "flush_s", "series_flush_s"):
         if not getattr(args, name) > 0:
             raise ConfigError(
                 f"--{name.replace('_', '-')}", f"must be > 0, got {getattr(args, name)}"
@@ -405,7 +445,8 @@ def run(args: argparse.Namespace) -> int:
     spawn, viewer_url = _viewer(args.viewer)
     net = scenario.network
     url = args.mavlink or f"udpin:{net.host}:{net.gcs_port}"
-    gs = GroundStation(scenario, speed=args.speed, duration_s=duration)
+    every = series_every(flush_s=args.flush_s, series_flush_s=args.series_flush_s)
+    gs = GroundStation(scenario, speed=args.speed, duration_s=duration, series_every=every)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     mav = bus = stream = None
@@ -463,7 +504,7 @@ def run(args: argparse.Namespace) -> int:
             if t is not None and t >= end_s:
                 completed = True
                 break
-        gs.flush(stream)
+        gs.flush(stream, final=True)
     finally:
         if bus is not None:
             bus.close()

@@ -36,6 +36,7 @@ is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that
 
 import json
 import uuid
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,7 @@ import rerun.blueprint as rrb
 
 from gcs.metrics import pair_indices
 from gcs.record import FlightRecord, LiveRows, RunConstants
-from gcs.rerun_batch import ColumnBatch
+from gcs.rerun_batch import ColumnBatch, send_batches
 
 __all__ = [
     "APPLICATION_ID",
@@ -139,10 +140,13 @@ _RGB = (
 )
 
 
+_EAST_SOUTH = np.array([1.0, -1.0])
+"""Signs of the map's axes from (East, North)."""
+
+
 def map_from_ned(north_east_m: np.ndarray) -> np.ndarray:
     """(..., 2) North, East [m] -> (..., 2) viewer map x = East, y = South [m]."""
-    ne = np.asarray(north_east_m, dtype=np.float64)
-    return np.stack([ne[..., 1], -ne[..., 0]], axis=-1)
+    return np.asarray(north_east_m, dtype=np.float64)[..., ::-1] * _EAST_SOUTH
 
 
 def sim_time_ns(t_s: np.ndarray) -> np.ndarray:
@@ -292,32 +296,32 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, liv
 
 
 def _map(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
-    n = len(rec.vehicle_ids)
+    k, n = rec.truth.shape[:2]
     before = max(start - 1, 0)
     pos = map_from_ned(rec.truth[before:, :, :2])  # periods before .. k - 1
     here = pos[start - before :]
-    previous = pos[:-1] if start else np.concatenate([pos[:1], pos[:-1]])
+    # Each period's step: from the previous period's position (period 0: from itself).
+    rows = np.arange(start - before, k - before)
+    steps = pos[np.stack([np.maximum(rows - 1, 0), rows], axis=1)]  # (K, 2 points, N, 2)
     yaw = rec.truth[start:, :, 2]
     heading = np.empty_like(here)
     np.multiply(np.sin(yaw), _HEADING_ARROW_M, out=heading[..., 0])  # East
     np.multiply(np.cos(yaw), -_HEADING_ARROW_M, out=heading[..., 1])  # South
-    columns.points("map/vehicles", _POSITIONS, here, per_row=n)
-    columns.points("map/vehicles", _ORIGINS, here, per_row=n)
+    columns.points("map/vehicles", (_POSITIONS, _ORIGINS), here, per_row=n)
     columns.points("map/vehicles", _VECTORS, heading, per_row=n)
-    steps = np.stack([previous, here], axis=2)  # (K, N, 2 points, 2)
-    columns.strips("map/trails", steps, points_per_strip=2, per_row=n)
+    columns.strips("map/trails", steps.transpose(0, 2, 1, 3), points_per_strip=2, per_row=n)
     columns.points("map/slots", _POSITIONS, map_from_ned(rec.slots[start:]), per_row=n)
     columns.points("map/target", _POSITIONS, map_from_ned(rec.target[start:]), per_row=1)
-    a, b = _pair_arrays(n)
-    if len(a):
-        links = np.stack([here[:, a], here[:, b]], axis=2)  # (K, P, 2 points, 2)
-        columns.strips("map/formation_links", links, points_per_strip=2, per_row=len(a))
+    pairs = _pairs(n)
+    if len(pairs):
+        links = here[:, pairs]  # (K, P, 2 points, 2)
+        columns.strips("map/formation_links", links, points_per_strip=2, per_row=len(pairs))
 
 
-def _pair_arrays(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Index arrays (a, b) of every vehicle pair, in `pair_indices` order."""
-    a, b = np.array(pair_indices(n), dtype=np.intp).reshape(-1, 2).T
-    return a, b
+@lru_cache(maxsize=8)
+def _pairs(n: int) -> np.ndarray:
+    """(P, 2) the vehicle indices of every pair, in `pair_indices` order."""
+    return np.array(pair_indices(n), dtype=np.intp).reshape(-1, 2)
 
 
 _PER_VEHICLE_SERIES = ("formation_error", "c_norm", "solve_time_ms")
@@ -331,9 +335,9 @@ def _norm2(v: np.ndarray) -> np.ndarray:
 
 def _series(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
     pos = rec.truth[start:, :, :2]
-    a, b = _pair_arrays(len(rec.vehicle_ids))
-    if len(a):
-        columns.scalars("series/separation", _norm2(pos[:, a] - pos[:, b]))
+    pairs = _pairs(len(rec.vehicle_ids))
+    if len(pairs):
+        columns.scalars("series/separation", _norm2(pos[:, pairs[:, 0]] - pos[:, pairs[:, 1]]))
     centre = np.mean(pos - rec.slot_offsets_world[start:], axis=1)
     columns.scalars("series/centre_distance", _norm2(centre - rec.target[start:]))
     columns.scalars("series/formation_error", _norm2(pos - rec.slots[start:]))
@@ -347,22 +351,19 @@ def _series(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
         columns.scalars(f"series/beta/{name}", np.concatenate([learned, truth], axis=1))
 
 
-def _live(columns: ColumnBatch, live: LiveRows) -> None:
-    """Plans, setpoint rates, plan ages and the target prediction of a live slice."""
-    k, n, m = live.plans.shape[:3]
-    has = np.isfinite(live.plans).all(axis=(2, 3))  # (K, N)
+def _live_map(columns: ColumnBatch, live: LiveRows, *, skip: int) -> None:
+    """Plans and the target prediction of a live slice, from its row `skip` on."""
+    plans = live.plans[skip:]
+    k, n, m = plans.shape[:3]
+    has = np.isfinite(plans).all(axis=(2, 3))  # (K, N)
     if has.all():
-        points = map_from_ned(live.plans)
-        columns.strips("map/plans", points, points_per_strip=m, per_row=n)
+        columns.strips("map/plans", map_from_ned(plans), points_per_strip=m, per_row=n)
     elif has.any():
-        points = map_from_ned(live.plans[has])
+        points = map_from_ned(plans[has])
         lengths = np.where(has, m, 0).ravel()
         columns.strips(
             "map/plans", points, points_per_strip=lengths, per_row=n, present=has.any(axis=1)
         )
-    columns.scalars("series/setpoint_rate", live.setpoint_rate_hz)
-    if live.plan_age_s.shape[2]:
-        columns.scalars("series/plan_age", live.plan_age_s)
     if live.target_prediction is not None:
         prediction = map_from_ned(np.asarray(live.target_prediction))
         present = np.arange(k) == k - 1  # the prediction is made at the last row's time
@@ -373,6 +374,13 @@ def _live(columns: ColumnBatch, live: LiveRows) -> None:
             per_row=1,
             present=present,
         )
+
+
+def _live_series(columns: ColumnBatch, live: LiveRows, *, skip: int) -> None:
+    """Setpoint rates and plan ages of a live slice, from its row `skip` on."""
+    columns.scalars("series/setpoint_rate", live.setpoint_rate_hz[skip:])
+    if live.plan_age_s.shape[2]:
+        columns.scalars("series/plan_age", live.plan_age_s[skip:])
 
 
 def log_events(
@@ -420,37 +428,52 @@ def log_flight_record(
     *,
     run_info: dict | None = None,
     start: int = 0,
+    series_start: int | None = None,
     live: LiveRows | None = None,
     statics: bool = True,
 ) -> None:
-    """Log a FlightRecord to an open recording stream, column-wise, in one batch.
+    """Log a FlightRecord to an open recording stream, column-wise, in one `rr.send_chunks`.
 
     run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
-    start: log only periods `start`.. (a live ground station logs a growing record in slices;
-    the trail's first step starts at period `start` - 1).
-    live: what a live run adds to periods `start`.. (plans, setpoint rates, plan ages, the
-    target prediction).
+    start: log the map of periods `start`.. (a live ground station logs a growing record in
+    slices; the trail's first step starts at period `start` - 1).
+    series_start: log the time series, the `flight_record` rows and the QP events of periods
+    `series_start`.. (default: start). A live ground station logs them every few flushes, in
+    bigger slices (`len(rec.t_s)` in the flushes between: none).
+    live: what a live run adds to periods min(start, series_start).. (plans, setpoint rates,
+    plan ages, the target prediction).
     statics: log the static `meta` (`log_meta`: the record's constants and the run facts),
     colours, labels and line names (`log_statics`) with the first slice (start 0).
     """
-    if start == 0 and statics:
+    k = len(rec.t_s)
+    series_start = start if series_start is None else series_start
+    first = min(start, series_start)
+    if first == 0 and statics:
         log_meta(stream, RunConstants.of(rec), run_info=run_info or {})
         log_statics(stream, rec.vehicle_ids, live=live is not None)
-    if start >= len(rec.t_s):
+    if first >= k:
         return
-    t_ns = sim_time_ns(rec.t_s[start:])
-    columns = ColumnBatch(TIMELINE, t_ns)
-    _record_rows(columns, rec, start=start)
-    _map(columns, rec, start=start)
-    _series(columns, rec, start=start)
-    if live is not None:
-        if live.plans.shape[0] != columns.rows:
-            raise ValueError(
-                f"live rows: {live.plans.shape[0]} periods for a slice of {columns.rows}"
-            )
-        _live(columns, live)
-    columns.send(stream)
-    log_events(stream, _qp_events(rec, t_ns=t_ns, start=start))
+    if live is not None and live.plans.shape[0] != k - first:
+        raise ValueError(f"live rows: {live.plans.shape[0]} periods for a slice of {k - first}")
+    t_ns = sim_time_ns(rec.t_s[first:])
+    batches = []
+    if start < k:
+        columns = ColumnBatch(TIMELINE, t_ns[start - first :])
+        _map(columns, rec, start=start)
+        if live is not None:
+            _live_map(columns, live, skip=start - first)
+        batches.append(columns)
+    if series_start < k:
+        columns = ColumnBatch(TIMELINE, t_ns[series_start - first :])
+        _record_rows(columns, rec, start=series_start)
+        _series(columns, rec, start=series_start)
+        if live is not None:
+            _live_series(columns, live, skip=series_start - first)
+        batches.append(columns)
+    send_batches(stream, *batches)
+    if series_start < k:
+        events = _qp_events(rec, t_ns=t_ns[series_start - first :], start=series_start)
+        log_events(stream, events)
 
 
 def open_recording(

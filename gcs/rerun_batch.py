@@ -6,7 +6,8 @@ are built when it is sent, few and large: every 2-D point of every column in one
 array and every scalar in one float64 array, which the columns then slice (an Arrow conversion
 costs a few microseconds whatever its size, and a flush has some twenty columns). Each column's
 field carries `rerun:entity_path` metadata, so `rr.chunk.Chunk.from_record_batch` makes one
-chunk per entity, and all the chunks go out in one `rr.send_chunks`.
+chunk per entity, and all the chunks of a call go out in one `rr.send_chunks`
+(`send_batches`: batches on different times, e.g. slices of different lengths, go together).
 
 Rerun's own cost is per column (some 25 us to make a chunk's column) and per chunk (some 15 us
 to send it), not per row: fewer columns and entities are what make a flush cheaper.
@@ -17,10 +18,9 @@ from functools import lru_cache
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute  # noqa: F401  (loaded here: a masked ListArray imports it, ~130 ms)
 import rerun as rr
 
-__all__ = ["ColumnBatch"]
+__all__ = ["ColumnBatch", "send_batches"]
 
 _F32_XY = pa.list_(pa.field("item", pa.float32(), nullable=False), 2)
 """Arrow type of one 2-D position or vector (rerun.datatypes.Vec2D)."""
@@ -42,11 +42,29 @@ def _uniform(count: int, m: int) -> pa.Array:
     return pa.array(np.arange(0, count * m + 1, m, dtype=np.int32))
 
 
-def _offsets(lengths: np.ndarray) -> pa.Array:
-    """Offsets of lists of the given lengths."""
+def _offsets(lengths: np.ndarray) -> np.ndarray:
+    """Offsets (int32) of lists of the given lengths."""
     out = np.zeros(len(lengths) + 1, dtype=np.int32)
     np.cumsum(lengths, out=out[1:])
-    return pa.array(out)
+    return out
+
+
+def _lists(
+    lengths: np.ndarray,
+    items: pa.Array,
+    *,
+    present: np.ndarray | None = None,
+    dtype: pa.DataType | None = None,
+) -> pa.Array:
+    """A list array (of type dtype, default a list of items) of the given lengths of items;
+    the rows not `present` null. Built from its buffers: `pa.ListArray.from_arrays` with a mask
+    goes through pyarrow.compute (some 50 us, and 130 ms to import it)."""
+    validity = None
+    if present is not None:
+        validity = pa.py_buffer(np.packbits(present, bitorder="little"))
+    offsets = pa.py_buffer(_offsets(lengths))
+    dtype = pa.list_(items.type) if dtype is None else dtype
+    return pa.Array.from_buffers(dtype, len(lengths), [validity, offsets], children=[items])
 
 
 def _field(path: str, descriptor: rr.ComponentDescriptor | str, dtype: pa.DataType) -> pa.Field:
@@ -65,10 +83,11 @@ def _field(path: str, descriptor: rr.ComponentDescriptor | str, dtype: pa.DataTy
 
 @dataclass(frozen=True)
 class _Points:
-    """A column of 2-D points: `per_row` items a row, or strips of them."""
+    """A column of 2-D points (or several columns of the same points): `per_row` items a row,
+    or strips of them."""
 
     path: str
-    descriptor: rr.ComponentDescriptor
+    descriptors: tuple[rr.ComponentDescriptor, ...]
     count: int
     """Points in the column."""
     per_row: int
@@ -103,12 +122,20 @@ class ColumnBatch:
         self._arrays.append(column)
 
     def points(
-        self, path: str, descriptor: rr.ComponentDescriptor, xy: np.ndarray, *, per_row: int
+        self,
+        path: str,
+        descriptors: rr.ComponentDescriptor | tuple[rr.ComponentDescriptor, ...],
+        xy: np.ndarray,
+        *,
+        per_row: int,
     ) -> None:
-        """Positions or vectors: xy (rows x per_row, 2), `per_row` of them in every row."""
+        """Positions or vectors: xy (rows x per_row, 2), `per_row` of them in every row (the
+        same array in the column of every descriptor given)."""
+        if not isinstance(descriptors, tuple):
+            descriptors = (descriptors,)
         xy = np.reshape(xy, (-1, 2))
         self._xy.append(xy)
-        self._points.append(_Points(path, descriptor, len(xy), per_row))
+        self._points.append(_Points(path, descriptors, len(xy), per_row))
 
     def strips(
         self,
@@ -125,7 +152,8 @@ class ColumnBatch:
         per strip)."""
         xy = np.reshape(xy, (-1, 2))
         self._xy.append(xy)
-        self._points.append(_Points(path, _STRIPS, len(xy), per_row, points_per_strip, present))
+        strips = _Points(path, (_STRIPS,), len(xy), per_row, points_per_strip, present)
+        self._points.append(strips)
 
     def scalars(self, path: str, values: np.ndarray) -> None:
         """Scalars: values (rows,) or (rows, lines), one line per column (an entity with
@@ -150,16 +178,16 @@ class ColumnBatch:
             if c.strip is not None:
                 if isinstance(c.strip, int | np.integer):
                     offsets = _uniform(c.count // c.strip, int(c.strip))
+                    items = pa.ListArray.from_arrays(offsets, items, type=_STRIP)
                 else:
-                    offsets = _offsets(c.strip)
-                items = pa.ListArray.from_arrays(offsets, items, type=_STRIP)
+                    items = _lists(c.strip, items, dtype=_STRIP)
             if c.present is None or c.present.all():
                 column = pa.ListArray.from_arrays(_uniform(self.rows, c.per_row), items)
             else:
                 counts = np.where(c.present, c.per_row, 0)
-                mask = pa.array(~c.present)
-                column = pa.ListArray.from_arrays(_offsets(counts), items, mask=mask)
-            self.add(c.path, c.descriptor, column)
+                column = _lists(counts, items, present=c.present)
+            for descriptor in c.descriptors:
+                self.add(c.path, descriptor, column)
 
     def _add_scalars(self) -> None:
         if not self._scalars:
@@ -176,17 +204,28 @@ class ColumnBatch:
                 if missing.all():
                     at += size
                     continue
-                mask = pa.array(missing) if missing.any() else None
-            column = pa.ListArray.from_arrays(
-                _uniform(self.rows, v.shape[1]), flat.slice(at, size), mask=mask
-            )
+                mask = missing if missing.any() else None
+            items = flat.slice(at, size)
+            if mask is None:
+                column = pa.ListArray.from_arrays(_uniform(self.rows, v.shape[1]), items)
+            else:
+                # A null row keeps its (non-finite) values under its offsets.
+                column = _lists(np.full(self.rows, v.shape[1]), items, present=~mask)
             self.add(path, _SCALARS, column)
             at += size
 
-    def send(self, stream: rr.RecordingStream) -> None:
-        """Build the columns' arrays and send them, one chunk per entity, in one call."""
+    def chunks(self) -> list[rr.chunk.Chunk]:
+        """Build the columns' arrays: one chunk per entity."""
         self._add_points()
         self._add_scalars()
-        if len(self._arrays) > 1:
-            batch = pa.RecordBatch.from_arrays(self._arrays, schema=pa.schema(self._fields))
-            rr.send_chunks(rr.chunk.Chunk.from_record_batch(batch), recording=stream)
+        if len(self._arrays) == 1:
+            return []
+        batch = pa.RecordBatch.from_arrays(self._arrays, schema=pa.schema(self._fields))
+        return rr.chunk.Chunk.from_record_batch(batch)
+
+
+def send_batches(stream: rr.RecordingStream, *batches: ColumnBatch) -> None:
+    """Send the chunks of every batch in one call."""
+    chunks = [c for batch in batches for c in batch.chunks()]
+    if chunks:
+        rr.send_chunks(chunks, recording=stream)

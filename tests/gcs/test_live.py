@@ -181,11 +181,16 @@ def test_yaw_wraps_like_one_unwrap_of_every_sample(paper) -> None:
     np.testing.assert_array_equal(live.record().truth[:, 0, 2], want)
 
 
-def test_ground_station_flushes_read_back_as_the_live_record(paper, lockstep, tmp_path) -> None:
+@pytest.mark.parametrize("series_every", [1, 3])
+def test_ground_station_flushes_read_back_as_the_live_record(
+    paper, lockstep, tmp_path, series_every
+) -> None:
     """A ground station fed a run and flushed every few periods: the recording reads back as
-    its live record (minimum separation included), with each vehicle's plan and status rows."""
+    its live record (minimum separation included), with each vehicle's plan and status rows,
+    whether the time series and flight_record rows go out with every flush or every third
+    (and the final one)."""
     path = tmp_path / "live.rrd"
-    gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
+    gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S, series_every=series_every)
     stream = open_recording(vehicle_ids=paper.vehicle_ids, path=path)
     gs.start_recording(stream)
     ages = {vid: [o for o in paper.vehicle_ids if o != vid] for vid in paper.vehicle_ids}
@@ -201,7 +206,7 @@ def test_ground_station_flushes_read_back_as_the_live_record(paper, lockstep, tm
             gs.inbox.put(message)
         if k % 7 == 6:
             gs.flush(stream)
-    gs.flush(stream)
+    gs.flush(stream, final=True)
     stream.flush()
     stream.disconnect()
     want = gs.live.record()
@@ -222,6 +227,10 @@ def test_ground_station_flushes_read_back_as_the_live_record(paper, lockstep, tm
         ]
 
     k = len(lockstep.t_s)
+    flushes = math.ceil(k / 7)  # the last one final, with the periods left
+    assert len(chunks["/map/vehicles"]) == flushes
+    assert len(chunks["/flight_record"]) == len(chunks["/series/separation"])
+    assert len(chunks["/flight_record"]) == (flushes - 1) // series_every + 1
     plans = rows("/map/plans", "LineStrips2D:strips")
     assert len(plans) == k and all(len(r) == 3 for r in plans)
     north, east = lockstep.truth[4, 1, :2]
