@@ -331,19 +331,21 @@ class GroundStation:
         due = final or (new and self._flushes % self.series_every == 0)
         series = due and done > self.series_logged
         series_start = self.series_logged if series else done
+        first = min(self.logged_periods, series_start)  # logged from here
+        period0 = max(first - 1, 0)  # the record's tail from here (the trail's first step)
         rec = None
         if stream is not None and (new or series_start < done):
-            rec = self.live.record(done)
+            rec = self.live.record(done, first=period0)
         t1 = time.perf_counter()
         if stream is not None:
             log_events(stream, events)
         if rec is not None:
-            first = min(self.logged_periods, series_start)  # live rows from here
             log_flight_record(
                 stream,
                 rec,
                 start=self.logged_periods,
                 series_start=series_start,
+                period0=period0,
                 live=self.live.live_rows(first, done),
                 statics=False,
             )

@@ -20,7 +20,7 @@ What each FlightRecord field holds in a live run:
 """
 
 import math
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right, insort
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,6 +71,31 @@ def _unwrap_tail(raw: np.ndarray, *, previous_raw: float | None, correction: flo
     return raw + cumulative, float(cumulative[-1])
 
 
+class _Rows:
+    """An array grown along its first axis with room to spare: putting rows costs those rows,
+    not a copy of every row before them (as a concatenation would, every flush)."""
+
+    def __init__(self) -> None:
+        self._buffer: np.ndarray | None = None
+        self.count = 0
+
+    def put(self, at: int, rows: np.ndarray) -> None:
+        """Rows `at` .. of the array become `rows`; the rows after them are dropped."""
+        end = at + len(rows)
+        if self._buffer is None or end > len(self._buffer):
+            grown = np.empty((max(2 * end, 64), *rows.shape[1:]), dtype=rows.dtype)
+            if self._buffer is not None:
+                grown[:at] = self._buffer[:at]
+            self._buffer = grown
+        self._buffer[at:end] = rows
+        self.count = end
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The array's rows (a view, valid until the next `put`)."""
+        return np.empty((0,)) if self._buffer is None else self._buffer[: self.count]
+
+
 @dataclass
 class _Track:
     """One vehicle's timestamped samples (fleet seconds), in arrival order per source."""
@@ -79,9 +104,11 @@ class _Track:
     pose: list[tuple[float, float, float]] = field(default_factory=list)
     plans: dict[int, PlanMessage] = field(default_factory=dict)
     """Plans by period index."""
+    plan_periods: list[int] = field(default_factory=list)
+    """The periods of `plans`, sorted."""
     status_t_s: list[float] = field(default_factory=list)
     statuses: list[StatusMessage] = field(default_factory=list)
-    arrays: np.ndarray = field(default_factory=lambda: np.empty((4, 0)))
+    arrays: tuple[_Rows, ...] = field(default_factory=lambda: tuple(_Rows() for _ in range(4)))
     """t_s, north, east and unwrapped yaw of the first samples, as arrays (filled on demand)."""
     yaw_correction: float = 0.0
 
@@ -115,8 +142,8 @@ class LiveRecord:
         )
         self.target_observations = 0
         self._target_pending: TargetObservation | None = None
-        self._scenario_rows = {name: np.empty((0,)) for name in _SCENARIO_FIELDS}
-        self._received_rows = {name: np.empty((0,)) for name in _RECEIVED_FIELDS + _LIVE_FIELDS}
+        self._scenario_rows = {name: _Rows() for name in _SCENARIO_FIELDS}
+        self._received_rows = {name: _Rows() for name in _RECEIVED_FIELDS + _LIVE_FIELDS}
         self._pairs = np.triu_indices(len(self.ids), 1)
         """Index arrays of every vehicle pair (a, b), a < b."""
         self._valid = 0
@@ -142,8 +169,11 @@ class LiveRecord:
     def add_plan(self, message: PlanMessage) -> None:
         track = self._tracks.get(message.sender_id)
         if track is not None and message.stamp_ns % self.period_ns == 0:
-            track.plans[message.stamp_ns // self.period_ns] = message
-            self._invalidate(message.stamp_ns // self.period_ns)
+            period = message.stamp_ns // self.period_ns
+            if period not in track.plans:
+                insort(track.plan_periods, period)
+            track.plans[period] = message
+            self._invalidate(period)
 
     def add_status(self, message: StatusMessage) -> None:
         track = self._tracks.get(message.sender_id)
@@ -169,7 +199,7 @@ class LiveRecord:
         if track.t_s:
             return track.t_s[-1]
         if track.plans:
-            return max(track.plans) * self.period_ns * 1e-9
+            return track.plan_periods[-1] * self.period_ns * 1e-9
         return None
 
     def complete_periods(self) -> int:
@@ -184,8 +214,8 @@ class LiveRecord:
         return statuses[-1] if statuses else None
 
     def latest_plan(self, vehicle_id: int) -> PlanMessage | None:
-        plans = self._tracks[vehicle_id].plans
-        return plans[max(plans)] if plans else None
+        track = self._tracks[vehicle_id]
+        return track.plans[track.plan_periods[-1]] if track.plans else None
 
     def target_prediction(self, stamp_ns: int) -> np.ndarray | None:
         """The ground station's own constant-velocity prediction of the target over the horizon."""
@@ -200,9 +230,9 @@ class LiveRecord:
         return pos
 
     # -- the record -------------------------------------------------------------------------------
-    def _samples(self, track: _Track) -> np.ndarray:
-        """(4, S) t_s, north, east, unwrapped yaw of every sample (converted incrementally)."""
-        done = track.arrays.shape[1]
+    def _samples(self, track: _Track) -> tuple[np.ndarray, ...]:
+        """(S,) t_s, north, east, unwrapped yaw of every sample (converted incrementally)."""
+        done = track.arrays[0].count
         if done < len(track.t_s):
             new = np.asarray(track.pose[done:], dtype=float)
             yaw, track.yaw_correction = _unwrap_tail(
@@ -210,9 +240,10 @@ class LiveRecord:
                 previous_raw=track.pose[done - 1][2] if done else None,
                 correction=track.yaw_correction,
             )
-            rows = np.stack([np.asarray(track.t_s[done:]), new[:, 0], new[:, 1], yaw])
-            track.arrays = np.concatenate([track.arrays, rows], axis=1)
-        return track.arrays
+            columns = (np.asarray(track.t_s[done:]), new[:, 0], new[:, 1], yaw)
+            for rows, column in zip(track.arrays, columns, strict=True):
+                rows.put(done, column)
+        return tuple(rows.rows for rows in track.arrays)
 
     def _poses(self, vehicle_id: int, t_s: np.ndarray) -> np.ndarray:
         track = self._tracks[vehicle_id]
@@ -221,7 +252,7 @@ class LiveRecord:
             cols = [np.interp(t_s, ts, north), np.interp(t_s, ts, east)]
             return np.stack([*cols, np.interp(t_s, ts, yaw)], axis=-1)
         out = np.full((len(t_s), 3), np.nan)
-        ks = sorted(track.plans)
+        ks = track.plan_periods
         for j, t in enumerate(t_s):
             i = bisect_right(ks, round(t * 1e9 / self.period_ns)) - 1
             if i >= 0:
@@ -231,7 +262,7 @@ class LiveRecord:
     def _scenario_periods(self, k_n: int) -> None:
         """Extend the scenario's per-period fields to `k_n` periods."""
         sc = self.scenario
-        k0 = len(self._scenario_rows["target"])
+        k0 = self._scenario_rows["target"].count
         if k_n <= k0:
             return
         t_s = np.arange(k0, k_n) * self.period_ns * 1e-9
@@ -254,8 +285,7 @@ class LiveRecord:
             "beta_truth": beta_truth,
         }
         for name, rows in new.items():
-            old = self._scenario_rows[name]
-            self._scenario_rows[name] = np.concatenate([old, rows]) if k0 else rows
+            self._scenario_rows[name].put(k0, rows)
 
     def _received_periods(self, k0: int, k_n: int) -> dict[str, np.ndarray]:
         """The received fields of periods k0 .. k_n - 1."""
@@ -276,8 +306,8 @@ class LiveRecord:
         for i, vid in enumerate(self.ids):
             track = self._tracks[vid]
             # The plan of each period (held from the previous one when it is missing).
-            earlier = [p for p in track.plans if p < k0]
-            held = track.plans[max(earlier)] if earlier else None
+            before = bisect_left(track.plan_periods, k0)
+            held = track.plans[track.plan_periods[before - 1]] if before else None
             helds = []
             for j in range(k):
                 msg = track.plans.get(k0 + j)
@@ -344,30 +374,35 @@ class LiveRecord:
         return out
 
     def _update_cache(self, k_n: int) -> None:
-        k0 = min(self._valid, len(self._received_rows["truth"]))
+        k0 = min(self._valid, self._received_rows["truth"].count)
         if k_n <= k0:
             return
         new = self._received_periods(k0, k_n)
         for name, rows in new.items():
-            old = self._received_rows[name][:k0]
-            self._received_rows[name] = np.concatenate([old, rows]) if k0 else rows
+            self._received_rows[name].put(k0, rows)
         self._valid = k_n
 
-    def record(self, periods: int | None = None) -> FlightRecord:
-        """The FlightRecord of periods 0 .. `periods` - 1 (default: every complete period)."""
+    def record(self, periods: int | None = None, *, first: int = 0) -> FlightRecord:
+        """The FlightRecord of periods `first` .. `periods` - 1 (default: every complete period;
+        a growing record's tail costs only its periods), its minimum separation the whole
+        run's up to `periods`."""
         k_n = self.complete_periods() if periods is None else periods
         if k_n < 1:
             raise ValueError("no complete control period yet")
+        if not 0 <= first < k_n:
+            raise ValueError(f"no periods in {first} .. {k_n - 1}")
         self._scenario_periods(k_n)
         self._update_cache(k_n)
-        got = self._scenario_rows | self._received_rows
+        got = {name: r.rows for name, r in (self._scenario_rows | self._received_rows).items()}
         rows = {
-            name: values[:k_n].copy() for name, values in got.items() if name not in _LIVE_FIELDS
+            name: values[first:k_n].copy()
+            for name, values in got.items()
+            if name not in _LIVE_FIELDS and name != "separation_min"
         }
         with np.errstate(invalid="ignore"):
-            min_separation = np.fmin.reduce(rows.pop("separation_min"))
+            min_separation = np.fmin.reduce(got["separation_min"][:k_n])
         return FlightRecord(
-            t_s=np.arange(k_n) * self.period_ns * 1e-9,
+            t_s=np.arange(first, k_n) * self.period_ns * 1e-9,
             **rows,
             min_separation_m=float(min_separation),
             **self.constants().as_fields(),
@@ -393,7 +428,7 @@ class LiveRecord:
         if not 0 <= start < periods:
             raise ValueError(f"no periods in {start} .. {periods - 1}")
         self._update_cache(periods)
-        rows = {name: self._received_rows[name][start:periods].copy() for name in _LIVE_FIELDS}
+        rows = {name: self._received_rows[name].rows[start:periods].copy() for name in _LIVE_FIELDS}
         return LiveRows(
             **rows, target_prediction=self.target_prediction((periods - 1) * self.period_ns)
         )

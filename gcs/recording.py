@@ -399,10 +399,13 @@ def log_events(
     )
 
 
-def _qp_events(rec: FlightRecord, *, t_ns: np.ndarray, start: int) -> list[tuple[int, str, str]]:
-    """Events of periods start.. (at times t_ns)."""
+def _qp_events(
+    rec: FlightRecord, *, t_ns: np.ndarray, start: int, run_start: bool
+) -> list[tuple[int, str, str]]:
+    """Events of rows start.. of the record (at times t_ns), the run's start first if they
+    begin it."""
     events = []
-    if start == 0:
+    if run_start:
         events.append(
             (
                 int(t_ns[0]),
@@ -429,6 +432,7 @@ def log_flight_record(
     run_info: dict | None = None,
     start: int = 0,
     series_start: int | None = None,
+    period0: int = 0,
     live: LiveRows | None = None,
     statics: bool = True,
 ) -> None:
@@ -439,13 +443,15 @@ def log_flight_record(
     slices; the trail's first step starts at period `start` - 1).
     series_start: log the time series, the `flight_record` rows and the QP events of periods
     `series_start`.. (default: start). A live ground station logs them every few flushes, in
-    bigger slices (`len(rec.t_s)` in the flushes between: none).
+    bigger slices (the record's end in the flushes between: none).
+    period0: the period of the record's first row: a live ground station passes the tail of its
+    record, from the period before the first it logs (at most start - 1 unless start is 0).
     live: what a live run adds to periods min(start, series_start).. (plans, setpoint rates,
     plan ages, the target prediction).
     statics: log the static `meta` (`log_meta`: the record's constants and the run facts),
     colours, labels and line names (`log_statics`) with the first slice (start 0).
     """
-    k = len(rec.t_s)
+    k = period0 + len(rec.t_s)
     series_start = start if series_start is None else series_start
     first = min(start, series_start)
     if first == 0 and statics:
@@ -453,26 +459,33 @@ def log_flight_record(
         log_statics(stream, rec.vehicle_ids, live=live is not None)
     if first >= k:
         return
+    if not (period0 <= first and (start == 0 or period0 < start)):
+        raise ValueError(f"a record from period {period0} for a map from {start}, series {first}")
     if live is not None and live.plans.shape[0] != k - first:
         raise ValueError(f"live rows: {live.plans.shape[0]} periods for a slice of {k - first}")
-    t_ns = sim_time_ns(rec.t_s[first:])
+    t_ns = sim_time_ns(rec.t_s[first - period0 :])
     batches = []
     if start < k:
         columns = ColumnBatch(TIMELINE, t_ns[start - first :])
-        _map(columns, rec, start=start)
+        _map(columns, rec, start=start - period0)
         if live is not None:
             _live_map(columns, live, skip=start - first)
         batches.append(columns)
     if series_start < k:
         columns = ColumnBatch(TIMELINE, t_ns[series_start - first :])
-        _record_rows(columns, rec, start=series_start)
-        _series(columns, rec, start=series_start)
+        _record_rows(columns, rec, start=series_start - period0)
+        _series(columns, rec, start=series_start - period0)
         if live is not None:
             _live_series(columns, live, skip=series_start - first)
         batches.append(columns)
     send_batches(stream, *batches)
     if series_start < k:
-        events = _qp_events(rec, t_ns=t_ns[series_start - first :], start=series_start)
+        events = _qp_events(
+            rec,
+            t_ns=t_ns[series_start - first :],
+            start=series_start - period0,
+            run_start=series_start == 0,
+        )
         log_events(stream, events)
 
 

@@ -163,6 +163,13 @@ def test_a_growing_record_is_the_record_built_at_once(paper, lockstep) -> None:
     _feed(fresh, lockstep)
     fresh.add_plan(PlanMessage(seq=999, plan=plan, status=status))
     _assert_same_record(rec, fresh.record())
+    # A tail of the record: its periods, and the whole run's minimum separation.
+    tail = growing.record(first=9)
+    assert tail.min_separation_m == rec.min_separation_m
+    for f in dataclasses.fields(rec):
+        a, b = getattr(tail, f.name), getattr(rec, f.name)
+        if np.shape(b)[:1] == rec.t_s.shape:
+            assert np.array_equal(a, b[9:], equal_nan=b.dtype.kind == "f"), f.name
 
 
 def test_yaw_wraps_like_one_unwrap_of_every_sample(paper) -> None:
