@@ -133,7 +133,7 @@ class ColumnBatch:
         same array in the column of every descriptor given)."""
         if not isinstance(descriptors, tuple):
             descriptors = (descriptors,)
-        xy = np.reshape(xy, (-1, 2))
+        xy = xy.reshape(-1, 2)
         self._xy.append(xy)
         self._points.append(_Points(path, descriptors, len(xy), per_row))
 
@@ -150,7 +150,7 @@ class ColumnBatch:
         that is not present is null: nothing logged at that time, so the viewer keeps the
         previous strips), of `points_per_strip` points of xy (M, 2) each (one number, or one
         per strip)."""
-        xy = np.reshape(xy, (-1, 2))
+        xy = xy.reshape(-1, 2)
         self._xy.append(xy)
         strips = _Points(path, (_STRIPS,), len(xy), per_row, points_per_strip, present)
         self._points.append(strips)
@@ -159,7 +159,7 @@ class ColumnBatch:
         """Scalars: values (rows,) or (rows, lines), one line per column (an entity with
         several lines names them with a static SeriesLines). A row with no finite value stays
         empty (null); a series with no finite value at all is not logged."""
-        self._scalars.append((path, np.reshape(values, (self.rows, -1))))
+        self._scalars.append((path, np.asarray(values).reshape(self.rows, -1)))
 
     def values(self, path: str, name: str, rows: np.ndarray) -> None:
         """AnyValues component `name`: (rows, m) float64 or bool, one list of m per row."""
