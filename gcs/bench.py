@@ -13,10 +13,10 @@
 3. Side by side on the QPs recorded in the first timed run, vehicle by vehicle in flight order:
    our QP path (TubeLbmpc.solve: condense, assemble the values, update OSQP, solve with warm
    start, check) against the same QP re-built from scratch with cvxpy every step (condense with
-   the same code, build the cvxpy problem, solve with OSQP through cvxpy at the same eps and
-   max_iter, no polishing, as ours). Both sides start from the same QpData and return c; the
-   ratio is of the medians over the same sampled steps, and the largest difference in c is
-   reported.
+   the same code, build the cvxpy problem, solve with OSQP through cvxpy at the same eps,
+   max_iter and termination-check interval, no polishing, as ours). Both sides start from the
+   same QpData and return c; the ratio is of the medians over the same sampled steps, and the
+   largest difference in c is reported.
 Figures are wall-clock times on this machine, whose load is reported with them; nothing here is
 asserted (speed targets belong to the benchmark, not to unit tests).
 """
@@ -34,7 +34,7 @@ import numpy as np
 from gcs.lockstep import run_lockstep
 from onboard.core.dekf import DualEkf
 from onboard.core.lbmpc import QpData, TubeLbmpc
-from onboard.core.sparse_qp import FixedPatternQp
+from onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
 from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -146,6 +146,7 @@ def _cvxpy_rebuild(mpc: TubeLbmpc) -> Callable[[QpData], np.ndarray | None]:
             eps_abs=s.solver_eps,
             eps_rel=s.solver_eps,
             max_iter=s.solver_max_iter,
+            check_termination=CHECK_TERMINATION,
             polishing=False,
         )
         return None if c.value is None else np.asarray(c.value)
