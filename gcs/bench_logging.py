@@ -10,19 +10,23 @@ One process, side by side on the same machine:
    periods (`fleetmpc bench --gcs-logging --flush-s F [F ...] --speed S`, default 0.5 and 1 s
    at x4), the time series and flight_record rows every `series_every` flushes as the ground
    station's default `--series-flush-s` makes them; each flush is timed as the ground station
-   times it: the whole flush, and its Rerun logging (events, the record's new periods, plans,
-   rates, ages and the target prediction), which is what logging adds: draining the inbox and
-   building the record's periods the ground station does for its metrics in any case (at the
-   end, if no flush did).
+   times it: the whole flush, its Rerun calls (events, the record's new periods, plans, rates,
+   ages and the target prediction) and building the record's new periods for them.
+
+What logging adds is the Rerun calls and the record built a flush at a time rather than once:
+without logging the ground station drains its inbox all the same, and builds the record once,
+for its metrics, at the end. So the logging time of a run is its Rerun calls, plus the time it
+spent building the record (the flushes' builds and the metrics', by then a copy), less the
+one-shot build of the run without logging paired with it.
 
 The figures, per vehicle-period (one vehicle's data of one control period), next to the agent
 step median (the target is at most 10 % of it):
-- all flushes: the logging time of every flush / (periods logged x vehicles), the first flush
-  included (the run's meta, colours and line names go out when the recording opens, as in
-  `fleetmpc gcs`);
-- steady: the median logging time of a cycle of flushes that logs the time series once (one
-  flush when they go out with every flush; the first cycles before the final flush) /
-  (periods per cycle x vehicles);
+- all flushes: the run's logging time / (periods logged x vehicles), the first flush included
+  (the run's meta, colours and line names go out when the recording opens, as in
+  `fleetmpc gcs`); beside it, the part of it that is the record built a flush at a time;
+- steady: the median time of a cycle of flushes that logs the time series once (one flush when
+  they go out with every flush; the first cycles before the final flush), Rerun calls and
+  record builds, / (periods per cycle x vehicles), less the one-shot build per vehicle-period;
 - CPU: the process's CPU time over the run and its metrics, every thread included (Rerun encodes
   and writes in threads of its own, after the flush returns), less the same without logging
   (medians of three alternating pairs).
@@ -132,7 +136,7 @@ def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int, strea
 
 
 def _steady_ms(runs: list[list[float]], every: int) -> float:
-    """Median logging time [ms] of the cycles of `every` flushes before each run's final flush
+    """Median time [ms] of the cycles of `every` flushes before each run's final flush
     (of the flushes before it if a run has no whole cycle)."""
     cycles = [
         sum(run[i : i + every]) / every
@@ -153,13 +157,16 @@ def _logging(
     rrd: Path,
     repeats: int = 3,
 ) -> dict:
-    """Flush times, and the CPU time of the whole process (every thread, Rerun's encoder and
-    file writer included) with logging less the same run without it: `repeats` pairs run
-    alternately, medians compared (a single pair's difference is noisy, even negative). As in
+    """Flush times, the logging time (the Rerun calls, and the record's builds less the one-shot
+    build of the paired run without logging), and the CPU time of the whole process (every
+    thread, Rerun's encoder and file writer included) with logging less the same run without
+    it: `repeats` pairs run alternately, medians compared for the CPU time (a single pair's
+    difference is noisy, even negative). As in
     `fleetmpc gcs`, the ground station is made and the recording opened, with its meta and
     statics, before the flight: that is not timed (some 20 ms of CPU, 50 ms the first time,
     which a 30 s run would count as logging)."""
-    cpu_without, cpu_with, flush, logging = [], [], [], []
+    cpu_without, cpu_with, flush, rerun = [], [], [], []
+    record_once, record_extra = [], []
     runs: list[list[float]] = []
 
     def station() -> GroundStation:
@@ -171,6 +178,8 @@ def _logging(
         t0 = time.process_time()
         _feed(gs, rec, periods_per_flush=periods_per_flush, stream=None)
         cpu_without.append(time.process_time() - t0)
+        once_ms = gs.metrics_record_ms  # no flush built the record: the metrics built it once
+        record_once.append(once_ms)
         gs = station()
         stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
         gs.start_recording(stream)  # as the ground station, before the flight
@@ -180,22 +189,30 @@ def _logging(
         cpu_with.append(time.process_time() - t0)
         stream.disconnect()
         flush.extend(gs.flush_ms)
-        logging.extend(gs.log_ms)
-        runs.append(gs.log_ms)
-    flush, logging = np.asarray(flush), np.asarray(logging)
+        rerun.extend(gs.log_ms)
+        record_extra.append(sum(gs.record_ms) + gs.metrics_record_ms - once_ms)
+        runs.append([a + b for a, b in zip(gs.log_ms, gs.record_ms, strict=True)])
+    flush, rerun = np.asarray(flush), np.asarray(rerun)
     vehicle_periods = gs.flushed_vehicle_periods
     per_flush = periods_per_flush * len(scenario.vehicles)
     cpu_s = float(np.median(cpu_with) - np.median(cpu_without))
+    extra_ms = float(np.mean(record_extra))
+    once_ms = float(np.median(record_once))
     return {
         "periods_per_flush": periods_per_flush,
         "series_every": series_every,
         "flushes": len(flush) // repeats,
         "repeats": repeats,
         "flush_median_ms": float(np.median(flush)),
-        "logging_median_ms": float(np.median(logging)),
-        "logging_p99_ms": float(np.percentile(logging, 99)),
-        "ms_per_vehicle_period": float(logging.sum() / repeats / vehicle_periods),
-        "steady_ms_per_vehicle_period": _steady_ms(runs, series_every) / per_flush,
+        "rerun_median_ms": float(np.median(rerun)),
+        "rerun_p99_ms": float(np.percentile(rerun, 99)),
+        "record_once_ms": once_ms,
+        "record_extra_ms": extra_ms,
+        "ms_per_vehicle_period": float(rerun.sum() / repeats + extra_ms) / vehicle_periods,
+        "record_ms_per_vehicle_period": extra_ms / vehicle_periods,
+        "steady_ms_per_vehicle_period": (
+            _steady_ms(runs, series_every) / per_flush - once_ms / vehicle_periods
+        ),
         "cpu_ms_per_vehicle_period": cpu_s * 1e3 / vehicle_periods,
         "rrd_kib": rrd.stat().st_size / 1024,
     }
@@ -224,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
                 rrd=Path(tmp) / f"{periods}.rrd",
             )
             row |= {"flush_s": flush_s, "speed": speed}
-            for key in ("", "steady_", "cpu_"):
+            for key in ("", "record_", "steady_", "cpu_"):
                 fraction = row[f"{key}ms_per_vehicle_period"] / step_median_ms
                 row[f"{key}fraction_of_agent_step"] = fraction
             rows.append(row)
@@ -241,12 +258,12 @@ def run(args: argparse.Namespace) -> int:
         f"{len(rec.t_s)} periods; agent step median {step_median_ms:.3f} ms (same process)"
     )
     print(
-        f"  {'flush every (series every)':33s} {'flush':>8s} {'logging':>16s}   "
-        f"{'logging ms / vehicle-period (of agent step)':>44s}"
+        f"  {'flush every (series every)':33s} {'flush':>8s} {'Rerun calls':>16s}   "
+        f"{'logging ms / vehicle-period (of agent step)':>59s}"
     )
     print(
         f"  {'':33s} {'median':>8s} {'median':>8s} {'p99':>7s}   "
-        f"{'all flushes':>14s} {'steady':>14s} {'CPU':>14s}"
+        f"{'all flushes':>14s} {'of it record':>14s} {'steady':>14s} {'CPU':>14s}"
     )
     for r in rows:
         name = (
@@ -257,21 +274,26 @@ def run(args: argparse.Namespace) -> int:
             f"{r[key]:.3f} ({100 * r[key] / step_median_ms:.0f}%)"
             for key in (
                 "ms_per_vehicle_period",
+                "record_ms_per_vehicle_period",
                 "steady_ms_per_vehicle_period",
                 "cpu_ms_per_vehicle_period",
             )
         ]
         print(
-            f"  {name:33s} {r['flush_median_ms']:>8.2f} {r['logging_median_ms']:>8.2f} "
-            f"{r['logging_p99_ms']:>7.2f}   " + " ".join(f"{c:>14s}" for c in cells)
+            f"  {name:33s} {r['flush_median_ms']:>8.2f} {r['rerun_median_ms']:>8.2f} "
+            f"{r['rerun_p99_ms']:>7.2f}   " + " ".join(f"{c:>14s}" for c in cells)
         )
+    once = " ".join(f"{r['record_once_ms']:.2f}" for r in rows)
+    extra = " ".join(f"{r['record_extra_ms']:.2f}" for r in rows)
     print(
-        "  (ms; logging: the flush's Rerun calls, not draining the bus or building the record,"
-        " which the metrics need anyway; all flushes: their logging time over the"
-        " vehicle-periods logged, the first one included; steady: the median cycle's, a cycle"
+        "  (ms; logging: the flushes' Rerun calls, and the record built a flush at a time less"
+        " the record built once at the end, as the metrics do without logging, not draining the"
+        " bus; all flushes: the run's logging time over the vehicle-periods logged, the first"
+        " flush included, and of it the record's builds; steady: the median cycle's, a cycle"
         " logging the time series once; CPU: every thread of the process, with logging less"
         " without, metrics included in both)"
     )
+    print(f"  (record built once: {once} ms; a flush at a time, more by: {extra} ms)")
     print(f"  (target: logging per vehicle-period <= {100 * TARGET_FRACTION:.0f} % of the step)")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")

@@ -22,8 +22,11 @@ What it does, in order:
    the flight_record rows of the periods since their previous logging, all of them in the
    last flush (a logging call costs per column and entity, not per row: bigger batches of
    what need not be seen at once cost less); in the metrics per vehicle-period: the Rerun
-   logging as ``gcs_log_ms_per_vehicle_period``, the whole flush, the bus drained and the
-   record's new periods built too, as ``gcs_flush_ms_per_vehicle_period``;
+   calls as ``gcs_log_ms_per_vehicle_period``, building the record's new periods for them as
+   ``gcs_record_ms_per_vehicle_period`` (without logging the record is built once, for the
+   metrics, at the end; what the flushes' builds cost beyond that build is logging's too, and
+   ``fleetmpc bench --gcs-logging`` counts it), the whole flush, the bus drained too, as
+   ``gcs_flush_ms_per_vehicle_period``;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
    summary as `fleetmpc sim` and writes the same metrics JSON.
@@ -215,8 +218,16 @@ class GroundStation:
         """Wall time of each flush [ms]."""
         self.log_ms: list[float] = []
         """Of each flush, the time in Rerun logging [ms]: events, the record's new periods, the
-        live rows. The rest (draining the bus, building the record's new periods) the ground
-        station does for its metrics anyway (`metrics` builds the record if flushes did not)."""
+        live rows. The rest is draining the bus, which the ground station does anyway, and
+        building the record's new periods (`record_ms`)."""
+        self.record_ms: list[float] = []
+        """Of each flush, the time building the record's new periods for logging [ms] (0 if it
+        built none). Without logging, `metrics` builds the record once at the end instead;
+        building it a flush at a time costs more than that, and the difference is logging's
+        (`fleetmpc bench --gcs-logging` measures it)."""
+        self.metrics_record_ms: float | None = None
+        """The time `metrics` took to build the record [ms] (its periods already built by the
+        flushes when logging)."""
         self.flushed_vehicle_periods = 0
         """Vehicle-periods logged by the flushes timed in flush_ms."""
         self._events: list[tuple[int, str, str]] = []
@@ -334,6 +345,7 @@ class GroundStation:
         first = min(self.logged_periods, series_start)  # logged from here
         period0 = max(first - 1, 0)  # the record's tail from here (the trail's first step)
         rec = None
+        t_record = time.perf_counter()
         if stream is not None and (new or series_start < done):
             rec = self.live.record(done, first=period0)
         t1 = time.perf_counter()
@@ -356,6 +368,7 @@ class GroundStation:
         t2 = time.perf_counter()
         self.flush_ms.append((t2 - t0) * 1e3)
         self.log_ms.append((t2 - t1) * 1e3)
+        self.record_ms.append((t1 - t_record) * 1e3)
 
     def status_snapshot(self, phase: str) -> dict:
         now = time.time()
@@ -380,7 +393,9 @@ class GroundStation:
         periods = min(self.live.complete_periods(), self.periods)
         if periods < 1:
             return None
+        t0 = time.perf_counter()
         rec = self.live.record(periods)
+        self.metrics_record_ms = (time.perf_counter() - t0) * 1e3
         flush = sorted(self.flush_ms) or [math.nan]
         vehicle_periods = self.flushed_vehicle_periods
         return {
@@ -395,6 +410,9 @@ class GroundStation:
             },
             "gcs_log_ms_per_vehicle_period": (
                 sum(self.log_ms) / vehicle_periods if vehicle_periods else None
+            ),
+            "gcs_record_ms_per_vehicle_period": (
+                sum(self.record_ms) / vehicle_periods if vehicle_periods else None
             ),
             "gcs_flush_ms_per_vehicle_period": (
                 sum(self.flush_ms) / vehicle_periods if vehicle_periods else None
