@@ -20,7 +20,7 @@ What each FlightRecord field holds in a live run:
 """
 
 import math
-from bisect import bisect_left, bisect_right, insort
+from bisect import bisect_right, insort
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -52,23 +52,16 @@ def formation_reference(
     return slots, slots - centre[:, None, :]
 
 
-def _unwrap_tail(raw: np.ndarray, *, previous_raw: float | None, correction: float) -> tuple:
-    """`np.unwrap` of a sequence continued by `raw`, given the last raw value before it and the
-    correction accumulated so far; returns (unwrapped raw, new accumulated correction). Same
-    operations, in the same order, as one `np.unwrap` over the whole sequence."""
-    if previous_raw is None:
-        first, raw_rest = raw[:1], raw[1:]
-        unwrapped, correction = _unwrap_tail(raw_rest, previous_raw=raw[0], correction=0.0)
-        return np.concatenate([first, unwrapped]), correction
-    if len(raw) == 0:
-        return raw, correction
-    dd = np.diff(np.concatenate([[previous_raw], raw]))
-    ddmod = np.mod(dd + np.pi, 2 * np.pi) - np.pi
-    ddmod[(ddmod == -np.pi) & (dd > 0)] = np.pi
-    ph_correct = ddmod - dd
-    ph_correct[abs(dd) < np.pi] = 0
-    cumulative = np.cumsum(np.concatenate([[correction], ph_correct]))[1:]
-    return raw + cumulative, float(cumulative[-1])
+def _unwrap_step(previous_rad: float, yaw_rad: float, *, correction: float) -> float:
+    """`np.unwrap` one sample further: the correction [rad] it adds to `yaw_rad`, following
+    `previous_rad` to which it added `correction`. The same float operations as `np.unwrap`
+    (Python's float `%` is numpy's `np.mod`: fmod, then the divisor's sign), one sample at a
+    time, as the samples arrive."""
+    dd = yaw_rad - previous_rad
+    ddmod = (dd + math.pi) % (2 * math.pi) - math.pi
+    if ddmod == -math.pi and dd > 0:
+        ddmod = math.pi
+    return correction + (0.0 if abs(dd) < math.pi else ddmod - dd)
 
 
 class _Rows:
@@ -96,29 +89,106 @@ class _Rows:
         return np.empty((0,)) if self._buffer is None else self._buffer[: self.count]
 
 
+class _Samples:
+    """A vehicle's telemetry as four columns (t_s, north, east, unwrapped yaw), grown along the
+    samples with room to spare; each column is contiguous, as `np.interp` wants it."""
+
+    def __init__(self) -> None:
+        self._buffer = np.empty((4, 0))
+        self.count = 0
+
+    def append(self, columns: np.ndarray) -> None:
+        """Append samples (4, S)."""
+        end = self.count + columns.shape[1]
+        if end > self._buffer.shape[1]:
+            grown = np.empty((4, max(2 * end, 64)))
+            grown[:, : self.count] = self._buffer[:, : self.count]
+            self._buffer = grown
+        self._buffer[:, self.count : end] = columns
+        self.count = end
+
+    @property
+    def columns(self) -> np.ndarray:
+        """(4, S) t_s, north, east, unwrapped yaw (a view, valid until the next `append`)."""
+        return self._buffer[:, : self.count]
+
+
+class _Table:
+    """Per period and vehicle, a row of `width` floats: what arrived for that period (NaN where
+    nothing did), grown along the periods with room to spare."""
+
+    def __init__(self, vehicles: int, width: int) -> None:
+        self.width = width
+        self._buffer = np.full((0, vehicles, width), np.nan)
+
+    def _reserve(self, periods: int) -> None:
+        if periods > len(self._buffer):
+            grown = np.full((max(2 * periods, 64), *self._buffer.shape[1:]), np.nan)
+            grown[: len(self._buffer)] = self._buffer
+            self._buffer = grown
+
+    def set(self, periods: list[int], vehicles: list[int], rows) -> None:
+        """Row (period, vehicle) becomes `rows[j]` for each (periods[j], vehicles[j]) (distinct)."""
+        self._reserve(max(periods) + 1)
+        self._buffer[periods, vehicles] = rows
+
+    def rows(self, k0: int, k_n: int) -> np.ndarray:
+        """Periods k0 .. k_n - 1 (K, N, width) (a view, valid until the next `set`)."""
+        self._reserve(k_n)
+        return self._buffer[k0:k_n]
+
+
+def _hold(events: np.ndarray, arrived: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """Per period and vehicle, the latest row of `events` (K, N, W) that arrived (`arrived`
+    (K, N)) at or before the period, else `before` (N, W), the row held before the first period.
+    Copies of the rows: the same floats."""
+    k, n = arrived.shape
+    index = np.where(arrived, np.arange(1, k + 1)[:, None], 0)
+    np.maximum.accumulate(index, axis=0, out=index)
+    rows = np.empty((k + 1, *events.shape[1:]))
+    rows[0] = before
+    rows[1:] = events
+    return rows[index, np.arange(n)]
+
+
 @dataclass
 class _Track:
     """One vehicle's timestamped samples (fleet seconds), in arrival order per source."""
 
-    t_s: list[float] = field(default_factory=list)
-    pose: list[tuple[float, float, float]] = field(default_factory=list)
+    samples: list[float] = field(default_factory=list)
+    """t_s, north, east and unwrapped yaw of each telemetry sample, in time order, one after
+    the other."""
+    raw_yaw: float | None = None
+    """The newest sample's yaw as received [rad]."""
     plans: dict[int, PlanMessage] = field(default_factory=dict)
     """Plans by period index."""
     plan_periods: list[int] = field(default_factory=list)
     """The periods of `plans`, sorted."""
-    status_t_s: list[float] = field(default_factory=list)
     statuses: list[StatusMessage] = field(default_factory=list)
-    arrays: tuple[_Rows, ...] = field(default_factory=lambda: tuple(_Rows() for _ in range(4)))
-    """t_s, north, east and unwrapped yaw of the first samples, as arrays (filled on demand)."""
+    columns: _Samples = field(default_factory=_Samples)
+    """`samples` as arrays (filled on demand)."""
     yaw_correction: float = 0.0
+    """What the unwrapping adds to the newest sample's raw yaw [rad]."""
 
 
 _SCENARIO_FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", "beta_truth")
 """Per-period fields that depend only on the scenario (computed once per period)."""
-_RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta", "separation_min")
-"""Per-period fields built from what was received (recomputed if late input changes them)."""
+_RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta")
+"""Per-period FlightRecord fields built from what was received."""
 _LIVE_FIELDS = ("plans", "setpoint_rate_hz", "plan_age_s")
 """Received per-period fields that are not in a FlightRecord (see `LiveRows`)."""
+_CACHED = ("truth", "qp_ok", "step_time_ms", "separation_min", "plan_held", "status_held")
+"""What the received fields are made of, per period (recomputed if late input changes it): the
+positions, the plan flags, the closest approach over the period, and each vehicle's plan row
+and status row held at the period (see `_PLAN_COLUMNS`, `_STATUS_COLUMNS`)."""
+
+_PLAN_COLUMNS = 6
+"""A plan's row in the plan table: command (2), c (2: |c_0|, 0), step time [ms], QP fallback
+(1 or 0; NaN where no plan arrived), then the planned positions (M + 1, 2) flattened (NaN if the
+plan does not span the horizon)."""
+_STATUS_COLUMNS = 6
+"""A status's row in the status table: arrived (1; NaN where none did), beta (4), setpoint rate
+[Hz], then the age of each other vehicle's plan [s] (N - 1, NaN where not reported)."""
 
 
 class LiveRecord:
@@ -127,14 +197,24 @@ class LiveRecord:
     Periods already built are cached, so a growing record costs only its new periods: the
     scenario's fields are computed once per period, and the received fields are rebuilt from
     the first period a late input (a plan, a status, or a position sample that moves the
-    interpolation) can change.
+    interpolation) can change. Plans and statuses become rows of two tables, by period and
+    vehicle, as they are needed, and the telemetry columns grow by the new samples, so
+    building a record in slices costs little more than building it once: the work per slice
+    is a fixed number of array operations for the whole fleet, besides one interpolation per
+    vehicle and column.
     """
 
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
         self.period_ns = scenario.controller.period_ns
         self.ids = scenario.vehicle_ids
+        n = len(self.ids)
         self._tracks = {vid: _Track() for vid in self.ids}
+        self._index = {vid: i for i, vid in enumerate(self.ids)}
+        self._others = [
+            {o: a for a, o in enumerate(x for x in self.ids if x != vid)} for vid in self.ids
+        ]
+        """Per vehicle, the column of each other vehicle in its plan ages."""
         self._formation = Formation(scenario.formation)
         self._target = TargetEstimator(
             observation_std_m=max(scenario.target.observation_noise_m, 1e-3),
@@ -142,9 +222,24 @@ class LiveRecord:
         )
         self.target_observations = 0
         self._target_pending: TargetObservation | None = None
+        horizon = scenario.controller.horizon
+        self._no_plan = [math.nan] * 2 * (horizon + 1)
+        self._plan_table = _Table(n, _PLAN_COLUMNS + 2 * (horizon + 1))
+        self._status_table = _Table(n, _STATUS_COLUMNS + max(n - 1, 0))
+        self._pending_plans: dict[tuple[int, int], list[float]] = {}
+        """Rows of the plans not in the plan table yet, by (period, vehicle index), made as
+        the plans arrive (the work is the same whether the record is built once or a flush at
+        a time)."""
+        self._pending_statuses: dict[tuple[int, int], list[float]] = {}
+        """Rows of the statuses not in the status table yet, by (first period at or after
+        them, vehicle index); a newer status of the same vehicle and period replaces an older
+        one."""
         self._scenario_rows = {name: _Rows() for name in _SCENARIO_FIELDS}
-        self._received_rows = {name: _Rows() for name in _RECEIVED_FIELDS + _LIVE_FIELDS}
-        self._pairs = np.triu_indices(len(self.ids), 1)
+        self._received_rows = {name: _Rows() for name in _CACHED}
+        self._constant_fields = self.constants().as_fields()
+        self._desired_distance_m = self._constant_fields.pop("desired_distance_m")
+        """The record's constants (an array, copied into each record) and the others."""
+        self._pairs = np.triu_indices(n, 1)
         """Index arrays of every vehicle pair (a, b), a < b."""
         self._valid = 0
         """Periods whose received fields in the cache are current."""
@@ -158,13 +253,20 @@ class LiveRecord:
         track = self._tracks.get(vehicle_id)
         if track is None or not all(map(math.isfinite, (t_s, north_m, east_m, yaw_rad))):
             return
-        if track.t_s and t_s <= track.t_s[-1]:
+        newest = track.samples[-4] if track.samples else None
+        if newest is not None and t_s <= newest:
             return
         # Periods after the previous newest sample were interpolated to it (or, without any
         # sample, taken from the plans): they change.
-        self._invalidate(int(track.t_s[-1] * 1e9 // self.period_ns) if track.t_s else 0)
-        track.t_s.append(t_s)
-        track.pose.append((north_m, east_m, yaw_rad))
+        self._invalidate(int(newest * 1e9 // self.period_ns) if newest is not None else 0)
+        yaw = yaw_rad
+        if track.raw_yaw is not None:
+            track.yaw_correction = _unwrap_step(
+                track.raw_yaw, yaw_rad, correction=track.yaw_correction
+            )
+            yaw = yaw_rad + track.yaw_correction
+        track.raw_yaw = yaw_rad
+        track.samples += (t_s, north_m, east_m, yaw)
 
     def add_plan(self, message: PlanMessage) -> None:
         track = self._tracks.get(message.sender_id)
@@ -173,15 +275,29 @@ class LiveRecord:
             if period not in track.plans:
                 insort(track.plan_periods, period)
             track.plans[period] = message
+            self._pending_plans[period, self._index[message.sender_id]] = self._plan_row(message)
             self._invalidate(period)
 
     def add_status(self, message: StatusMessage) -> None:
         track = self._tracks.get(message.sender_id)
         t_s = message.stamp_ns * 1e-9
-        if track is not None and (not track.status_t_s or t_s > track.status_t_s[-1]):
-            track.status_t_s.append(t_s)
+        if track is not None and (not track.statuses or t_s > track.statuses[-1].stamp_ns * 1e-9):
             track.statuses.append(message)
-            self._invalidate(message.stamp_ns // self.period_ns)
+            period = self._first_period_at(t_s)
+            i = self._index[message.sender_id]
+            self._pending_statuses[period, i] = self._status_row(message, i)
+            self._invalidate(period)
+
+    def _first_period_at(self, t_s: float) -> int:
+        """The first period whose time (1 ns tolerance) is at or after `t_s`: the first a status
+        stamped at `t_s` is the latest of (the same float comparison as a search of the status
+        times for each period's)."""
+        k = max(int(t_s * 1e9 // self.period_ns), 0)
+        while k > 0 and (k - 1) * self.period_ns * 1e-9 + 1e-9 >= t_s:
+            k -= 1
+        while not k * self.period_ns * 1e-9 + 1e-9 >= t_s:
+            k += 1
+        return k
 
     def add_target(self, message: TargetObservation) -> None:
         """A target observation. Only the newest one is kept until `target_prediction` fuses it:
@@ -196,8 +312,8 @@ class LiveRecord:
     def latest_time_s(self, vehicle_id: int) -> float | None:
         """Fleet time of the vehicle's newest position (telemetry or, without it, plan)."""
         track = self._tracks[vehicle_id]
-        if track.t_s:
-            return track.t_s[-1]
+        if track.samples:
+            return track.samples[-4]
         if track.plans:
             return track.plan_periods[-1] * self.period_ns * 1e-9
         return None
@@ -230,33 +346,31 @@ class LiveRecord:
         return pos
 
     # -- the record -------------------------------------------------------------------------------
-    def _samples(self, track: _Track) -> tuple[np.ndarray, ...]:
-        """(S,) t_s, north, east, unwrapped yaw of every sample (converted incrementally)."""
-        done = track.arrays[0].count
-        if done < len(track.t_s):
-            new = np.asarray(track.pose[done:], dtype=float)
-            yaw, track.yaw_correction = _unwrap_tail(
-                new[:, 2],
-                previous_raw=track.pose[done - 1][2] if done else None,
-                correction=track.yaw_correction,
-            )
-            columns = (np.asarray(track.t_s[done:]), new[:, 0], new[:, 1], yaw)
-            for rows, column in zip(track.arrays, columns, strict=True):
-                rows.put(done, column)
-        return tuple(rows.rows for rows in track.arrays)
+    def _convert_samples(self) -> None:
+        """Every vehicle's new telemetry samples appended to its columns."""
+        for track in self._tracks.values():
+            done = 4 * track.columns.count
+            if done < len(track.samples):
+                new = np.array(track.samples[done:], dtype=float)
+                track.columns.append(new.reshape(-1, 4).T)
 
-    def _poses(self, vehicle_id: int, t_s: np.ndarray) -> np.ndarray:
-        track = self._tracks[vehicle_id]
-        if track.t_s:
-            ts, north, east, yaw = self._samples(track)
-            cols = [np.interp(t_s, ts, north), np.interp(t_s, ts, east)]
-            return np.stack([*cols, np.interp(t_s, ts, yaw)], axis=-1)
-        out = np.full((len(t_s), 3), np.nan)
-        ks = track.plan_periods
-        for j, t in enumerate(t_s):
-            i = bisect_right(ks, round(t * 1e9 / self.period_ns)) - 1
-            if i >= 0:
-                out[j] = track.plans[ks[i]].plan.states[0]
+    def _poses(self, t_s: np.ndarray, *, yaw_until: int) -> np.ndarray:
+        """(N, 3, T) north, east and yaw of every vehicle at times `t_s` (T,), the yaw only at
+        the first `yaw_until` (undefined after)."""
+        self._convert_samples()
+        out = np.empty((len(self.ids), 3, len(t_s)))
+        for i, vid in enumerate(self.ids):
+            track = self._tracks[vid]
+            if track.samples:
+                ts, north, east, yaw = track.columns.columns
+                out[i, 0] = np.interp(t_s, ts, north)
+                out[i, 1] = np.interp(t_s, ts, east)
+                out[i, 2, :yaw_until] = np.interp(t_s[:yaw_until], ts, yaw)
+                continue
+            ks = track.plan_periods
+            for j, t in enumerate(t_s.tolist()):
+                i_plan = bisect_right(ks, round(t * 1e9 / self.period_ns)) - 1
+                out[i, :, j] = track.plans[ks[i_plan]].plan.states[0] if i_plan >= 0 else math.nan
         return out
 
     def _scenario_periods(self, k_n: int) -> None:
@@ -265,18 +379,21 @@ class LiveRecord:
         k0 = self._scenario_rows["target"].count
         if k_n <= k0:
             return
-        t_s = np.arange(k0, k_n) * self.period_ns * 1e-9
-        states = [sc.target.state_at(float(t)) for t in t_s]
-        target = np.array([p for p, _ in states], dtype=float).reshape(-1, 2)
-        target_vel = np.array([v for _, v in states], dtype=float).reshape(-1, 2)
+        times = (np.arange(k0, k_n) * self.period_ns * 1e-9).tolist()
+        state_at = sc.target.state_floats
+        truths = [sc.vehicle(vid).truth for vid in self.ids]
+        flat: list[float] = []
+        for t in times:
+            position, velocity = state_at(t)
+            flat += position
+            flat += velocity
+            for truth in truths:
+                flat += (truth.speed_effectiveness, truth.yaw_rate_effectiveness, *truth.wind.at(t))
+        n = len(self.ids)
+        values = np.array(flat, dtype=float).reshape(len(times), 4 + 4 * n)
+        target, target_vel = values[:, 0:2], values[:, 2:4]
         slots, offsets = formation_reference(self._formation, target, target_vel)
-        beta_truth = np.empty((len(t_s), len(self.ids), 4))
-        times = t_s.tolist()
-        for i, vid in enumerate(self.ids):
-            truth = sc.vehicle(vid).truth
-            beta_truth[:, i, 0] = truth.speed_effectiveness
-            beta_truth[:, i, 1] = truth.yaw_rate_effectiveness
-            beta_truth[:, i, 2:] = [truth.wind.at(t) for t in times]
+        beta_truth = values[:, 4:].reshape(len(times), n, 4)
         new = {
             "target": target,
             "target_velocity": target_vel,
@@ -287,89 +404,111 @@ class LiveRecord:
         for name, rows in new.items():
             self._scenario_rows[name].put(k0, rows)
 
+    def _plan_row(self, message: PlanMessage) -> list[float]:
+        """The plan table's row of a plan (see `_PLAN_COLUMNS`)."""
+        plan, status = message.plan, message.status
+        whole = plan.states.shape[0] == self.scenario.controller.horizon + 1
+        return [
+            *plan.inputs[0].tolist(),
+            status.first_c_norm,
+            0.0,
+            status.solve_time_us * 1e-3,
+            float(status.qp_fallback),
+            *(plan.states[:, :2].ravel().tolist() if whole else self._no_plan),
+        ]
+
+    def _status_row(self, message: StatusMessage, i: int) -> list[float]:
+        """The status table's row of vehicle i's status (see `_STATUS_COLUMNS`)."""
+        st = message.status
+        ages = [math.nan] * (len(self.ids) - 1)
+        others = self._others[i]
+        for a in st.neighbour_plan_ages:
+            if a.vehicle_id in others:
+                ages[others[a.vehicle_id]] = a.age_ns * 1e-9
+        return [1.0, *st.beta.as_tuple(), st.setpoint_rate_hz, *ages]
+
+    def _take_pending(self, k_n: int) -> None:
+        """Pending plans and statuses of periods before `k_n` into their tables."""
+        for pending, table in (
+            (self._pending_plans, self._plan_table),
+            (self._pending_statuses, self._status_table),
+        ):
+            due = [key for key in pending if key[0] < k_n]
+            if due:
+                rows = [pending.pop(key) for key in due]
+                table.set([p for p, _ in due], [i for _, i in due], rows)
+
+    def _held_before(self, name: str, k0: int) -> np.ndarray:
+        """The held row of each vehicle at period k0 - 1 (NaN before period 0: a message's
+        stamp is not negative)."""
+        if k0:
+            return self._received_rows[name].rows[k0 - 1]
+        return np.nan
+
     def _received_periods(self, k0: int, k_n: int) -> dict[str, np.ndarray]:
         """The received fields of periods k0 .. k_n - 1."""
-        n = len(self.ids)
         k = k_n - k0
+        self._take_pending(k_n)
+        events = self._plan_table.rows(k0, k_n)
+        arrived = ~np.isnan(events[:, :, 5])
+        plan = _hold(events, arrived, self._held_before("plan_held", k0))
+        statuses = self._status_table.rows(k0, k_n)
+        status = _hold(statuses, statuses[:, :, 0] == 1.0, self._held_before("status_held", k0))
+        # The period times, then the plant ticks since the previous period (the separation's).
         t_s = np.arange(k0, k_n) * self.period_ns * 1e-9
-        truth = np.stack([self._poses(vid, t_s) for vid in self.ids], axis=1)
-        command = np.full((k, n, 2), np.nan)
-        c = np.full((k, n, 2), np.nan)
-        qp_ok = np.ones((k, n), dtype=bool)
-        step_ms = np.full((k, n), np.nan)
-        beta = np.full((k, n, 4), np.nan)
-        horizon = self.scenario.controller.horizon
-        plans = np.full((k, n, horizon + 1, 2), np.nan)
-        rate = np.full((k, n), np.nan)
-        ages = np.full((k, n, max(n - 1, 0)), np.nan)
-        t_search = (t_s + 1e-9).tolist()
-        for i, vid in enumerate(self.ids):
-            track = self._tracks[vid]
-            # The plan of each period (held from the previous one when it is missing).
-            before = bisect_left(track.plan_periods, k0)
-            held = track.plans[track.plan_periods[before - 1]] if before else None
-            helds = []
-            for j in range(k):
-                msg = track.plans.get(k0 + j)
-                if msg is not None:
-                    held = msg
-                    step_ms[j, i] = msg.status.solve_time_us * 1e-3
-                    qp_ok[j, i] = not msg.status.qp_fallback
-                helds.append(held)
-            rows = [j for j, h in enumerate(helds) if h is not None]
-            if rows:
-                command[rows, i] = [helds[j].plan.inputs[0] for j in rows]
-                c[rows, i, 0] = [helds[j].status.first_c_norm for j in rows]
-                c[rows, i, 1] = 0.0
-                whole = [j for j in rows if helds[j].plan.states.shape[0] == horizon + 1]
-                if whole:
-                    plans[whole, i] = [helds[j].plan.states[:, :2] for j in whole]
-            # The latest status at or before each period.
-            latest = [bisect_right(track.status_t_s, t) - 1 for t in t_search]
-            rows = [j for j, st in enumerate(latest) if st >= 0]
-            if rows:
-                statuses = [track.statuses[latest[j]].status for j in rows]
-                beta[rows, i] = [st.beta.as_tuple() for st in statuses]
-                rate[rows, i] = [st.setpoint_rate_hz for st in statuses]
-                others = {o: a for a, o in enumerate(x for x in self.ids if x != vid)}
-                for j, st in zip(rows, statuses, strict=True):
-                    for a in st.neighbour_plan_ages:
-                        if a.vehicle_id in others:
-                            ages[j, i, others[a.vehicle_id]] = a.age_ns * 1e-9
+        ticks, tick_ends = self._separation_ticks(k0, k_n)
+        pos = self._poses(np.concatenate([t_s, ticks]), yaw_until=k)
         return {
-            "truth": truth,
-            "command": command,
-            "c": c,
-            "qp_ok": qp_ok,
-            "step_time_ms": step_ms,
-            "beta": beta,
-            "separation_min": self._separation_minima(k0, k_n),
-            "plans": plans,
-            "setpoint_rate_hz": rate,
-            "plan_age_s": ages,
+            "truth": pos[:, :, :k].transpose(2, 0, 1),
+            "qp_ok": events[:, :, 5] != 1.0,
+            "step_time_ms": events[:, :, 4],
+            "separation_min": self._separation_minima(pos[:, :2, k:], tick_ends),
+            "plan_held": plan,
+            "status_held": status,
         }
 
-    def _separation_minima(self, k0: int, k_n: int) -> np.ndarray:
-        """Per period k0 .. k_n - 1, the closest approach over the plant ticks since the previous
-        period (period k covers the ticks up to t_k; period 0 the tick at 0)."""
-        n = len(self.ids)
-        if n < 2:
-            return np.full(k_n - k0, math.inf)
+    def _received(self, first: int, k_n: int, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+        """Copies of the received fields `names` of periods `first` .. `k_n` - 1 (cached)."""
+        rows = {name: self._received_rows[name].rows[first:k_n] for name in _CACHED}
+        plan, status = rows["plan_held"], rows["status_held"]
+        k, n = plan.shape[:2]
+        views = {
+            "truth": rows["truth"],
+            "command": plan[:, :, 0:2],
+            "c": plan[:, :, 2:4],
+            "qp_ok": rows["qp_ok"],
+            "step_time_ms": rows["step_time_ms"],
+            "beta": status[:, :, 1:5],
+            "plans": plan[:, :, _PLAN_COLUMNS:].reshape(k, n, -1, 2),
+            "setpoint_rate_hz": status[:, :, 5],
+            "plan_age_s": status[:, :, _STATUS_COLUMNS:],
+        }
+        return {name: views[name].copy() for name in names}
+
+    def _separation_ticks(self, k0: int, k_n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The plant ticks (T,) [s] periods k0 .. k_n - 1 cover (period k the ticks up to t_k,
+        period 0 the tick at 0), and where each period's ticks end in them (K,)."""
         tick_s = self.scenario.tick_ns * 1e-9
         # Ticks up to period k: the length of np.arange(0.0, t_k + 1e-9, tick_s).
         t_s = np.arange(k0 - 1 if k0 else 0, k_n) * self.period_ns * 1e-9
         ends = np.ceil((t_s + 1e-9) / tick_s).astype(np.int64)
         first = ends[0] if k0 else 0
         ends = ends[1:] if k0 else ends
-        grid = np.arange(first, ends[-1]) * tick_s
-        pos = np.stack([self._poses(vid, grid)[:, :2] for vid in self.ids], axis=1)
+        return np.arange(first, ends[-1]) * tick_s, ends - first
+
+    def _separation_minima(self, pos: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Per period, the closest approach over its plant ticks, from every vehicle's position
+        (N, 2, T) on the ticks and where each period's ticks end (K,)."""
+        if len(self.ids) < 2:
+            return np.full(len(ends), math.inf)
         a, b = self._pairs
-        d = np.linalg.norm(pos[:, a, :] - pos[:, b, :], axis=-1)  # (ticks, pairs)
-        starts = np.concatenate([[first], ends[:-1]]) - first
+        diff = pos[a] - pos[b]
+        d = np.sqrt(np.add.reduce(diff * diff, axis=1))  # (pairs, ticks), as np.linalg.norm
+        starts = np.concatenate([[0], ends[:-1]])
         out = np.full(len(ends), np.nan)
-        has_ticks = ends - first > starts
+        has_ticks = ends > starts
         if has_ticks.any():
-            per_tick = np.fmin.reduce(d, axis=1)
+            per_tick = np.fmin.reduce(d, axis=0)
             out[has_ticks] = np.fmin.reduceat(per_tick, starts[has_ticks])
         return out
 
@@ -393,19 +532,17 @@ class LiveRecord:
             raise ValueError(f"no periods in {first} .. {k_n - 1}")
         self._scenario_periods(k_n)
         self._update_cache(k_n)
-        got = {name: r.rows for name, r in (self._scenario_rows | self._received_rows).items()}
         rows = {
-            name: values[first:k_n].copy()
-            for name, values in got.items()
-            if name not in _LIVE_FIELDS and name != "separation_min"
-        }
+            name: self._scenario_rows[name].rows[first:k_n].copy() for name in _SCENARIO_FIELDS
+        } | self._received(first, k_n, _RECEIVED_FIELDS)
         with np.errstate(invalid="ignore"):
-            min_separation = np.fmin.reduce(got["separation_min"][:k_n])
+            min_separation = np.fmin.reduce(self._received_rows["separation_min"].rows[:k_n])
         return FlightRecord(
             t_s=np.arange(first, k_n) * self.period_ns * 1e-9,
             **rows,
             min_separation_m=float(min_separation),
-            **self.constants().as_fields(),
+            **self._constant_fields,
+            desired_distance_m=self._desired_distance_m.copy(),
         )
 
     def constants(self) -> RunConstants:
@@ -428,7 +565,7 @@ class LiveRecord:
         if not 0 <= start < periods:
             raise ValueError(f"no periods in {start} .. {periods - 1}")
         self._update_cache(periods)
-        rows = {name: self._received_rows[name].rows[start:periods].copy() for name in _LIVE_FIELDS}
+        rows = self._received(start, periods, _LIVE_FIELDS)
         return LiveRows(
             **rows, target_prediction=self.target_prediction((periods - 1) * self.period_ns)
         )

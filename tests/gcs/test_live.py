@@ -216,6 +216,10 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     gs.flush(stream, final=True)
     stream.flush()
     stream.disconnect()
+    # Each flush's record build is timed inside the flush, beside its Rerun calls.
+    assert len(gs.record_ms) == len(gs.log_ms) == len(gs.flush_ms)
+    for rec_ms, log_ms, flush_ms in zip(gs.record_ms, gs.log_ms, gs.flush_ms, strict=True):
+        assert rec_ms > 0 and rec_ms + log_ms <= flush_ms
     want = gs.live.record()
     back = read_recording(path).record
     _assert_same_record(back, want)
@@ -259,3 +263,80 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     assert sum(r is not None for r in rows("/map/target_prediction", "LineStrips2D:strips")) == (
         math.ceil(k / 7)
     )
+
+
+def _bits(a: np.ndarray) -> tuple:
+    return a.dtype.str, a.shape, a.tobytes()
+
+
+@pytest.mark.parametrize("every", [1, 6, 20])
+def test_a_record_built_in_slices_is_the_record_built_once_bit_for_bit(
+    paper, lockstep, every
+) -> None:
+    """Tails built every few periods as the input arrives (yaw wrapping, plans missing, statuses
+    between periods with neighbour ages) put together are, bit for bit, the record and the live
+    rows one build at the end gives; -0.0 and NaN payloads included."""
+    rng = np.random.default_rng(7)
+    period_ns = paper.controller.period_ns
+    k = len(lockstep.t_s)
+    yaw = np.angle(np.exp(1j * np.cumsum(rng.normal(0.0, 2.0, (k, 3)), axis=0)))
+    yaw[0, 0] = -0.0
+    messages = []
+    for j in range(k):
+        msgs = period_messages(lockstep, j, period_ns=period_ns, horizon=5)
+        poses = [(*p[:4], float(yaw[j, i])) for i, p in enumerate(msgs.poses)]
+        plans = [m for m in msgs.plans if rng.random() > 0.2]
+        statuses = []
+        for m in msgs.statuses:
+            seen = tuple(
+                NeighbourPlanAge(o, int(rng.integers(1, 10**8)))
+                for o in paper.vehicle_ids
+                if o != m.sender_id and rng.random() > 0.3
+            )
+            status = dataclasses.replace(
+                m.status, neighbour_plan_ages=seen, setpoint_rate_hz=float(rng.uniform(0, 30))
+            )
+            stamp = m.stamp_ns + int(rng.choice([0, 1, period_ns // 2, period_ns - 1]))
+            statuses.append(dataclasses.replace(m, status=status, stamp_ns=stamp))
+        messages.append((poses, plans, statuses))
+
+    def feed(live: LiveRecord, j: int) -> None:
+        poses, plans, statuses = messages[j]
+        for pose in poses:
+            live.add_pose(*pose)
+        for m in (*plans, *statuses):
+            (live.add_plan if isinstance(m, PlanMessage) else live.add_status)(m)
+
+    sliced = LiveRecord(paper)
+    tails, live_tails, logged = [], [], 0
+    for j in range(k):
+        feed(sliced, j)
+        done = sliced.complete_periods()
+        if (j + 1) % every == 0 and done > logged:
+            tails.append(sliced.record(done, first=logged))
+            live_tails.append(sliced.live_rows(logged, done))
+            logged = done
+    if sliced.complete_periods() > logged:
+        tails.append(sliced.record(first=logged))
+        live_tails.append(sliced.live_rows(logged, sliced.complete_periods()))
+    once = LiveRecord(paper)
+    for j in range(k):
+        feed(once, j)
+    whole = once.record()
+    whole_live = once.live_rows(0, len(whole.t_s))
+    assert len(tails) > 1
+    for f in dataclasses.fields(whole):
+        want = getattr(whole, f.name)
+        if np.shape(want)[:1] == whole.t_s.shape:
+            got = np.concatenate([getattr(t, f.name) for t in tails])
+            assert _bits(got) == _bits(want), f.name
+        elif isinstance(want, np.ndarray):
+            assert _bits(getattr(tails[-1], f.name)) == _bits(want), f.name
+        else:
+            assert getattr(tails[-1], f.name) == want, f.name
+    for name in ("plans", "setpoint_rate_hz", "plan_age_s"):
+        got = np.concatenate([getattr(t, name) for t in live_tails])
+        assert _bits(got) == _bits(getattr(whole_live, name)), name
+    # The cases are there: a -0.0 yaw, periods before any status, yaw unwrapped past +-pi.
+    assert np.signbit(whole.truth[0, 0, 2]) and np.isnan(whole.beta).any()
+    assert np.abs(whole.truth[:, :, 2]).max() > 2 * np.pi
