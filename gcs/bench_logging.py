@@ -161,10 +161,9 @@ def _logging(
     build of the paired run without logging), and the CPU time of the whole process (every
     thread, Rerun's encoder and file writer included) with logging less the same run without
     it: `repeats` pairs run alternately, medians compared for the CPU time (a single pair's
-    difference is noisy, even negative). As in
-    `fleetmpc gcs`, the ground station is made and the recording opened, with its meta and
-    statics, before the flight: that is not timed (some 20 ms of CPU, 50 ms the first time,
-    which a 30 s run would count as logging)."""
+    difference is noisy, even negative). As in `fleetmpc gcs`, the ground station is made and
+    the recording opened, with its meta and statics, before the flight: that is not timed
+    (some 20 ms of CPU, 50 ms the first time, which a 30 s run would count as logging)."""
     cpu_without, cpu_with, flush, rerun = [], [], [], []
     record_once, record_extra = [], []
     runs: list[list[float]] = []
@@ -208,7 +207,7 @@ def _logging(
         "rerun_p99_ms": float(np.percentile(rerun, 99)),
         "record_once_ms": once_ms,
         "record_extra_ms": extra_ms,
-        "ms_per_vehicle_period": float(rerun.sum() / repeats + extra_ms) / vehicle_periods,
+        "ms_per_vehicle_period": (float(rerun.sum()) / repeats + extra_ms) / vehicle_periods,
         "record_ms_per_vehicle_period": extra_ms / vehicle_periods,
         "steady_ms_per_vehicle_period": (
             _steady_ms(runs, series_every) / per_flush - once_ms / vehicle_periods
