@@ -75,17 +75,8 @@ def _unconstrained_optimum(mpc: TubeLbmpc) -> np.ndarray | None:
     return None
 
 
-def _assemble(mpc: TubeLbmpc, d) -> None:
-    """TubeLbmpc.solve's assembly of P, q, A and the bounds (up to the OSQP update)."""
-    mpc._condense(d)
-    np.multiply(mpc._w, mpc._Y_steps, out=mpc._WY)
-    np.dot(mpc._P_M, mpc._Y_terminal, out=mpc._WY_terminal)
-    np.dot(mpc._Y_steps.T, mpc._WY, out=mpc._H)
-    mpc._buffer.take(mpc._qp_sources, out=mpc._qp_values)
-
-
 def _skip_osqp_solve(self: TubeLbmpc, d) -> QpSolution:
-    _assemble(self, d)
+    self.assemble(d)
     x = _unconstrained_optimum(self)
     if x is None:
         # (TubeLbmpc.solve assembles again: those periods pay the assembly twice, so the ratio

@@ -450,16 +450,21 @@ class TubeLbmpc:
             D[:M, 6:].copy(),
         )
 
-    def solve(self, d: QpData) -> QpSolution:
-        """Build this period's QP values, solve it, and check the answer."""
-        M, n = self.M, 2 * self.M
-        qp = self._qp
+    def assemble(self, d: QpData) -> None:
+        """Build this period's QP values: P, q, A, l and u in OSQP's buffer (not yet handed to
+        OSQP)."""
         self._condense(d)
         # Cost: [[P, q], [q', .]] = Y' W Y over the step rows (W doubled); A from Y's rows.
         np.multiply(self._w, self._Y_steps, out=self._WY)  # W's diagonal part
         np.dot(self._P_M, self._Y_terminal, out=self._WY_terminal)
         np.dot(self._Y_steps.T, self._WY, out=self._H)
         self._buffer.take(self._qp_sources, out=self._qp_values)
+
+    def solve(self, d: QpData) -> QpSolution:
+        """Build this period's QP values, solve it, and check the answer."""
+        M, n = self.M, 2 * self.M
+        qp = self._qp
+        self.assemble(d)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
             self._last_c = None
