@@ -16,7 +16,7 @@
    the same code, build the cvxpy problem, solve with OSQP through cvxpy at the same eps,
    max_iter and termination-check interval, no polishing, as ours). Both sides start from the
    same QpData and return c; the ratio is of the medians over the same sampled steps, and the
-   largest difference in c is reported.
+   largest difference in c is reported, with OSQP's iterations per solve of our replays.
 Figures are wall-clock times on this machine, whose load is reported with them; nothing here is
 asserted (speed targets belong to the benchmark, not to unit tests).
 """
@@ -245,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     solved = qp > 0
     build = (split_steps - dekf - qp)[solved]
     # 3. Our QP path against a cvxpy rebuild, on the same recorded QPs.
-    ours_ns, cvx_ns, diffs = [], [], []
+    ours_ns, cvx_ns, diffs, iterations = [], [], [], []
     sequences = list(captured.values())
     total = sum(len(q) for q in sequences)
     stride = max(1, total // max(args.cvxpy_samples, 1))
@@ -257,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
             sol = mpc.solve(d)
             times.append(time.perf_counter_ns() - t0)
             solutions.append(sol)
+            iterations.append(sol.iterations)
         rebuild = _cvxpy_rebuild(TubeLbmpc(sc.controller, n_neighbours=len(sc.vehicles) - 1))
         for i in range(0, len(seq), stride):
             t0 = time.perf_counter_ns()
@@ -288,6 +289,11 @@ def run(args: argparse.Namespace) -> int:
         "qp_path_cvxpy_rebuild": _stats(cvx_ns),
         "cvxpy_over_ours_median": float(np.median(cvx_ns) / np.median(ours_ns)),
         "max_abs_c_difference": float(max(diffs)) if diffs else None,
+        "osqp_iterations": {
+            "median": float(np.median(iterations)),
+            "mean": float(np.mean(iterations)),
+            "p99": float(np.percentile(iterations, 99)),
+        },
         "targets": TARGETS,
     }
     result["targets_met"] = {
@@ -330,7 +336,9 @@ def run(args: argparse.Namespace) -> int:
         f"  (split from the timed runs: step median "
         f"{result['split_run_agent_step']['median_ms']:.3f} ms; "
         f"{len(cvx_ns)} QPs side by side"
-        + (f", ours and cvxpy agree on c within {max(diffs):.1e})" if diffs else ")")
+        + (f", ours and cvxpy agree on c within {max(diffs):.1e}" if diffs else "")
+        + f"; OSQP iterations per solve, median {result['osqp_iterations']['median']:.0f}, "
+        f"mean {result['osqp_iterations']['mean']:.1f}, p99 {result['osqp_iterations']['p99']:.0f})"
     )
     missed = [k for k, ok in result["targets_met"].items() if not ok]
     print(
