@@ -145,8 +145,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--series-flush-s",
         type=float,
         default=SERIES_FLUSH_S,
-        help="wall seconds between two loggings of the time series and the flight record, a"
-        f" multiple of --flush-s (default {SERIES_FLUSH_S:g}; the map goes out with every flush)",
+        help="wall seconds between two loggings of the time series and the flight record,"
+        " rounded to a whole number of flushes, at least one"
+        f" (default {SERIES_FLUSH_S:g}; the map goes out with every flush)",
     )
     parser.add_argument(
         "--gate-formation-m",

@@ -51,7 +51,6 @@ from gcs.rerun_batch import ColumnBatch, send_batches
 
 __all__ = [
     "APPLICATION_ID",
-    "BETA_PARAMS",
     "BETA_SERIES",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
@@ -72,16 +71,9 @@ __all__ = [
 
 APPLICATION_ID = "fleetmpc"
 TIMELINE = "sim_time"
-BETA_PARAMS = (
-    "speed_effectiveness",
-    "yaw_rate_effectiveness",
-    "drift_north_m_s",
-    "drift_east_m_s",
-)
-"""Names of the four beta entries, in FlightRecord.beta's order."""
 BETA_SERIES = (("effectiveness", (0, 1)), ("drift_m_s", (2, 3)))
-"""Entities `series/beta/<name>` and the beta entries each holds: its lines are, per vehicle,
-the first entry learned, then the second; then the same of the truth."""
+"""Entities `series/beta/<name>` and the beta entries each holds: its lines are the first entry
+of every vehicle, then the second, learned; then the same of the truth."""
 _BETA_LINE_NAMES = ("speed", "yaw rate", "drift North", "drift East")
 RECORD_ARRAYS = (
     "truth",
@@ -361,11 +353,12 @@ def _live_map(columns: ColumnBatch, live: LiveRows, *, skip: int) -> None:
     if has.all():
         columns.strips("map/plans", map_from_ned(plans), points_per_strip=m, per_row=n)
     elif has.any():
+        # Rows where no vehicle has a plan are null; the others hold one strip per vehicle
+        # (empty for a vehicle without a plan).
+        present = has.any(axis=1)
         points = map_from_ned(plans[has])
-        lengths = np.where(has, m, 0).ravel()
-        columns.strips(
-            "map/plans", points, points_per_strip=lengths, per_row=n, present=has.any(axis=1)
-        )
+        lengths = np.where(has[present], m, 0).ravel()
+        columns.strips("map/plans", points, points_per_strip=lengths, per_row=n, present=present)
     if live.target_prediction is not None:
         prediction = map_from_ned(np.asarray(live.target_prediction))
         present = np.arange(k) == k - 1  # the prediction is made at the last row's time
@@ -451,7 +444,9 @@ def log_flight_record(
     live: what a live run adds to periods min(start, series_start).. (plans, setpoint rates,
     plan ages, the target prediction).
     statics: log the static `meta` (`log_meta`: the record's constants and the run facts),
-    colours, labels and line names (`log_statics`) with the first slice (start 0).
+    colours, labels and line names (`log_statics`) with the first slice (min(start,
+    series_start) = 0); a live ground station, which logs them when it opens its recording,
+    passes False.
     """
     k = period0 + len(rec.t_s)
     series_start = start if series_start is None else series_start

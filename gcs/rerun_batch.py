@@ -149,7 +149,7 @@ class ColumnBatch:
         """LineStrips2D: `per_row` strips in every `present` row (default: every row; a row
         that is not present is null: nothing logged at that time, so the viewer keeps the
         previous strips), of `points_per_strip` points of xy (M, 2) each (one number, or one
-        per strip)."""
+        per strip of the present rows)."""
         xy = xy.reshape(-1, 2)
         self._xy.append(xy)
         strips = _Points(path, (_STRIPS,), len(xy), per_row, points_per_strip, present)

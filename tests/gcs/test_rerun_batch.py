@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 import rerun as rr
 
+from gcs.record import LiveRows
+from gcs.recording import _live_map
 from gcs.rerun_batch import ColumnBatch, send_batches
 
 TIMELINE = "t"
@@ -85,3 +87,30 @@ def test_batches_on_different_times_go_out_together(stream) -> None:
     assert got["/x"][TIMELINE] == [5, 6]
     assert got["/x"]["Scalars:scalars"] == [[1.0], [2.0]]
     assert got["/y"]["Scalars:scalars"] == [[float(v)] for v in range(6)]
+
+
+def test_plans_before_every_vehicle_has_one_stay_in_their_rows(stream) -> None:
+    """A live slice whose first rows have no plan, or plans of only some vehicles: each row
+    shows its own plans (null where no vehicle has one, an empty strip for a vehicle without
+    one), not an earlier row's."""
+    s, path = stream
+    plans = np.full((3, 2, 2, 2), np.nan)  # rows, vehicles, points, (North, East)
+    plans[1, 0] = [[1.0, 2.0], [3.0, 4.0]]  # row 1: vehicle 0 only
+    plans[2, 0] = [[5.0, 6.0], [7.0, 8.0]]
+    plans[2, 1] = [[9.0, 10.0], [11.0, 12.0]]
+    live = LiveRows(
+        plans=plans,
+        setpoint_rate_hz=np.full((3, 2), np.nan),
+        plan_age_s=np.full((3, 2, 1), np.nan),
+        target_prediction=None,
+    )
+    batch = ColumnBatch(TIMELINE, np.arange(3) * 1_000_000)
+    _live_map(batch, live, skip=0)
+    send_batches(s, batch)
+    s.flush()
+    s.disconnect()
+    strips = _read(path)["/map/plans"]["LineStrips2D:strips"]
+    # The map's x is East and its y is South.
+    assert strips[0] is None
+    assert strips[1] == [[[2.0, -1.0], [4.0, -3.0]], []]
+    assert strips[2] == [[[6.0, -5.0], [8.0, -7.0]], [[10.0, -9.0], [12.0, -11.0]]]
