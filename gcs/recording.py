@@ -298,9 +298,7 @@ def _map(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
     rows = np.arange(start - before, k - before)
     steps = pos[np.stack([np.maximum(rows - 1, 0), rows], axis=1)]  # (K, 2 points, N, 2)
     yaw = rec.truth[start:, :, 2]
-    heading = np.empty_like(here)
-    np.multiply(np.sin(yaw), _HEADING_ARROW_M, out=heading[..., 0])  # East
-    np.multiply(np.cos(yaw), -_HEADING_ARROW_M, out=heading[..., 1])  # South
+    heading = map_from_ned(np.stack([np.cos(yaw), np.sin(yaw)], axis=-1) * _HEADING_ARROW_M)
     columns.points("map/vehicles", (_POSITIONS, _ORIGINS), here, per_row=n)
     columns.points("map/vehicles", _VECTORS, heading, per_row=n)
     columns.strips("map/trails", steps.transpose(0, 2, 1, 3), points_per_strip=2, per_row=n)
