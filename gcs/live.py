@@ -164,7 +164,8 @@ class _Track:
     """Plans by period index."""
     plan_periods: list[int] = field(default_factory=list)
     """The periods of `plans`, sorted."""
-    statuses: list[StatusMessage] = field(default_factory=list)
+    status: StatusMessage | None = None
+    """The newest status (the table holds every status's row)."""
     columns: _Samples = field(default_factory=_Samples)
     """`samples` as arrays (filled on demand)."""
     yaw_correction: float = 0.0
@@ -281,8 +282,8 @@ class LiveRecord:
     def add_status(self, message: StatusMessage) -> None:
         track = self._tracks.get(message.sender_id)
         t_s = message.stamp_ns * 1e-9
-        if track is not None and (not track.statuses or t_s > track.statuses[-1].stamp_ns * 1e-9):
-            track.statuses.append(message)
+        if track is not None and (track.status is None or t_s > track.status.stamp_ns * 1e-9):
+            track.status = message
             period = self._first_period_at(t_s)
             i = self._index[message.sender_id]
             self._pending_statuses[period, i] = self._status_row(message, i)
@@ -326,8 +327,7 @@ class LiveRecord:
         return max(0, int(math.floor(min(times) * 1e9 / self.period_ns)) + 1)
 
     def latest_status(self, vehicle_id: int) -> StatusMessage | None:
-        statuses = self._tracks[vehicle_id].statuses
-        return statuses[-1] if statuses else None
+        return self._tracks[vehicle_id].status
 
     def latest_plan(self, vehicle_id: int) -> PlanMessage | None:
         track = self._tracks[vehicle_id]
