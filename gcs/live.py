@@ -155,9 +155,11 @@ def _hold(events: np.ndarray, arrived: np.ndarray, before: np.ndarray) -> np.nda
 class _Track:
     """One vehicle's timestamped samples (fleet seconds), in arrival order per source."""
 
-    samples: list[float] = field(default_factory=list)
-    """t_s, north, east and unwrapped yaw of each telemetry sample, in time order, one after
-    the other."""
+    pending: list[float] = field(default_factory=list)
+    """t_s, north, east and unwrapped yaw of each telemetry sample not yet in `columns`, in time
+    order, one after the other."""
+    newest_t_s: float | None = None
+    """Fleet time of the newest telemetry sample."""
     raw_yaw: float | None = None
     """The newest sample's yaw as received [rad]."""
     plans: dict[int, PlanMessage] = field(default_factory=dict)
@@ -167,7 +169,7 @@ class _Track:
     status: StatusMessage | None = None
     """The newest status (the table holds every status's row)."""
     columns: _Samples = field(default_factory=_Samples)
-    """`samples` as arrays (filled on demand)."""
+    """Every telemetry sample but the pending ones, as arrays (filled on demand)."""
     yaw_correction: float = 0.0
     """What the unwrapping adds to the newest sample's raw yaw [rad]."""
 
@@ -254,7 +256,7 @@ class LiveRecord:
         track = self._tracks.get(vehicle_id)
         if track is None or not all(map(math.isfinite, (t_s, north_m, east_m, yaw_rad))):
             return
-        newest = track.samples[-4] if track.samples else None
+        newest = track.newest_t_s
         if newest is not None and t_s <= newest:
             return
         # Periods after the previous newest sample were interpolated to it (or, without any
@@ -267,7 +269,8 @@ class LiveRecord:
             )
             yaw = yaw_rad + track.yaw_correction
         track.raw_yaw = yaw_rad
-        track.samples += (t_s, north_m, east_m, yaw)
+        track.pending += (t_s, north_m, east_m, yaw)
+        track.newest_t_s = t_s
 
     def add_plan(self, message: PlanMessage) -> None:
         track = self._tracks.get(message.sender_id)
@@ -313,8 +316,8 @@ class LiveRecord:
     def latest_time_s(self, vehicle_id: int) -> float | None:
         """Fleet time of the vehicle's newest position (telemetry or, without it, plan)."""
         track = self._tracks[vehicle_id]
-        if track.samples:
-            return track.samples[-4]
+        if track.newest_t_s is not None:
+            return track.newest_t_s
         if track.plans:
             return track.plan_periods[-1] * self.period_ns * 1e-9
         return None
@@ -349,10 +352,10 @@ class LiveRecord:
     def _convert_samples(self) -> None:
         """Every vehicle's new telemetry samples appended to its columns."""
         for track in self._tracks.values():
-            done = 4 * track.columns.count
-            if done < len(track.samples):
-                new = np.array(track.samples[done:], dtype=float)
+            if track.pending:
+                new = np.array(track.pending, dtype=float)
                 track.columns.append(new.reshape(-1, 4).T)
+                track.pending.clear()
 
     def _poses(self, t_s: np.ndarray, *, yaw_until: int) -> np.ndarray:
         """(N, 3, T) north, east and yaw of every vehicle at times `t_s` (T,), the yaw only at
@@ -361,7 +364,7 @@ class LiveRecord:
         out = np.empty((len(self.ids), 3, len(t_s)))
         for i, vid in enumerate(self.ids):
             track = self._tracks[vid]
-            if track.samples:
+            if track.columns.count:
                 ts, north, east, yaw = track.columns.columns
                 out[i, 0] = np.interp(t_s, ts, north)
                 out[i, 1] = np.interp(t_s, ts, east)
