@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gcs.ground_station import SERIES_FLUSH_S
 from gcs.lockstep import run_lockstep
 from onboard.core.dekf import DualEkf
 from onboard.core.lbmpc import QpData, TubeLbmpc
@@ -174,15 +175,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--flush-s",
         type=float,
         nargs="+",
-        default=[0.5, 1.0],
+        default=[1.0, 2.0, 4.0],
         metavar="S",
-        help="with --gcs-logging: the ground station's flush intervals to compare [wall s]",
+        help="with --gcs-logging: the ground station's flush intervals to compare"
+        " [s of flight, as its --flush-s] (default 1 2 4)",
     )
     parser.add_argument(
-        "--speed",
+        "--series-flush-s",
         type=float,
-        default=4.0,
-        help="with --gcs-logging: the fleet speed the flush intervals are taken at",
+        default=SERIES_FLUSH_S,
+        metavar="S",
+        help="with --gcs-logging: the ground station's --series-flush-s [s of flight]"
+        f" (default {SERIES_FLUSH_S:g})",
     )
 
 

@@ -6,10 +6,10 @@ One process, side by side on the same machine:
    reference: the control step);
 2. a `GroundStation` fed what a live ground station would receive from that run (each vehicle's
    position, plan and status every period, the target's observation), flushed to an `.rrd` file
-   every `P` periods, as `fleetmpc gcs --flush-s F --speed S` flushes every F * S / period
-   periods (`fleetmpc bench --gcs-logging --flush-s F [F ...] --speed S`, default 0.5 and 1 s
-   at x4), the time series and flight_record rows every `series_every` flushes as the ground
-   station's default `--series-flush-s` makes them; each flush is timed as the ground station
+   every `P` periods, as `fleetmpc gcs --flush-s F` flushes every F / period periods at any
+   speed (`fleetmpc bench --gcs-logging --flush-s F [F ...] [--series-flush-s G]`, default 1, 2
+   and 4 s of flight), the time series and flight_record rows every `series_every` flushes as
+   `fleetmpc gcs --series-flush-s G` makes them; each flush is timed as the ground station
    times it: the whole flush, its Rerun calls (events, the record's new periods, plans, rates,
    ages and the target prediction) and building the record's new periods for them.
 
@@ -218,7 +218,7 @@ def _logging(
 
 
 def run(args: argparse.Namespace) -> int:
-    for name, values in (("--flush-s", args.flush_s), ("--speed", [args.speed])):
+    for name, values in (("--flush-s", args.flush_s), ("--series-flush-s", [args.series_flush_s])):
         bad = [v for v in values if not (v > 0 and np.isfinite(v))]
         if bad:
             raise FleetMpcError(f"{name}: must be > 0, got {bad[0]:g}")
@@ -230,16 +230,15 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for flush_s in args.flush_s:
-            speed = args.speed
-            periods = max(1, round(flush_s * speed / period_s))
+            periods = max(1, round(flush_s / period_s))
             row = _logging(
                 rec,
                 sc,
                 periods_per_flush=periods,
-                series_every=series_every(flush_s=flush_s),
+                series_every=series_every(flush_s=flush_s, series_flush_s=args.series_flush_s),
                 rrd=Path(tmp) / f"{periods}.rrd",
             )
-            row |= {"flush_s": flush_s, "speed": speed}
+            row |= {"flush_s": flush_s}
             for key in ("", "record_", "steady_", "cpu_"):
                 fraction = row[f"{key}ms_per_vehicle_period"] / step_median_ms
                 row[f"{key}fraction_of_agent_step"] = fraction
@@ -265,10 +264,7 @@ def run(args: argparse.Namespace) -> int:
         f"{'all flushes':>14s} {'of it record':>14s} {'steady':>14s} {'CPU':>14s}"
     )
     for r in rows:
-        name = (
-            f"{r['periods_per_flush']} periods ({r['flush_s']:g} s at x{r['speed']:g}) "
-            f"({r['series_every']})"
-        )
+        name = f"{r['flush_s']:g} s ({r['periods_per_flush']} periods) ({r['series_every']})"
         cells = [
             f"{r[key]:.3f} ({100 * r[key] / step_median_ms:.0f}%)"
             for key in (

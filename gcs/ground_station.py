@@ -17,16 +17,21 @@ What it does, in order:
    ``time_boot_ms``), plans, statuses and target observations into a `gcs.live.LiveRecord` and
    logs them to Rerun in batches (the entity layout of `gcs.recording`), teed to an ``.rrd`` file
    and/or a viewer; mode changes and STATUSTEXT become events;
-   every ``--flush-s`` wall seconds (default 1), logging the map of the periods completed
-   since the previous flush, and every ``--series-flush-s`` (default 4) the time series and
-   the flight_record rows of the periods since their previous logging, all of them in the
-   last flush (a logging call costs per column and entity, not per row: bigger batches of
-   what need not be seen at once cost less); in the metrics per vehicle-period: the Rerun
-   calls as ``gcs_log_ms_per_vehicle_period``, building the record's new periods for them as
-   ``gcs_record_ms_per_vehicle_period`` (without logging the record is built once, for the
-   metrics, at the end; what the flushes' builds cost beyond that build is logging's too, and
-   ``fleetmpc bench --gcs-logging`` counts it), the whole flush, the bus drained too, as
-   ``gcs_flush_ms_per_vehicle_period``;
+   every ``--flush-s`` seconds of flight (default 2: every 2 / ``--speed`` wall seconds),
+   logging the map of the periods completed since the previous flush, and every
+   ``--series-flush-s`` seconds of flight (default 4) the time series and the flight_record
+   rows of the periods since their previous logging, all of them in the last flush. A logging
+   call costs per column and entity, not per row, so the intervals are counted in flight, not
+   wall, time: what logging costs per vehicle and control period is then the same at every
+   speed, and bigger batches of what need not be seen at once cost less. The bus is drained
+   with every status snapshot too, so the status table is as fresh at every interval. In the
+   metrics, per vehicle-period: the Rerun calls as ``gcs_log_ms_per_vehicle_period``, building
+   the record's new periods for them as ``gcs_record_ms_per_vehicle_period`` (without logging
+   the record is built once, for the metrics, at the end; ``fleetmpc bench --gcs-logging``
+   measures what the flushes' builds cost beyond that build), the whole flush, the bus drained
+   too, as ``gcs_flush_ms_per_vehicle_period``; and the first two together over the agents'
+   step median (the live run's, from their plans) as ``gcs_logging_share_of_agent_step``,
+   which the summary shows;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
    summary as `fleetmpc sim` and writes the same metrics JSON.
@@ -82,7 +87,7 @@ from protocol.scenario import Scenario, load_scenario
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
-__all__ = ["SERIES_FLUSH_S", "GroundStation", "add_arguments", "run", "series_every"]
+__all__ = ["FLUSH_S", "SERIES_FLUSH_S", "GroundStation", "add_arguments", "run", "series_every"]
 
 EXIT_WITHOUT_TEARDOWN = True
 """A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
@@ -93,12 +98,16 @@ _STATUS_WALL_S = 0.5
 _LINK_LOST_WALL_S = 3.0
 _AFTER_END_SIM_S = 0.5
 """Telemetry collected past the last period, so it can be interpolated."""
+FLUSH_S = 2.0
+"""Default seconds of flight between two Rerun logging batches (10 control periods of the
+paper's 0.2 s: `fleetmpc bench --gcs-logging` gives what shorter ones cost)."""
 SERIES_FLUSH_S = 4.0
-"""Default wall seconds between two loggings of the time series and the flight_record rows."""
+"""Default seconds of flight between two loggings of the time series and the flight_record
+rows."""
 
 
 def series_every(*, flush_s: float, series_flush_s: float = SERIES_FLUSH_S) -> int:
-    """Flushes per logging of the time series, for flushes every `flush_s` [wall s]."""
+    """Flushes per logging of the time series, for flushes every `flush_s` [s of flight]."""
     return max(1, round(series_flush_s / flush_s))
 
 
@@ -138,14 +147,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--flush-s",
         type=float,
-        default=1.0,
-        help="wall seconds between two Rerun logging batches (default 1)",
+        default=FLUSH_S,
+        help="seconds of flight (wall seconds x --speed) between two Rerun logging batches:"
+        " how late a live viewer shows the fleet; shorter costs more per control period"
+        f" (default {FLUSH_S:g})",
     )
     parser.add_argument(
         "--series-flush-s",
         type=float,
         default=SERIES_FLUSH_S,
-        help="wall seconds between two loggings of the time series and the flight record,"
+        help="seconds of flight between two loggings of the time series and the flight record,"
         " rounded to a whole number of flushes, at least one"
         f" (default {SERIES_FLUSH_S:g}; the map goes out with every flush)",
     )
@@ -399,11 +410,17 @@ class GroundStation:
         self.metrics_record_ms = (time.perf_counter() - t0) * 1e3
         flush = sorted(self.flush_ms) or [math.nan]
         vehicle_periods = self.flushed_vehicle_periods
+        metrics = compute_metrics(rec)
+        step_ms = metrics["step_time_ms"]["median"]
+        share = None
+        if vehicle_periods and step_ms:
+            logging_ms = (sum(self.log_ms) + sum(self.record_ms)) / vehicle_periods
+            share = logging_ms / step_ms
         return {
             "scenario": self.scenario.name,
             **self.run_info,
             "duration_s": float(rec.t_s[-1]),
-            **compute_metrics(rec),
+            **metrics,
             "gcs_flush_ms": {
                 "median": flush[len(flush) // 2],
                 "p99": flush[min(len(flush) - 1, int(0.99 * len(flush)))],
@@ -418,6 +435,7 @@ class GroundStation:
             "gcs_flush_ms_per_vehicle_period": (
                 sum(self.flush_ms) / vehicle_periods if vehicle_periods else None
             ),
+            "gcs_logging_share_of_agent_step": share,
             "periods_recorded": periods,
             "periods_expected": self.periods,
         }
@@ -514,8 +532,9 @@ def run(args: argparse.Namespace) -> int:
                 next_announce = now + 0.5
             if now >= next_flush:
                 gs.flush(stream)
-                next_flush = now + args.flush_s
+                next_flush = now + args.flush_s / args.speed
             if now >= next_status:
+                gs.drain_bus()
                 gs.check_links(time.time())
                 if args.status_file is not None:
                     phase = "waiting" if gs.epoch_ns is None else "flying"

@@ -174,6 +174,8 @@ class _Track:
     """What the unwrapping adds to the newest sample's raw yaw [rad]."""
 
 
+_SCENARIO_BLOCK = 64
+"""Periods of the scenario's fields computed at a time (at least)."""
 _SCENARIO_FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", "beta_truth")
 """Per-period fields that depend only on the scenario (computed once per period)."""
 _RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta")
@@ -377,11 +379,14 @@ class LiveRecord:
         return out
 
     def _scenario_periods(self, k_n: int) -> None:
-        """Extend the scenario's per-period fields to `k_n` periods."""
+        """Extend the scenario's per-period fields to at least `k_n` periods: to
+        `_SCENARIO_BLOCK` more at a time, as they depend on nothing received (a growing record
+        pays the fixed cost of a computation once per block, not once per slice)."""
         sc = self.scenario
         k0 = self._scenario_rows["target"].count
         if k_n <= k0:
             return
+        k_n = max(k_n, k0 + _SCENARIO_BLOCK)
         times = (np.arange(k0, k_n) * self.period_ns * 1e-9).tolist()
         state_at = sc.target.state_floats
         truths = [sc.vehicle(vid).truth for vid in self.ids]

@@ -64,6 +64,15 @@ def format_summary(metrics: dict) -> str:
     st = metrics["step_time_ms"]
     if st["median"] is not None:
         rows.append(("agent step", f"median {st['median']:.3f} ms, p99 {st['p99']:.3f} ms"))
+    share = metrics.get("gcs_logging_share_of_agent_step")
+    if share is not None:  # a live run's ground station with a recording
+        per = metrics["gcs_log_ms_per_vehicle_period"] + metrics["gcs_record_ms_per_vehicle_period"]
+        rows.append(
+            (
+                "ground station logging",
+                f"{per:.3f} ms per vehicle-period, {100 * share:.1f} % of the agent step median",
+            )
+        )
     for b in metrics["beta_error"]:
         rows.append(
             (
