@@ -20,7 +20,7 @@ install: $(STAMP)
 demo: $(STAMP)
 	rm -rf runs/demo
 	$(BIN)/fleetmpc up scenarios/paper.toml --run-dir runs/demo
-	$(BIN)/fleetmpc report runs/demo/run.rrd --out runs/demo
+	$(BIN)/fleetmpc report runs/demo/run.rrd --out runs/demo/report
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -17,15 +17,15 @@ What it does, in order:
    ``time_boot_ms``), plans, statuses and target observations into a `gcs.live.LiveRecord` and
    logs them to Rerun in batches (the entity layout of `gcs.recording`), teed to an ``.rrd`` file
    and/or a viewer; mode changes and STATUSTEXT become events;
-   every ``--flush-s`` seconds of flight (default 2: every 2 / ``--speed`` wall seconds),
+   every ``--flush-s`` seconds of flight (default 4: every 4 / ``--speed`` wall seconds),
    logging the map of the periods completed since the previous flush, and every
-   ``--series-flush-s`` seconds of flight (default 4) the time series and the flight_record
-   rows of the periods since their previous logging, all of them in the last flush. A logging
-   call costs per column and entity, not per row, so the intervals are counted in flight, not
-   wall, time: what logging costs per vehicle and control period is then the same at every
-   speed, and bigger batches of what need not be seen at once cost less. The bus is drained
-   with every status snapshot too, so the status table is as fresh at every interval. In the
-   metrics, per vehicle-period: the Rerun calls as ``gcs_log_ms_per_vehicle_period``, building
+   ``--series-flush-s`` seconds of flight (default 4: with every flush) the time series and
+   the flight_record rows of the periods since their previous logging, all of them in the last
+   flush. A logging call costs per column and entity, not per row, so the intervals are
+   counted in flight, not wall, time: what logging costs per vehicle and control period is
+   then the same at every speed, and bigger batches of what need not be seen at once cost
+   less. The bus is drained with every status snapshot too, so the status table is as fresh
+   whatever the interval. In the metrics, per vehicle-period: the Rerun calls as ``gcs_log_ms_per_vehicle_period``, building
    the record's new periods for them as ``gcs_record_ms_per_vehicle_period`` (without logging
    the record is built once, for the metrics, at the end; ``fleetmpc bench --gcs-logging``
    measures what the flushes' builds cost beyond that build), the whole flush, the bus drained
@@ -98,9 +98,10 @@ _STATUS_WALL_S = 0.5
 _LINK_LOST_WALL_S = 3.0
 _AFTER_END_SIM_S = 0.5
 """Telemetry collected past the last period, so it can be interpolated."""
-FLUSH_S = 2.0
-"""Default seconds of flight between two Rerun logging batches (10 control periods of the
-paper's 0.2 s: `fleetmpc bench --gcs-logging` gives what shorter ones cost)."""
+FLUSH_S = 4.0
+"""Default seconds of flight between two Rerun logging batches (20 control periods of the
+paper's 0.2 s, so logging stays under a tenth of the agent's step at every speed:
+`fleetmpc bench --gcs-logging` and a live run's summary give what shorter ones cost)."""
 SERIES_FLUSH_S = 4.0
 """Default seconds of flight between two loggings of the time series and the flight_record
 rows."""
@@ -359,7 +360,7 @@ class GroundStation:
         rec = None
         t_record = time.perf_counter()
         if stream is not None and (new or series_start < done):
-            rec = self.live.record(done, first=period0)
+            rec = self.live.record(done, first=period0, copy=False)
         t1 = time.perf_counter()
         if stream is not None:
             log_events(stream, events)
@@ -370,7 +371,7 @@ class GroundStation:
                 start=self.logged_periods,
                 series_start=series_start,
                 period0=period0,
-                live=self.live.live_rows(first, done),
+                live=self.live.live_rows(first, done, copy=False),
                 statics=False,
             )
             self.flushed_vehicle_periods += (done - self.logged_periods) * len(self.links)

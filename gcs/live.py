@@ -475,8 +475,11 @@ class LiveRecord:
             "status_held": status,
         }
 
-    def _received(self, first: int, k_n: int, names: tuple[str, ...]) -> dict[str, np.ndarray]:
-        """Copies of the received fields `names` of periods `first` .. `k_n` - 1 (cached)."""
+    def _received(
+        self, first: int, k_n: int, names: tuple[str, ...], *, copy: bool = True
+    ) -> dict[str, np.ndarray]:
+        """The received fields `names` of periods `first` .. `k_n` - 1 (cached): copies, or
+        views of the cache."""
         rows = {name: self._received_rows[name].rows[first:k_n] for name in _CACHED}
         plan, status = rows["plan_held"], rows["status_held"]
         k, n = plan.shape[:2]
@@ -491,7 +494,7 @@ class LiveRecord:
             "setpoint_rate_hz": status[:, :, 5],
             "plan_age_s": status[:, :, _STATUS_COLUMNS:],
         }
-        return {name: views[name].copy() for name in names}
+        return {name: views[name].copy() if copy else views[name] for name in names}
 
     def _separation_ticks(self, k0: int, k_n: int) -> tuple[np.ndarray, np.ndarray]:
         """The plant ticks (T,) [s] periods k0 .. k_n - 1 cover (period k the ticks up to t_k,
@@ -529,10 +532,13 @@ class LiveRecord:
             self._received_rows[name].put(k0, rows)
         self._valid = k_n
 
-    def record(self, periods: int | None = None, *, first: int = 0) -> FlightRecord:
+    def record(
+        self, periods: int | None = None, *, first: int = 0, copy: bool = True
+    ) -> FlightRecord:
         """The FlightRecord of periods `first` .. `periods` - 1 (default: every complete period;
         a growing record's tail costs only its periods), its minimum separation the whole
-        run's up to `periods`."""
+        run's up to `periods`. With `copy` False its per-period arrays are views of the
+        collected ones, only valid, and only to be read, until the next input or build."""
         k_n = self.complete_periods() if periods is None else periods
         if k_n < 1:
             raise ValueError("no complete control period yet")
@@ -541,8 +547,10 @@ class LiveRecord:
         self._scenario_periods(k_n)
         self._update_cache(k_n)
         rows = {
-            name: self._scenario_rows[name].rows[first:k_n].copy() for name in _SCENARIO_FIELDS
-        } | self._received(first, k_n, _RECEIVED_FIELDS)
+            name: self._scenario_rows[name].rows[first:k_n] for name in _SCENARIO_FIELDS
+        } | self._received(first, k_n, _RECEIVED_FIELDS, copy=copy)
+        if copy:
+            rows = {name: a.copy() if name in _SCENARIO_FIELDS else a for name, a in rows.items()}
         with np.errstate(invalid="ignore"):
             min_separation = np.fmin.reduce(self._received_rows["separation_min"].rows[:k_n])
         return FlightRecord(
@@ -566,14 +574,14 @@ class LiveRecord:
             d_safe_m=sc.controller.d_safe_m,
         )
 
-    def live_rows(self, start: int, periods: int) -> LiveRows:
+    def live_rows(self, start: int, periods: int, *, copy: bool = True) -> LiveRows:
         """Plans, setpoint rates and plan ages of periods `start` .. `periods` - 1, and the
         target prediction at the last of them (what the ground station logs beside the
-        record's slice)."""
+        record's slice); with `copy` False, views as `record` gives them."""
         if not 0 <= start < periods:
             raise ValueError(f"no periods in {start} .. {periods - 1}")
         self._update_cache(periods)
-        rows = self._received(start, periods, _LIVE_FIELDS)
+        rows = self._received(start, periods, _LIVE_FIELDS, copy=copy)
         return LiveRows(
             **rows, target_prediction=self.target_prediction((periods - 1) * self.period_ns)
         )

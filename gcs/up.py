@@ -22,6 +22,7 @@ Exit status: 0 if the run completed and its gates held, 1 if a gate broke or a p
 
 import argparse
 import json
+import math
 import os
 import shutil
 import signal
@@ -34,7 +35,9 @@ from datetime import datetime
 from pathlib import Path
 
 from gcs.fleet import FleetOptions, ProcessSpec, fleet_processes, flight_time
+from gcs.ground_station import FLUSH_S, SERIES_FLUSH_S
 from gcs.sim import format_summary
+from onboard.core.errors import ConfigError
 from protocol.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -68,6 +71,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=120.0,
         help="wall seconds for every vehicle to engage",
+    )
+    parser.add_argument(
+        "--flush-s",
+        type=float,
+        metavar="S",
+        help="seconds of flight between the ground station's Rerun logging batches"
+        f" (default {FLUSH_S:g}: see `fleetmpc gcs --help`)",
+    )
+    parser.add_argument(
+        "--series-flush-s",
+        type=float,
+        metavar="S",
+        help="seconds of flight between its loggings of the time series"
+        f" (default {SERIES_FLUSH_S:g})",
     )
     parser.add_argument("--quiet", action="store_true", help="no status table")
 
@@ -224,9 +241,25 @@ def _default_viewer() -> str:
     return "none"
 
 
+def _gcs_options(args: argparse.Namespace) -> list[str]:
+    """The ground station's own options of an `up` command line (checked here, so a bad value
+    stops `up` before anything starts)."""
+    options = ["--engage-timeout", f"{args.engage_timeout:g}"]
+    for name in ("flush_s", "series_flush_s"):
+        value = getattr(args, name)
+        flag = f"--{name.replace('_', '-')}"
+        if value is None:
+            continue
+        if not (value > 0 and math.isfinite(value)):
+            raise ConfigError(flag, f"must be a number of seconds > 0, got {value:g}")
+        options += [flag, repr(value)]
+    return options
+
+
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
+    gcs_options = _gcs_options(args)
     run_dir = args.run_dir or Path("runs") / f"up-{datetime.now():%Y%m%d-%H%M%S}"
     rrd = args.rrd or run_dir / "run.rrd"
     metrics = args.metrics or run_dir / "metrics.json"
@@ -246,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
         ),
     )
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
-    gcs_argv += ["--engage-timeout", f"{args.engage_timeout:g}"]
+    gcs_argv += gcs_options
     specs = [s if s.role != "gcs" else ProcessSpec(s.name, tuple(gcs_argv), s.role) for s in specs]
     interrupted = threading.Event()
     previous = {

@@ -1,8 +1,14 @@
 """The fleet's process list: derived from the scenario, the same for `up` and compose."""
 
+import argparse
 from pathlib import Path
 
+import pytest
+
+from gcs import ground_station, up
 from gcs.fleet import FleetOptions, fleet_processes
+from gcs.ground_station import FLUSH_S, SERIES_FLUSH_S, series_every
+from onboard.core.errors import ConfigError
 from protocol.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -63,3 +69,26 @@ def test_options_reach_the_processes(paper) -> None:
         for name, argv in by_name.items()
         if name not in ("zenoh-router",) and not name.startswith("sitl")
     )
+
+
+def _up_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    up.add_arguments(parser)
+    return parser.parse_args(["paper.toml", *argv])
+
+
+def _gcs_args(options: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    ground_station.add_arguments(parser)
+    return parser.parse_args(["--scenario", "paper.toml", *options])
+
+
+def test_up_hands_its_flush_intervals_to_the_ground_station() -> None:
+    default = _gcs_args(up._gcs_options(_up_args()))
+    assert (default.flush_s, default.series_flush_s) == (FLUSH_S, SERIES_FLUSH_S) == (4.0, 4.0)
+    given = _gcs_args(up._gcs_options(_up_args("--flush-s", "0.7", "--series-flush-s", "2.8")))
+    assert (given.flush_s, given.series_flush_s) == (0.7, 2.8)
+    assert series_every(flush_s=given.flush_s, series_flush_s=given.series_flush_s) == 4
+    for bad in ("0", "-1", "nan", "inf"):
+        with pytest.raises(ConfigError, match="--series-flush-s"):
+            up._gcs_options(_up_args("--series-flush-s", bad))

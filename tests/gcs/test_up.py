@@ -114,6 +114,9 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     assert m["centre_distance_error_m"] <= 0.1, m
     assert m["min_separation_m"] >= 2.0, m
     assert "separation error 1-2" in up.text()  # the summary table of `fleetmpc sim`
+    # What logging cost, against the agents' steps of the same run (a figure, not a gate).
+    assert 0 < m["gcs_logging_share_of_agent_step"] < 10, m
+    assert "ground station logging" in up.text()
     for name in ("zenoh-router", "target", "sitl-1", "agent-3", "gcs"):
         assert (run_dir / "logs" / f"{name}.log").is_file(), name
 
