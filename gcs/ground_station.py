@@ -25,13 +25,17 @@ What it does, in order:
    counted in flight, not wall, time: what logging costs per vehicle and control period is
    then the same at every speed, and bigger batches of what need not be seen at once cost
    less. The bus is drained with every status snapshot too, so the status table is as fresh
-   whatever the interval. In the metrics, per vehicle-period: the Rerun calls as ``gcs_log_ms_per_vehicle_period``, building
-   the record's new periods for them as ``gcs_record_ms_per_vehicle_period`` (without logging
-   the record is built once, for the metrics, at the end; ``fleetmpc bench --gcs-logging``
-   measures what the flushes' builds cost beyond that build), the whole flush, the bus drained
-   too, as ``gcs_flush_ms_per_vehicle_period``; and the first two together over the agents'
-   step median (the live run's, from their plans) as ``gcs_logging_share_of_agent_step``,
-   which the summary shows;
+   whatever the interval. In the metrics, per vehicle-period: the Rerun calls as
+   ``gcs_log_ms_per_vehicle_period``, building the record's new periods for them as
+   ``gcs_record_ms_per_vehicle_period`` (without logging the record is built once, for the
+   metrics, at the end; ``fleetmpc bench --gcs-logging`` measures what the flushes' builds
+   cost beyond that build), the whole flush, the bus drained too, as
+   ``gcs_flush_ms_per_vehicle_period``; the first two together as
+   ``gcs_logging_ms_per_vehicle_period``: the median of its logging cycles (the flushes up to
+   one that logs the time series; a median, as the agents' step is, so that a flush the host
+   happened to preempt does not stand for the run) and the whole run's; and that median over
+   the agents' step median (the live run's, from their plans) as
+   ``gcs_logging_share_of_agent_step``, which the summary shows;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
    summary as `fleetmpc sim` and writes the same metrics JSON.
@@ -243,6 +247,11 @@ class GroundStation:
         flushes when logging)."""
         self.flushed_vehicle_periods = 0
         """Vehicle-periods logged by the flushes timed in flush_ms."""
+        self.cycle_ms_per_vehicle_period: list[float] = []
+        """Per logging cycle (the flushes up to and including one that logs the time series),
+        its Rerun calls and record builds [ms] over the vehicle-periods it logged."""
+        self._cycle = [0.0, 0]
+        """The current cycle's Rerun calls and record builds [ms], and its vehicle-periods."""
         self._events: list[tuple[int, str, str]] = []
         """(sim_time ns, level, text) events not logged yet."""
         self.run_info = {
@@ -374,7 +383,9 @@ class GroundStation:
                 live=self.live.live_rows(first, done, copy=False),
                 statics=False,
             )
-            self.flushed_vehicle_periods += (done - self.logged_periods) * len(self.links)
+            vehicle_periods = (done - self.logged_periods) * len(self.links)
+            self.flushed_vehicle_periods += vehicle_periods
+            self._cycle[1] += vehicle_periods
         self.logged_periods = max(done, self.logged_periods)
         if series:
             self.series_logged = done
@@ -382,6 +393,10 @@ class GroundStation:
         self.flush_ms.append((t2 - t0) * 1e3)
         self.log_ms.append((t2 - t1) * 1e3)
         self.record_ms.append((t1 - t_record) * 1e3)
+        self._cycle[0] += (t2 - t_record) * 1e3
+        if series and self._cycle[1]:
+            self.cycle_ms_per_vehicle_period.append(self._cycle[0] / self._cycle[1])
+            self._cycle = [0.0, 0]
 
     def status_snapshot(self, phase: str) -> dict:
         now = time.time()
@@ -413,10 +428,9 @@ class GroundStation:
         vehicle_periods = self.flushed_vehicle_periods
         metrics = compute_metrics(rec)
         step_ms = metrics["step_time_ms"]["median"]
-        share = None
-        if vehicle_periods and step_ms:
-            logging_ms = (sum(self.log_ms) + sum(self.record_ms)) / vehicle_periods
-            share = logging_ms / step_ms
+        cycles = sorted(self.cycle_ms_per_vehicle_period)
+        logging_ms = cycles[len(cycles) // 2] if cycles else None
+        share = logging_ms / step_ms if logging_ms is not None and step_ms else None
         return {
             "scenario": self.scenario.name,
             **self.run_info,
@@ -436,6 +450,15 @@ class GroundStation:
             "gcs_flush_ms_per_vehicle_period": (
                 sum(self.flush_ms) / vehicle_periods if vehicle_periods else None
             ),
+            "gcs_logging_ms_per_vehicle_period": {
+                "median": logging_ms,
+                "cycles": len(cycles),
+                "whole_run": (
+                    (sum(self.log_ms) + sum(self.record_ms)) / vehicle_periods
+                    if vehicle_periods
+                    else None
+                ),
+            },
             "gcs_logging_share_of_agent_step": share,
             "periods_recorded": periods,
             "periods_expected": self.periods,
