@@ -103,9 +103,10 @@ _LINK_LOST_WALL_S = 3.0
 _AFTER_END_SIM_S = 0.5
 """Telemetry collected past the last period, so it can be interpolated."""
 FLUSH_S = 4.0
-"""Default seconds of flight between two Rerun logging batches (20 control periods of the
-paper's 0.2 s, so logging stays under a tenth of the agent's step at every speed:
-`fleetmpc bench --gcs-logging` and a live run's summary give what shorter ones cost)."""
+"""Default seconds of flight between two Rerun logging batches: 20 control periods of the
+paper's 0.2 s, at which logging costs under a tenth of the agents' step in a live run of the
+paper's fleet (its summary gives the figure; `fleetmpc bench --gcs-logging` compares
+intervals)."""
 SERIES_FLUSH_S = 4.0
 """Default seconds of flight between two loggings of the time series and the flight_record
 rows."""

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gcs.metrics import pair_indices
 from gcs.record import FlightRecord, LiveRows, RunConstants
 from onboard.core.formation import Formation
 from onboard.core.target_estimator import TargetEstimator
@@ -244,8 +245,8 @@ class LiveRecord:
         self._constant_fields = self.constants().as_fields()
         self._desired_distance_m = self._constant_fields.pop("desired_distance_m")
         """The record's constants (an array, copied into each record) and the others."""
-        self._pairs = np.triu_indices(n, 1)
-        """Index arrays of every vehicle pair (a, b), a < b."""
+        self._pairs = np.array(pair_indices(n), dtype=np.intp).reshape(-1, 2).T
+        """Index arrays (2, P) of every vehicle pair (a, b), a < b, in `pair_indices` order."""
         self._valid = 0
         """Periods whose received fields in the cache are current."""
 
