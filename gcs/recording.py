@@ -467,12 +467,13 @@ def log_flight_record(
             _live_map(columns, live, skip=start - first)
         batches.append(columns)
     if series_start < k:
-        columns = ColumnBatch(TIMELINE, t_ns[series_start - first :])
+        if series_start != start or not batches:
+            batches.append(ColumnBatch(TIMELINE, t_ns[series_start - first :]))
+        columns = batches[-1]  # the map's, when the rows are the same: one batch, one call
         _record_rows(columns, rec, start=series_start - period0)
         _series(columns, rec, start=series_start - period0)
         if live is not None:
             _live_series(columns, live, skip=series_start - first)
-        batches.append(columns)
     send_batches(stream, *batches)
     if series_start < k:
         events = _qp_events(
