@@ -33,8 +33,10 @@ What it does, in order:
    ``gcs_flush_ms_per_vehicle_period``; the first two together as
    ``gcs_logging_ms_per_vehicle_period``: the median of its logging cycles (the flushes up to
    one that logs the time series; a median, as the agents' step is, so that a flush the host
-   happened to preempt does not stand for the run) and the whole run's; and that median over
-   the agents' step median (the live run's, from their plans) as
+   happened to preempt does not stand for the run), the whole run's, and the CPU time the
+   Rerun SDK's own threads spent batching, encoding and writing it (Linux; from the first
+   logged period to the end of the recording); and the median and those threads' time
+   together over the agents' step median (the live run's, from their plans) as
    ``gcs_logging_share_of_agent_step``, which the summary shows;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
@@ -67,6 +69,7 @@ from gcs.recording import (
     log_meta,
     log_statics,
     open_recording,
+    rerun_threads_cpu_ms,
 )
 from gcs.sim import format_summary
 from onboard.core.errors import ConfigError, FleetMpcError
@@ -253,6 +256,11 @@ class GroundStation:
         its Rerun calls and record builds [ms] over the vehicle-periods it logged."""
         self._cycle = [0.0, 0]
         """The current cycle's Rerun calls and record builds [ms], and its vehicle-periods."""
+        self._rerun_cpu0: float | None = None
+        """CPU time of the Rerun SDK's threads [ms] when the first period was logged."""
+        self.rerun_threads_ms: float | None = None
+        """CPU time the Rerun SDK's threads spent on the flight's logging [ms]: from the first
+        flush with a period to the end of the recording (`finish_recording`); None if unknown."""
         self._events: list[tuple[int, str, str]] = []
         """(sim_time ns, level, text) events not logged yet."""
         self.run_info = {
@@ -351,6 +359,15 @@ class GroundStation:
         line names (the flushes log only the periods)."""
         log_meta(stream, self.live.constants(), run_info=self.run_info)
         log_statics(stream, self.scenario.vehicle_ids, live=True)
+        stream.flush(timeout_sec=0)  # out now, not at the batcher's next tick
+
+    def finish_recording(self, stream) -> None:
+        """Wait until the Rerun SDK has written everything logged, and note what its threads
+        spent on the flight's logging."""
+        stream.flush()
+        if self._rerun_cpu0 is not None:
+            end = rerun_threads_cpu_ms()
+            self.rerun_threads_ms = None if end is None else end - self._rerun_cpu0
 
     def flush(self, stream, *, final: bool = False) -> None:
         """Log what arrived since the last flush, in column batches: the map of the new periods,
@@ -361,6 +378,8 @@ class GroundStation:
         events, self._events = self._events, []
         done = min(self.live.complete_periods(), self.periods)
         new = done > self.logged_periods
+        if stream is not None and new and not self.logged_periods:
+            self._rerun_cpu0 = rerun_threads_cpu_ms()
         self._flushes += new
         due = final or (new and self._flushes % self.series_every == 0)
         series = due and done > self.series_logged
@@ -431,7 +450,12 @@ class GroundStation:
         step_ms = metrics["step_time_ms"]["median"]
         cycles = sorted(self.cycle_ms_per_vehicle_period)
         logging_ms = cycles[len(cycles) // 2] if cycles else None
-        share = logging_ms / step_ms if logging_ms is not None and step_ms else None
+        threads_ms = None
+        if self.rerun_threads_ms is not None and vehicle_periods:
+            threads_ms = self.rerun_threads_ms / vehicle_periods
+        share = None
+        if logging_ms is not None and step_ms:
+            share = (logging_ms + (threads_ms or 0.0)) / step_ms
         return {
             "scenario": self.scenario.name,
             **self.run_info,
@@ -453,6 +477,7 @@ class GroundStation:
             ),
             "gcs_logging_ms_per_vehicle_period": {
                 "median": logging_ms,
+                "rerun_threads": threads_ms,
                 "cycles": len(cycles),
                 "whole_run": (
                     (sum(self.log_ms) + sum(self.record_ms)) / vehicle_periods
@@ -577,9 +602,10 @@ def run(args: argparse.Namespace) -> int:
             mav.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
+    if stream is not None:
+        gs.finish_recording(stream)
     metrics = gs.metrics()
     if stream is not None:
-        stream.flush()
         stream.disconnect()
     if args.status_file is not None:
         _write_json(args.status_file, gs.status_snapshot("done"))

@@ -66,14 +66,12 @@ def format_summary(metrics: dict) -> str:
         rows.append(("agent step", f"median {st['median']:.3f} ms, p99 {st['p99']:.3f} ms"))
     share = metrics.get("gcs_logging_share_of_agent_step")
     if share is not None:  # a live run's ground station with a recording
-        per = metrics["gcs_logging_ms_per_vehicle_period"]["median"]
-        rows.append(
-            (
-                "ground station logging",
-                f"median {per:.3f} ms per vehicle-period, {100 * share:.1f} % of the agent step"
-                " median",
-            )
-        )
+        logging = metrics["gcs_logging_ms_per_vehicle_period"]
+        text = f"median {logging['median']:.3f} ms per vehicle-period"
+        if logging.get("rerun_threads") is not None:
+            text += f" + {logging['rerun_threads']:.3f} in Rerun's threads"
+        text += f": {100 * share:.1f} % of the agent step median"
+        rows.append(("ground station logging", text))
     for b in metrics["beta_error"]:
         rows.append(
             (
