@@ -221,7 +221,7 @@ class GroundStation:
         self.speed = speed
         self.duration_s = duration_s
         self.periods = int(round(duration_s * 1e9 / scenario.controller.period_ns)) + 1
-        self.live = LiveRecord(scenario)
+        self.live = LiveRecord(scenario, periods=self.periods)
         self.links = {vid: VehicleLink() for vid in scenario.vehicle_ids}
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.epoch_ns: int | None = None

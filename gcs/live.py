@@ -210,7 +210,9 @@ class LiveRecord:
     vehicle and column.
     """
 
-    def __init__(self, scenario: Scenario) -> None:
+    def __init__(self, scenario: Scenario, *, periods: int = 0) -> None:
+        """periods: the periods the run is expected to have, whose scenario fields (which
+        depend on nothing received) are computed now, before the flight."""
         self.scenario = scenario
         self.period_ns = scenario.controller.period_ns
         self.ids = scenario.vehicle_ids
@@ -249,6 +251,8 @@ class LiveRecord:
         """Index arrays (2, P) of every vehicle pair (a, b), a < b, in `pair_indices` order."""
         self._valid = 0
         """Periods whose received fields in the cache are current."""
+        if periods > 0:
+            self._scenario_periods(periods)
 
     def _invalidate(self, period: int) -> None:
         self._valid = max(0, min(self._valid, period))

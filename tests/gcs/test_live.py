@@ -143,8 +143,8 @@ def test_a_growing_record_is_the_record_built_at_once(paper, lockstep) -> None:
     are bit for bit the record a fresh LiveRecord builds from everything at the end."""
     whole = LiveRecord(paper)
     _feed(whole, lockstep)
-    growing = LiveRecord(paper)
     k = len(lockstep.t_s)
+    growing = LiveRecord(paper, periods=k)  # the scenario's fields before the flight
     start = 0
     for end in (1, 4, 5, 12, 20, k):
         _feed(growing, _first_periods(lockstep, end), start=start)
