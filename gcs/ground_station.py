@@ -39,8 +39,9 @@ What it does, in order:
    together over the agents' step median (the live run's, from their plans) as
    ``gcs_logging_share_of_agent_step``, which the summary shows;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
-5. at ``--duration`` (fleet time) or on SIGINT/SIGTERM: finishes the recording, prints the same
-   summary as `fleetmpc sim` and writes the same metrics JSON.
+5. at ``--duration`` (fleet time; then up to 2 s of wall time more, until the telemetry of the
+   last periods is in) or on SIGINT/SIGTERM: finishes the recording, prints the same summary as
+   `fleetmpc sim` and writes the same metrics JSON.
 
 Exit status: 0 if the run completed and the safety gate held (no two vehicles closer than
 d_safe), 1 if a gate broke (``--gate-formation-m`` adds the formation gates) or the run was cut
@@ -105,6 +106,9 @@ _STATUS_WALL_S = 0.5
 _LINK_LOST_WALL_S = 3.0
 _AFTER_END_SIM_S = 0.5
 """Telemetry collected past the last period, so it can be interpolated."""
+_END_GRACE_WALL_S = 2.0
+"""Wall seconds the ground station waits past that for the telemetry of the last periods, which
+a loaded host delivers late; then it ends with what it has (and the periods gate says so)."""
 FLUSH_S = 4.0
 """Default seconds of flight between two Rerun logging batches: 20 control periods of the
 paper's 0.2 s, at which logging costs under a tenth of the agents' step in a live run of the
@@ -557,6 +561,7 @@ def run(args: argparse.Namespace) -> int:
         deadline = time.monotonic() + args.engage_timeout
         next_flush = next_status = next_announce = time.monotonic()
         end_s = duration + _AFTER_END_SIM_S
+        end_grace = None
         while not stop.is_set():
             msg = mav.recv_match(blocking=True, timeout=0.02)
             now = time.monotonic()
@@ -592,8 +597,11 @@ def run(args: argparse.Namespace) -> int:
                 next_status = now + _STATUS_WALL_S
             t = gs.fleet_s()
             if t is not None and t >= end_s:
-                completed = True
-                break
+                if end_grace is None:
+                    end_grace = now + _END_GRACE_WALL_S
+                if gs.live.complete_periods() >= gs.periods or now >= end_grace:
+                    completed = True
+                    break
         gs.flush(stream, final=True)
     finally:
         if bus is not None:
