@@ -175,8 +175,6 @@ class _Track:
     """What the unwrapping adds to the newest sample's raw yaw [rad]."""
 
 
-_SCENARIO_BLOCK = 64
-"""Periods of the scenario's fields computed at a time (at least)."""
 _SCENARIO_FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", "beta_truth")
 """Per-period fields that depend only on the scenario (computed once per period)."""
 _RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta")
@@ -384,14 +382,12 @@ class LiveRecord:
         return out
 
     def _scenario_periods(self, k_n: int) -> None:
-        """Extend the scenario's per-period fields to at least `k_n` periods: to
-        `_SCENARIO_BLOCK` more at a time, as they depend on nothing received (a growing record
-        pays the fixed cost of a computation once per block, not once per slice)."""
+        """Extend the scenario's per-period fields to `k_n` periods (a ground station computes
+        its whole run's before the flight: `periods`)."""
         sc = self.scenario
         k0 = self._scenario_rows["target"].count
         if k_n <= k0:
             return
-        k_n = max(k_n, k0 + _SCENARIO_BLOCK)
         times = (np.arange(k0, k_n) * self.period_ns * 1e-9).tolist()
         state_at = sc.target.state_floats
         truths = [sc.vehicle(vid).truth for vid in self.ids]
@@ -551,11 +547,9 @@ class LiveRecord:
             raise ValueError(f"no periods in {first} .. {k_n - 1}")
         self._scenario_periods(k_n)
         self._update_cache(k_n)
-        rows = {
-            name: self._scenario_rows[name].rows[first:k_n] for name in _SCENARIO_FIELDS
-        } | self._received(first, k_n, _RECEIVED_FIELDS, copy=copy)
-        if copy:
-            rows = {name: a.copy() if name in _SCENARIO_FIELDS else a for name, a in rows.items()}
+        scenario = {name: self._scenario_rows[name].rows[first:k_n] for name in _SCENARIO_FIELDS}
+        rows = {name: a.copy() if copy else a for name, a in scenario.items()}
+        rows |= self._received(first, k_n, _RECEIVED_FIELDS, copy=copy)
         with np.errstate(invalid="ignore"):
             min_separation = np.fmin.reduce(self._received_rows["separation_min"].rows[:k_n])
         return FlightRecord(
