@@ -4,8 +4,12 @@ Checks, each reported with its numbers:
 - the tube-tightened input sets U ⊖ K R_j are non-empty (else the controller cannot start);
 - speed: every slot's required airspeed over the run (target motion, the outer vehicle's extra
   speed in turns, and the wind and effectiveness the scenario's truth states) fits inside the
-  tightened speed bound — otherwise the target outruns the team;
-- turn rate: every slot's required yaw rate fits inside the tightened yaw-rate bound;
+  tightened speed bound — otherwise the target outruns the team. The slots are the ones the
+  agents fly: the formation at its rate-limited reference course (`onboard.core.formation`);
+- turn rate: every slot's required yaw rate fits inside the tightened yaw-rate bound, except at
+  the target's sharp corners (a waypoint), where the slots' velocities turn at once and no
+  vehicle can: each corner is reported as a transient instead (how long the worst vehicle takes
+  to turn, how far it falls behind, how long until it is back);
 - horizon reach: how far a vehicle can close on its slot in one horizon, and how long the worst
   initial gap takes to close at the spare speed.
 """
@@ -16,8 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gcs.metrics import corner_indices
+from onboard.core.agent import reference_course_rate
 from onboard.core.errors import InfeasibleError
-from onboard.core.formation import Formation
+from onboard.core.formation import Formation, TrueReference
 from onboard.core.lbmpc import TubeLbmpc
 from protocol.scenario import Scenario, load_scenario
 
@@ -39,27 +45,64 @@ class FeasibilityReport:
         return "\n".join(out)
 
 
-def _slot_requirements(sc: Scenario, dt_s: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """Peak required airspeed [m/s] and yaw rate [rad/s] of each vehicle's slot over the run."""
+_CHECK_STEP_S = 0.05
+"""Sampling step of the check's slot trajectories [s]."""
+
+
+@dataclass(frozen=True)
+class _Requirements:
+    """What the slots ask of each vehicle over the run, away from the target's corners."""
+
+    speeds_m_s: np.ndarray
+    """Peak airspeed command of each vehicle's slot (N,) [m/s]."""
+    yaw_rates_rad_s: np.ndarray
+    """Peak yaw-rate command of each vehicle's slot (N,) [rad/s]."""
+    corners: list[tuple[float, float, float, float]]
+    """Per target corner: (time [s], largest turn of a slot's velocity [rad], the largest jump
+    of a slot's velocity [m/s], the speed that slot's vehicle needs after the corner [m/s])."""
+
+
+def _slot_requirements(sc: Scenario, dt_s: float = _CHECK_STEP_S) -> _Requirements:
+    """The slots' airspeed and yaw-rate needs, and the corners' jumps, over the run."""
     t = np.arange(0.0, sc.duration_s + dt_s, dt_s)
     formation = Formation(sc.formation)
-    slots = np.array(
-        [
-            formation.slots(sc.target.state_at(ti)[0][None, :], sc.target.state_at(ti)[1])[0]
-            for ti in t
-        ]
-    )
-    vel = np.gradient(slots, dt_s, axis=0)  # (K, N, 2)
+    reference = TrueReference(reference_course_rate(sc.controller, sc.formation))
+    states = [sc.target.state_at(ti) for ti in t]
+    target = np.array([p for p, _ in states])
+    target_vel = np.array([v for _, v in states])
+    courses = [reference.follow(v.tolist(), dt_s) for v in target_vel]
+    slots = formation.slots(target, courses)  # (K, N, 2)
+    vel = np.diff(slots, axis=0) / dt_s  # over each step (K - 1, N, 2)
+    corners = corner_indices(target_vel)
+    # Steps next to a corner carry its jump: judged as a transient, not as a steady need.
+    steady = np.ones(len(t) - 1, dtype=bool)
+    for k in corners:
+        steady[max(k - 2, 0) : k + 2] = False
     speeds, rates = [], []
+    air_all = []
     for i, v in enumerate(sc.vehicles):
-        wind = np.array([v.truth.wind.at(ti) for ti in t])
+        wind = np.array([v.truth.wind.at(ti) for ti in t[:-1]])
         air = (vel[:, i] - wind) / v.truth.speed_effectiveness
-        speeds.append(float(np.max(np.hypot(air[:, 0], air[:, 1]))))
+        air_all.append(air)
+        speed = np.hypot(air[:, 0], air[:, 1])
+        speeds.append(float(np.max(speed)))
         heading = np.unwrap(np.arctan2(air[:, 1], air[:, 0]))
         rate = np.abs(np.gradient(heading, dt_s)) / v.truth.yaw_rate_effectiveness
-        moving = np.hypot(air[:, 0], air[:, 1]) > 0.1
-        rates.append(float(np.max(rate[moving])) if moving.any() else 0.0)
-    return np.array(speeds), np.array(rates)
+        judged = (speed > 0.1) & steady
+        rates.append(float(np.max(rate[judged])) if judged.any() else 0.0)
+    jumps = []
+    for k in corners:
+        before, after = max(k - 3, 0), min(k + 2, len(t) - 2)
+        turns = []
+        for i, air in enumerate(air_all):
+            a, b = air[before], air[after]
+            angle = abs(
+                math.remainder(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0]), 2 * math.pi)
+            )
+            turns.append((angle, float(np.hypot(*(b - a))), float(np.hypot(*b)), i))
+        angle, jump, speed_after, _ = max(turns)
+        jumps.append((float(t[k]), angle, jump, speed_after))
+    return _Requirements(np.array(speeds), np.array(rates), jumps)
 
 
 def check_scenario(sc: Scenario) -> FeasibilityReport:
@@ -68,7 +111,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
     lines = [
         f"scenario {sc.name!r}: {len(sc.vehicles)} vehicles, M = {c.horizon}, "
         f"tau = {c.period_s} s, "
-        f"U = {{|V| <= {c.speed_max_m_s:g} m/s, |omega| <= {c.yaw_rate_max_rad_s:g} rad/s}}"
+        f"U = {{0 <= V <= {c.speed_max_m_s:g} m/s, |omega| <= {c.yaw_rate_max_rad_s:g} rad/s}}"
     ]
     problems: list[str] = []
     try:
@@ -85,7 +128,8 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         float(np.hypot(*sc.target.state_at(t)[1])) for t in np.linspace(0, sc.duration_s, 200)
     )
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
-    speeds, rates = _slot_requirements(sc)
+    needs = _slot_requirements(sc)
+    speeds, rates = needs.speeds_m_s, needs.yaw_rates_rad_s
     for v, sp, wr in zip(sc.vehicles, speeds, rates, strict=True):
         lines.append(
             f"vehicle {v.id}: slot needs airspeed up to {sp:.3f} m/s, yaw rate up to {wr:.3f} rad/s"
@@ -106,10 +150,25 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"beyond |omega| <= {w_bound:.3f} rad/s after tightening"
         )
     spare = v_bound - float(speeds.max())
+    for t_c, angle, jump, speed_after in needs.corners:
+        turn_s = angle / w_bound
+        behind_m = 0.5 * jump * turn_s  # the velocity error closes linearly while it turns
+        catch_up = v_bound - speed_after
+        back = (
+            f"back on its slot about {turn_s + behind_m / catch_up:.0f} s after it"
+            if catch_up > 0
+            else "no spare speed to catch up"
+        )
+        lines.append(
+            f"corner at t = {t_c:.1f} s: a slot's velocity turns {math.degrees(angle):.0f} deg "
+            f"at once; its vehicle needs about {turn_s:.1f} s to turn, falls up to about "
+            f"{behind_m:.1f} m behind, {back} (the formation itself sweeps round at "
+            f"{reference_course_rate(sc.controller, sc.formation):.3f} rad/s)"
+        )
     reach = c.horizon * c.period_s * c.speed_max_m_s
     formation = Formation(sc.formation)
     p0, v0 = sc.target.state_at(0.0)
-    slots0 = formation.slots(p0[None, :], v0)[0]
+    slots0 = formation.slots(p0[None, :], [TrueReference(1.0).follow(v0.tolist(), 0.0)])[0]
     gaps = [
         math.hypot(v.initial[0] - s[0], v.initial[1] - s[1])
         for v, s in zip(sc.vehicles, slots0, strict=True)

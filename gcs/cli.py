@@ -20,6 +20,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "check": ("gcs.check", "feasibility report of a scenario, before anything flies"),
     "sim": ("gcs.sim", "in-process lockstep simulation of a whole fleet"),
     "bench": ("gcs.bench", "per-agent step timing against a cvxpy rebuild, and lockstep speed"),
+    "suite": ("gcs.suite", "fly every scenario of a folder over seeds, learning on and off; gates"),
     "sitl": ("sitl.cli", "one simulated vehicle behind a PX4 or ArduPilot MAVLink interface"),
     "agent": ("onboard.cli", "the onboard agent of one vehicle: MAVLink autopilot + Zenoh plans"),
     "target": ("sitl.target_process", "fly the scripted target and publish its observations"),

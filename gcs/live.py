@@ -27,7 +27,8 @@ import numpy as np
 
 from gcs.metrics import pair_indices
 from gcs.record import FlightRecord, LiveRows, RunConstants
-from onboard.core.formation import Formation
+from onboard.core.agent import reference_course_rate
+from onboard.core.formation import Formation, TrueReference
 from onboard.core.target_estimator import TargetEstimator
 from protocol.messages import PlanMessage, StatusMessage, TargetObservation
 from protocol.scenario import Scenario
@@ -36,20 +37,22 @@ __all__ = ["LiveRecord", "formation_reference"]
 
 
 def formation_reference(
-    formation: Formation, target_m: np.ndarray, target_velocity_m_s: np.ndarray
+    formation: Formation,
+    course: TrueReference,
+    target_m: np.ndarray,
+    target_velocity_m_s: np.ndarray,
+    period_s: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Slots (K, N, 2) of the true target over K periods and each slot's offset from the
-    formation centre (K, N, 2), for target positions and velocities (K, 2).
+    """Slots (K, N, 2) of the true target over K consecutive periods and each slot's offset from
+    the formation centre (K, N, 2), for target positions and velocities (K, 2).
 
-    The course is stateful (the last known course holds while the target is nearly still), so
-    the periods go through `formation.placement` in order; the rest is array arithmetic with the
-    same float operations, period by period, as a scalar computation.
+    The reference course is stateful (rate-limited, held while the target is nearly still), so
+    the periods go through `course` in order, continuing where its previous call stopped.
     """
-    placements = [formation.placement(v) for v in np.asarray(target_velocity_m_s).tolist()]
-    trail = np.array([(x, y) for x, y, _ in placements]).reshape(-1, 2)
-    offsets = np.array([o for _, _, o in placements]).reshape(len(placements), formation.size, 2)
+    courses = [course.follow(v, period_s) for v in np.asarray(target_velocity_m_s).tolist()]
+    slots = formation.slots(np.asarray(target_m, dtype=float).reshape(-1, 2), courses)
+    trail = np.array([formation.placement(c)[:2] for c in courses]).reshape(-1, 2)
     centre = np.asarray(target_m, dtype=float).reshape(-1, 2) - trail
-    slots = centre[:, None, :] + offsets
     return slots, slots - centre[:, None, :]
 
 
@@ -222,9 +225,14 @@ class LiveRecord:
         ]
         """Per vehicle, the column of each other vehicle in its plan ages."""
         self._formation = Formation(scenario.formation)
+        self._truth_course = TrueReference(
+            reference_course_rate(scenario.controller, scenario.formation)
+        )
+        """The reference course of the true target, advanced as the scenario's periods are."""
         self._target = TargetEstimator(
             observation_std_m=max(scenario.target.observation_noise_m, 1e-3),
             accel_std_m_s2=scenario.controller.target_accel_std_m_s2,
+            turn_accel_std_rad_s2=scenario.controller.target_turn_accel_std_rad_s2,
         )
         self.target_observations = 0
         self._target_pending: TargetObservation | None = None
@@ -401,7 +409,9 @@ class LiveRecord:
         n = len(self.ids)
         values = np.array(flat, dtype=float).reshape(len(times), 4 + 4 * n)
         target, target_vel = values[:, 0:2], values[:, 2:4]
-        slots, offsets = formation_reference(self._formation, target, target_vel)
+        slots, offsets = formation_reference(
+            self._formation, self._truth_course, target, target_vel, self.period_ns * 1e-9
+        )
         beta_truth = values[:, 4:].reshape(len(times), n, 4)
         new = {
             "target": target,

@@ -13,8 +13,8 @@ from collections.abc import Callable
 import numpy as np
 
 from gcs.record import FlightRecord
-from onboard.core.agent import Agent, AgentInput
-from onboard.core.formation import Formation
+from onboard.core.agent import Agent, AgentInput, reference_course_rate
+from onboard.core.formation import Formation, TrueReference
 from protocol.scenario import Scenario
 from sitl.plant import TruthPlant
 
@@ -60,6 +60,9 @@ def run_lockstep(
     ]
     agents = build_agents(sc, learning=learning)
     truth_formation = Formation(sc.formation)
+    truth_course = TrueReference(reference_course_rate(sc.controller, sc.formation))
+    """The slots the run is judged against: the formation at the rate-limited reference course
+    of the true target, as the agents place it from their estimates."""
     n = len(plants)
     obs_period_ns = round(1e9 / sc.target.observation_rate_hz)
     next_obs_ns = 0
@@ -75,6 +78,7 @@ def run_lockstep(
         "beta_truth",
         "qp_ok",
         "step_ms",
+        "prediction",
     )
     log: dict[str, list] = {k: [] for k in keys}
     plans: dict[int, object] = {}
@@ -99,7 +103,8 @@ def run_lockstep(
             t0 = time.perf_counter_ns()
             out = agent.step(inp)
             outs.append((out, (time.perf_counter_ns() - t0) * 1e-6))
-        trail_x, trail_y, offsets = truth_formation.placement(tgt_vel)
+        course = truth_course.follow(tgt_vel.tolist(), period_ns * 1e-9)
+        trail_x, trail_y, offsets = truth_formation.placement(course)
         cx, cy = float(tgt_pos[0]) - trail_x, float(tgt_pos[1]) - trail_y
         slots = np.array([(cx + ox, cy + oy) for ox, oy in offsets])
         log["truth"].append(np.array([p.pose for p in plants]))
@@ -124,6 +129,7 @@ def run_lockstep(
         )
         log["qp_ok"].append(np.array([o.qp_ok for o, _ in outs]))
         log["step_ms"].append(np.array([ms for _, ms in outs]))
+        log["prediction"].append(outs[0][0].target_prediction_m)
         plans = {o.plan.vehicle_id: o.plan for o, _ in outs}
         if k == periods - 1:
             break
@@ -159,4 +165,6 @@ def run_lockstep(
         speed_max_m_s=sc.controller.speed_max_m_s,
         yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
         d_safe_m=sc.controller.d_safe_m,
+        target_prediction=np.array(log["prediction"]),
+        prediction_horizon_periods=sc.controller.horizon,
     )

@@ -1,10 +1,37 @@
 """Run metrics (the numbers the issue gates and the paper's Figs. 1-4 are about)."""
 
+import math
+
 import numpy as np
 
 from gcs.record import FlightRecord
 
-__all__ = ["compute_metrics", "pair_indices"]
+__all__ = [
+    "CORNER_MIN_SPEED_M_S",
+    "CORNER_RECOVERED_M",
+    "CORNER_TURN_RAD",
+    "REVERSAL_FRACTION",
+    "compute_metrics",
+    "corner_indices",
+    "corner_recovery_s",
+    "pair_indices",
+    "target_prediction_rms_m",
+    "yaw_rate_reversals_per_vehicle_min",
+]
+
+REVERSAL_FRACTION = 0.5
+"""A yaw-rate reversal: consecutive commands of opposite signs, both larger in magnitude than this
+fraction of the yaw-rate bound."""
+
+CORNER_TURN_RAD = 0.5
+"""A corner: the true target's course changes by more than this from one period to the next
+[rad]."""
+
+CORNER_MIN_SPEED_M_S = 0.05
+"""...while the target moves faster than this on both sides of the change [m/s]."""
+
+CORNER_RECOVERED_M = 0.3
+"""Recovered from a corner: the worst vehicle's distance to its slot stays within this [m]."""
 
 
 def pair_indices(n: int) -> list[tuple[int, int]]:
@@ -61,4 +88,84 @@ def compute_metrics(rec: FlightRecord) -> dict:
             "p99": float(np.percentile(times, 99)) if times.size else None,
         },
         "qp_fallbacks": int(np.sum(~rec.qp_ok)),
+        "yaw_rate_reversals_per_vehicle_min": yaw_rate_reversals_per_vehicle_min(rec),
+        "slot_rms_max_vehicle_m": float(np.max(np.sqrt(np.mean(slot_dist[w10] ** 2, axis=0)))),
+        "target_prediction_rms_m": target_prediction_rms_m(rec),
+        "corner_recovery_s": corner_recovery_s(rec),
+        "corners": len(corner_indices(rec.target_velocity)),
     }
+
+
+def yaw_rate_reversals_per_vehicle_min(rec: FlightRecord) -> float:
+    """Yaw-rate reversals per vehicle and minute of flight, over the whole run.
+
+    A reversal is a pair of consecutive periods whose commanded yaw rates have opposite signs,
+    both beyond `REVERSAL_FRACTION` of the bound; a non-finite command breaks the pair. 0.0 for
+    a run of no duration (it has no pairs).
+    """
+    w = rec.command[..., 1]  # (K, N)
+    big = np.abs(w) > REVERSAL_FRACTION * rec.yaw_rate_max_rad_s  # False where not finite
+    flips = (w[:-1] * w[1:] < 0.0) & big[:-1] & big[1:]
+    minutes = (float(rec.t_s[-1]) - float(rec.t_s[0])) / 60.0
+    if not minutes > 0.0:
+        return 0.0
+    return float(np.sum(flips)) / (len(rec.vehicle_ids) * minutes)
+
+
+def target_prediction_rms_m(rec: FlightRecord) -> float | None:
+    """RMS error of the recorded target prediction against where the target then was [m].
+
+    Over every period k whose prediction is finite and whose target position H periods later is
+    in the record (H = `prediction_horizon_periods`); None without a prediction or such k.
+    """
+    if rec.target_prediction is None or rec.prediction_horizon_periods < 0:
+        return None
+    h = rec.prediction_horizon_periods
+    k = len(rec.t_s) - h  # periods whose horizon ends inside the record
+    if k <= 0:
+        return None
+    predicted = np.asarray(rec.target_prediction, dtype=float)[:k]
+    known = np.isfinite(predicted).all(axis=1)
+    if not known.any():
+        return None
+    err = predicted[known] - rec.target[h:][known]
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
+def corner_indices(target_velocity_m_s: np.ndarray) -> list[int]:
+    """Periods at which the target turns a corner (its first period on the new course), from its
+    velocity (K, 2) [m/s] sampled once a period.
+
+    A corner is a change of course of more than `CORNER_TURN_RAD` from one period to the next
+    while the target moves faster than `CORNER_MIN_SPEED_M_S` on both sides; a run of
+    consecutive such periods is one manoeuvre, counted once at its first period.
+    """
+    v = np.asarray(target_velocity_m_s, dtype=float)
+    speed = np.hypot(v[:, 0], v[:, 1])
+    course = np.arctan2(v[:, 1], v[:, 0])
+    turn = np.abs(np.angle(np.exp(1j * np.diff(course))))  # wrapped to [0, pi]
+    moving = (speed[:-1] > CORNER_MIN_SPEED_M_S) & (speed[1:] > CORNER_MIN_SPEED_M_S)
+    sharp = np.flatnonzero((turn > CORNER_TURN_RAD) & moving) + 1
+    return [int(k) for i, k in enumerate(sharp) if i == 0 or sharp[i - 1] != k - 1]
+
+
+def corner_recovery_s(rec: FlightRecord) -> float | None:
+    """The longest recovery from a corner of the target [s]; None when it turned none.
+
+    Recovery from a corner at t_c: the first time t >= t_c from which the worst vehicle's
+    distance to its slot stays within `CORNER_RECOVERED_M` until the next corner (or the end of
+    the run), less t_c; inf when that never happens.
+    """
+    corners = corner_indices(rec.target_velocity)
+    if not corners:
+        return None
+    pos = rec.truth[:, :, :2]
+    worst = np.max(np.linalg.norm(pos - rec.slots, axis=2), axis=1)  # nan where unknown
+    within = worst <= CORNER_RECOVERED_M  # False where not finite
+    ends = [*corners[1:], len(rec.t_s)]
+    recovery = []
+    for start, end in zip(corners, ends, strict=True):
+        out = np.flatnonzero(~within[start:end])
+        first = start if out.size == 0 else start + int(out[-1]) + 1
+        recovery.append(math.inf if first >= end else float(rec.t_s[first]) - float(rec.t_s[start]))
+    return max(recovery)

@@ -48,6 +48,11 @@ class FlightRecord:
     speed_max_m_s: float
     yaw_rate_max_rad_s: float
     d_safe_m: float
+    target_prediction: np.ndarray | None = None
+    """The first agent's prediction of the target's position at the end of its horizon, made at
+    each period (K, 2) [m]; nan while it has no target; None when the run did not record it."""
+    prediction_horizon_periods: int = 0
+    """How many periods ahead `target_prediction` looks (the controller's horizon M)."""
 
 
 @dataclass(frozen=True, eq=False)

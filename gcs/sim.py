@@ -4,6 +4,7 @@ Deterministic for a seed."""
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from gcs.check import check_scenario
@@ -61,6 +62,7 @@ def format_summary(metrics: dict) -> str:
         ("inputs within U", _fraction(metrics["inputs_within_bounds"])),
         ("QP fallbacks", str(metrics["qp_fallbacks"])),
     ]
+    rows += _manoeuvre_rows(metrics)
     st = metrics["step_time_ms"]
     if st["median"] is not None:
         rows.append(("agent step", f"median {st['median']:.3f} ms, p99 {st['p99']:.3f} ms"))
@@ -83,6 +85,28 @@ def format_summary(metrics: dict) -> str:
         )
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def _manoeuvre_rows(metrics: dict) -> list[tuple[str, str]]:
+    """Rows of the worst vehicle, yaw-rate reversals, target prediction and corners (absent from
+    a metrics file written before they existed)."""
+    rows = []
+    if "slot_rms_max_vehicle_m" in metrics:
+        rows.append(("worst vehicle slot RMS", f"{metrics['slot_rms_max_vehicle_m']:.4f} m"))
+    reversals = metrics.get("yaw_rate_reversals_per_vehicle_min")
+    if reversals is not None:
+        rows.append(("yaw-rate reversals", f"{reversals:.2f} per vehicle-minute"))
+    if "target_prediction_rms_m" in metrics:
+        rms = metrics["target_prediction_rms_m"]
+        rows.append(("target prediction RMS", "unknown" if rms is None else f"{rms:.3f} m"))
+    corners = metrics.get("corners")
+    if corners is not None:
+        rows.append(("target corners", str(corners)))
+    recovery = metrics.get("corner_recovery_s")
+    if recovery is not None:
+        text = "never" if recovery == math.inf else f"{recovery:.1f} s"
+        rows.append(("corner recovery (worst)", text))
+    return rows
 
 
 def run(args: argparse.Namespace) -> int:

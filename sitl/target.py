@@ -1,4 +1,4 @@
-"""Scripted aerial target: a point moving on a line, a circle or through waypoints.
+"""Scripted aerial target: a point moving on a line, a circle, a figure eight or through waypoints.
 
 Positions are pure functions of time, so every process that flies or watches the target agrees.
 """
@@ -13,7 +13,7 @@ from onboard.core.validate import finite, positive, vector
 
 __all__ = ["TargetScript"]
 
-_KINDS = ("line", "circle", "waypoints")
+_KINDS = ("line", "circle", "figure_eight", "waypoints")
 
 
 @dataclass(frozen=True)
@@ -21,21 +21,24 @@ class TargetScript:
     """How the target moves and how it is observed."""
 
     kind: str = "line"
-    """One of "line", "circle", "waypoints"."""
+    """One of "line", "circle", "figure_eight", "waypoints"."""
     start_m: tuple[float, float] = (0.0, 0.0)
     """line: position at t = 0 (North, East) [m]."""
     velocity_m_s: tuple[float, float] = (1.0, 0.0)
     """line: constant velocity (North, East) [m/s]."""
     center_m: tuple[float, float] = (0.0, 0.0)
-    """circle: centre (North, East) [m]."""
+    """circle and figure_eight: centre (North, East) [m]."""
     radius_m: float = 20.0
-    """circle: radius [m]."""
+    """circle: radius; figure_eight: half-length a of the eight along North [m]."""
     speed_m_s: float = 1.0
     """circle and waypoints: speed along the path [m/s]."""
     start_angle_rad: float = 0.0
-    """circle: polar angle of the start point about the centre (0 = North of it) [rad]."""
+    """circle: polar angle of the start point about the centre (0 = North of it) [rad];
+    figure_eight: phase phi_0 at t = 0 (0 = at the centre, heading North-East) [rad]."""
     clockwise: bool = True
     """circle: direction seen from above with North up (clockwise = turning right in NED)."""
+    period_s: float = 120.0
+    """figure_eight: time to fly the whole eight once [s]."""
     waypoints_m: tuple[tuple[float, float], ...] = field(default_factory=tuple)
     """waypoints: points visited in order at speed_m_s, then held at the last one [m]."""
     observation_noise_m: float = 0.0
@@ -54,6 +57,7 @@ class TargetScript:
         positive("target.radius_m", self.radius_m)
         positive("target.speed_m_s", self.speed_m_s, allow_zero=True)
         finite("target.start_angle_rad", self.start_angle_rad)
+        positive("target.period_s", self.period_s)
         wps = tuple(
             vector(f"target.waypoints_m[{i}]", w, 2) for i, w in enumerate(self.waypoints_m)
         )
@@ -82,8 +86,23 @@ class TargetScript:
             r, (cx, cy) = self.radius_m, self.center_m
             c, s = math.cos(a), math.sin(a)
             return (cx + r * c, cy + r * s), (r * w * -s, r * w * c)
+        if self.kind == "figure_eight":
+            return self._figure_eight_state(t_s)
         pos, vel = self._waypoint_state(t_s)
         return (float(pos[0]), float(pos[1])), (float(vel[0]), float(vel[1]))
+
+    def _figure_eight_state(self, t_s: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The lemniscate of Gerono x = a sin(phi), y = a sin(phi) cos(phi), phi = phi_0 + w t.
+
+        It crosses the centre heading North-East and South-East alternately, turns right on one
+        lobe and left on the other, and its speed a w sqrt(cos^2 phi + cos^2 2 phi) varies from
+        0.66 a w (in the lobes) to 1.41 a w (at the centre).
+        """
+        a, (cx, cy) = self.radius_m, self.center_m
+        w = 2.0 * math.pi / self.period_s
+        phi = self.start_angle_rad + w * t_s
+        s, c = math.sin(phi), math.cos(phi)
+        return (cx + a * s, cy + a * s * c), (a * w * c, a * w * (c * c - s * s))
 
     def _waypoint_state(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         pts = np.array(self.waypoints_m)

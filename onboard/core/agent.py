@@ -1,12 +1,16 @@
 """One vehicle's controller: `Agent.step` is the same in every runner (lockstep, fleet, real).
 
 Per period: fuse the telemetry into the DEKF (state and learned beta); fuse any target observation
-and predict the target over the horizon; place the formation slots; compute the steady-state
-inputs u_s under the *learned* model; gather the neighbours' assumed trajectories (extrapolated
-while stale, formation term dropped when too old, separation kept and inflated by v_max x age);
-pick a linearization trajectory (shifted previous plan, the steady inputs, or a pursuit path toward
-the slot — whichever the learned model says ends closer); solve the tube LBMPC QP; on failure apply
-the clipped tube feedback law. No I/O, no clocks: time arrives as integer nanoseconds.
+and predict the target over the horizon (positions and velocities along a possibly curved path);
+advance the formation's reference course, rate-limited, along that path and place the slots of
+every step at the predicted target and reference course of that step; compute the steady-state
+inputs u_s under the *learned* model from consecutive slots; gather the neighbours' assumed
+trajectories (extrapolated while stale, formation term dropped when too old); place the
+separation half-planes between this vehicle's previous plan and each neighbour's; pick a
+linearization trajectory (the shifted previous plan, kept unless the steady inputs or a pursuit
+path toward the slot score clearly better: hysteresis); solve the tube LBMPC QP; on failure apply
+the clipped tube feedback law, stopped or reversed if it would leave a half-plane.
+No I/O, no clocks: time arrives as integer nanoseconds. docs/design.md has the maths.
 """
 
 import math
@@ -17,15 +21,43 @@ import numpy as np
 
 from onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from onboard.core.dekf import DualEkf
-from onboard.core.formation import Formation
+from onboard.core.formation import Formation, ReferenceCourse, course_rate_limit
 from onboard.core.lbmpc import QpData, TubeLbmpc
 from onboard.core.plan import Plan
+from onboard.core.separation import (
+    NO_PLANE,
+    Plane,
+    intersample_allowance,
+    plane_slack,
+    separation_planes,
+)
 from onboard.core.target_estimator import TargetEstimator
-from onboard.core.unicycle import rollout
+from onboard.core.unicycle import advance, rollout, wrap
 
-__all__ = ["Agent", "AgentInput", "AgentOutput"]
+__all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_rate"]
 
 _TWO_PI = 2.0 * math.pi
+
+_BEHIND_RAD = 2.0
+"""A pursuit whose goal lies more than this far off the nose keeps turning the way it turned the
+period before (a goal right behind is as near turning left as right)."""
+
+
+def reference_course_rate(controller: ControllerSettings, formation: FormationSettings) -> float:
+    """How fast the formation's reference course may turn [rad/s], as every agent of the fleet
+    computes it (from its tube-tightened input bounds and the formation's lever arms)."""
+    mpc = TubeLbmpc(controller, n_neighbours=len(formation.slots_m) - 1)
+    return _course_rate(mpc, Formation(formation), controller)
+
+
+def _course_rate(mpc: TubeLbmpc, formation: Formation, controller: ControllerSettings) -> float:
+    speed_bound, yaw_rate_bound = (mpc.u_max - mpc.tightening[-1]).tolist()
+    return course_rate_limit(
+        formation,
+        speed_bound_m_s=speed_bound,
+        yaw_rate_bound_rad_s=yaw_rate_bound,
+        cruise_speed_m_s=controller.reference_speed_m_s,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,6 +102,8 @@ class AgentOutput:
     """Age of each neighbour's plan [s]."""
     formation_terms: int
     """Neighbours whose formation term entered the cost."""
+    target_prediction_m: np.ndarray
+    """Where the target is predicted at the end of the horizon (2,) [m], nan while unknown."""
 
 
 class Agent:
@@ -99,18 +133,32 @@ class Agent:
         self.target = TargetEstimator(
             observation_std_m=target_observation_std_m,
             accel_std_m_s2=controller.target_accel_std_m_s2,
+            turn_accel_std_rad_s2=controller.target_turn_accel_std_rad_s2,
         )
         self.formation = Formation(formation)
         self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
+        self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation, controller))
+        self._reference_stamp_ns = 0
+        self._course_locked = False
+        """True once the target's course was known well enough to rate-limit the reference."""
         self.u_max = self.mpc.u_max
         M = controller.horizon
-        self._input_box = (np.tile(-self.u_max, (M, 1)), np.tile(self.u_max, (M, 1)))
+        self._input_box = (np.tile(self.mpc.u_min, (M, 1)), np.tile(self.u_max, (M, 1)))
         """U's bounds for the M planned inputs (full shape: broadcasting costs a ufunc more)."""
         self._no_positions = [(0.0, 0.0)] * M
         """An absent neighbour's positions (ignored: its margins are infinite)."""
-        self._no_margins = [math.inf] * M
-        self._margin_m = (controller.d_safe_m + 2.0 * self.mpc.tube_radius_m[1:]).tolist()
-        """Separation margin at j = 1..M before the plan-age inflation [m]."""
+        self._no_planes = [NO_PLANE] * M
+        between = intersample_allowance(
+            speed_max_m_s=controller.speed_max_m_s,
+            period_s=controller.period_s,
+            d_safe_m=controller.d_safe_m,
+        )
+        tube_m = float(self.mpc.tube_radius_m[-1])
+        self._margin_m = 0.5 * (controller.d_safe_m + between) + tube_m
+        """Distance kept from a shared separation line before the plan-age inflation
+        (`onboard.core.separation`) [m]."""
+        self._alone_margin_m = controller.d_safe_m + between + tube_m
+        """Distance kept from a stale neighbour's position before the plan-age inflation [m]."""
         self._position_weights = [
             np.full(M, controller.q_position + n * controller.q_formation)
             for n in range(len(self.neighbour_ids) + 1)
@@ -122,6 +170,8 @@ class Agent:
         """Stage position weight with every formation term (the terminal P's)."""
         self._last_command = np.zeros(2)
         self._last_plan: Plan | None = None
+        self._turn_sign = 0
+        """The way the pursuit seed turned toward a goal behind (+1, -1), 0 when it was not."""
         self.fallbacks = 0
         self.steps = 0
 
@@ -129,8 +179,34 @@ class Agent:
     # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
     # such (it reads them as floats): for a handful of points a float loop is cheaper than numpy
     # calls.
+    def _reference_courses(
+        self, stamp_ns: int, velocities: list[tuple[float, float]]
+    ) -> list[float]:
+        """The formation's reference course at j = 0..M+1 along the predicted target path.
+
+        Until the target's course is known (its speed at least three standard deviations of its
+        estimate), the reference takes the estimated course as it is; from then on it turns at
+        most at its rate limit, now and along the prediction. A target that never moved leaves
+        the course at 0 (North).
+        """
+        ref, v0, turn_rate = self.reference, velocities[0], self.target.turn_rate_rad_s
+        if self._course_locked:
+            dt_s = (stamp_ns - self._reference_stamp_ns) * 1e-9
+            ref.follow(v0, dt_s, turn_rate_rad_s=turn_rate)
+        else:
+            ref.reset(v0)
+            speed = math.hypot(*v0)
+            self._course_locked = (
+                ref.value is not None and speed >= 3.0 * self.target.velocity_std_m_s()
+            )
+        self._reference_stamp_ns = stamp_ns
+        if ref.value is None:
+            return [0.0] * len(velocities)
+        ahead = ref.ahead(velocities[1:], self.settings.period_s, turn_rate_rad_s=turn_rate)
+        return [ref.value, *ahead]
+
     def _steady_inputs(
-        self, slots: list[list[float]], beta: tuple[float, ...], yaw: float
+        self, slots: list[tuple[float, float]], beta: list[float], yaw: float
     ) -> tuple[list[tuple[float, float]], list[float]]:
         """u_s (M pairs) and steady headings (M + 1) keeping the learned model on slots (M + 2).
 
@@ -139,15 +215,14 @@ class Agent:
         """
         tau = self.settings.period_s
         a_v, a_w, d_x, d_y = beta
-        hypot, atan2, pi = math.hypot, math.atan2, math.pi
         speeds, headings = [], []
-        last = raw_last = None
-        x0, y0 = slots[0]
+        last = None
+        (x0, y0), raw_last = slots[0], None
         for x1, y1 in slots[1:]:
             gx, gy = (x1 - x0) / tau - d_x, (y1 - y0) / tau - d_y
-            speed = hypot(gx, gy)
-            raw = atan2(gy, gx) if speed >= 1e-3 else yaw
-            last = raw if raw_last is None else last + (raw - raw_last + pi) % _TWO_PI - pi
+            speed = math.hypot(gx, gy)
+            raw = math.atan2(gy, gx) if speed >= 1e-3 else yaw
+            last = raw if last is None else last + wrap(raw - raw_last)
             raw_last, x0, y0 = raw, x1, y1
             speeds.append(speed)
             headings.append(last)
@@ -158,139 +233,151 @@ class Agent:
 
     def _pursuit_inputs(
         self,
-        z0: tuple[float, float, float],
-        slots: list[list[float]],
+        z0: list[float],
+        slots: list[tuple[float, float]],
         slot_vel: tuple[float, float],
-        beta: tuple[float, ...],
+        beta: list[float],
     ) -> list[tuple[float, float]]:
-        """Inputs of a simple pursuit of the slot, to seed the linearization from far away."""
+        """Inputs of a simple pursuit of the slot, to seed the linearization from far away.
+
+        A goal (nearly) behind the vehicle is turned toward the way it was the period before,
+        so that the seed does not flip between a left and a right turn.
+        """
         s, tau = self.settings, self.settings.period_s
         a_v, a_w, d_x, d_y = beta
-        hw, tw = 0.5 * tau * a_w, tau * a_w
-        cos, sin, atan2, remainder = math.cos, math.sin, math.atan2, math.remainder
         x, y, th = z0
         vx, vy = slot_vel
         v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
         out = []
-        for sx, sy in slots[1 : s.horizon + 1]:
+        turn = self._turn_sign
+        for j, (sx, sy) in enumerate(slots[1 : s.horizon + 1]):
             gx, gy = vx + 0.5 * (sx - x) - d_x, vy + 0.5 * (sy - y) - d_y
-            err = remainder(atan2(gy, gx) - th, _TWO_PI)
-            toward = cos(err)
-            v = math.hypot(gx, gy) / a_v * (0.0 if toward < 0.0 else toward)
-            v = v_max if v > v_max else v
-            w = err / tw
-            w = -w_max if w < -w_max else w_max if w > w_max else w
-            out.append((v, w))
-            phi = th + hw * w
-            x += tau * (a_v * v * cos(phi) + d_x)
-            y += tau * (a_v * v * sin(phi) + d_y)
-            th += tw * w
+            err = wrap(math.atan2(gy, gx) - th)
+            if abs(err) > _BEHIND_RAD:
+                if turn and err * turn < 0:
+                    err += _TWO_PI * turn
+                turn = 1 if err > 0 else -1
+            elif j == 0:
+                turn = 0
+            if j == 0:
+                self._turn_sign = turn
+            v = math.hypot(gx, gy) / a_v * max(math.cos(err), 0.0)
+            w = max(-w_max, min(w_max, err / (tau * a_w)))
+            out.append((min(v, v_max), w))
+            x, y, th = advance(x, y, th, out[-1][0], w, beta, tau)
         return out
 
     def _seed(
         self,
-        z0: tuple[float, float, float],
+        z0: list[float],
         candidates: list[list[tuple[float, float]]],
-        beta: tuple[float, ...],
-        goal: list[list[float]],
+        beta: list[float],
+        goal: list[tuple[float, float]],
+        *,
+        incumbent: int | None,
     ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float]]]:
-        """The candidate input sequence whose learned rollout ends closest to the goal.
+        """The linearization trajectory: (states, inputs) of one candidate input sequence.
 
-        Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s
-        from 0 (in its own direction), rolled out with the learned model and scored by the
-        squared distance of its positions to the goal (M points); returns (states, inputs).
-        A rollout stops once its partial score reaches the best so far (the score only grows).
+        Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s,
+        rolled out with the learned model and scored by the
+        squared distance of its positions to the goal (M points). The incumbent (the previous
+        plan, shifted) is kept unless another candidate scores at most seed_switch_ratio of it.
         """
         s = self.settings
-        tau = s.period_s
-        a_v, a_w, d_x, d_y = beta
-        hw, tw = 0.5 * tau * a_w, tau * a_w
-        cos, sin = math.cos, math.sin
         v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
         v_min = s.min_linearization_speed_m_s
-        best, best_cost = None, math.inf
+        scored = []
         for candidate in candidates:
-            x, y, th = z0
-            states, inputs, cost = [z0], [], 0.0
+            z = tuple(z0)
+            states, inputs, cost = [z], [], 0.0
             for (v, w), (gx, gy) in zip(candidate, goal, strict=True):
-                # Clip to U (nan passes through), then keep |v| >= v_min in v's direction.
-                v = -v_max if v < -v_max else v_max if v > v_max else v
-                w = -w_max if w < -w_max else w_max if w > w_max else w
-                if v < 0:
-                    v = -v_min if -v_min < v else v
-                else:
-                    v = v_min if v_min > v else v
-                phi = th + hw * w
-                x += tau * (a_v * v * cos(phi) + d_x)
-                y += tau * (a_v * v * sin(phi) + d_y)
-                th += tw * w
-                states.append((x, y, th))
+                v = max(v_min, min(v_max, v))
+                w = max(-w_max, min(w_max, w))
+                z = advance(*z, v, w, beta, s.period_s)
+                states.append(z)
                 inputs.append((v, w))
-                cost += (x - gx) ** 2 + (y - gy) ** 2
-                if cost >= best_cost:
-                    break
-            if cost < best_cost:
-                best, best_cost = (states, inputs), cost
-        assert best is not None
-        return best
+                cost += (z[0] - gx) ** 2 + (z[1] - gy) ** 2
+            scored.append((cost, states, inputs))
+        best = min(range(len(scored)), key=lambda i: scored[i][0])
+        if incumbent is not None and scored[best][0] > s.seed_switch_ratio * scored[incumbent][0]:
+            best = incumbent
+        return scored[best][1], scored[best][2]
 
     def _neighbours(
         self,
         inp: AgentInput,
         ages: dict[int, float],
         centres: list[tuple[float, float]],
-        offsets: list[tuple[float, float]],
+        offsets: list[list[tuple[float, float]]],
     ) -> tuple[
-        list[list[tuple[float, float]]], list[list[float]], list[tuple[float, float]] | None, int
+        list[list[tuple[float, float]] | None], list[float], list[tuple[float, float]] | None, int
     ]:
-        """Neighbours' predicted positions and separation margins at j = 1..M, and the pull.
+        """Neighbours' predicted positions at j = 1..M, their plan-age inflations, the pull.
 
-        Returns the positions (N, M, 2; zeros for an absent neighbour), the margins (N, M;
-        infinite for an absent neighbour, inflated by v_max x age otherwise), the pull
+        Returns the positions (N entries of M pairs, None for an absent neighbour), the margin
+        inflation v_max x (age beyond one period) of each [m], the pull
         sum_k (p_kj - slot_kj) over the neighbours whose plan is fresh (None if there is none)
-        and their count. `centres` are the formation centres at j = 0..M+1.
+        and their count. `centres` and `offsets` are the formation's centre and every vehicle's
+        offset at j = 0..M+1.
         """
         s, M = self.settings, self.settings.horizon
-        when_ns, reach_s = inp.stamp_ns + s.period_ns, s.plan_extrapolation_s
-        forget_s, stale_s, ahead_s, v_max = (
-            s.plan_forget_s,
-            s.plan_stale_s,
-            -s.period_s,
-            s.speed_max_m_s,
-        )
-        slot_centres = centres[1 : M + 1]
-        nb_pos: list[list[tuple[float, float]]] = []
-        nb_margin: list[list[float]] = []
+        when_ns = inp.stamp_ns + s.period_ns
+        nb_pos: list[list[tuple[float, float]] | None] = []
+        inflations: list[float] = []
         pull: list[tuple[float, float]] | None = None
         n_terms = 0
+        steps = list(zip(centres[1 : M + 1], offsets[1 : M + 1], strict=True))
         for nid in self.neighbour_ids:
             plan = inp.neighbour_plans.get(nid)
-            if plan is None or ages[nid] > forget_s or ages[nid] < ahead_s:
-                nb_pos.append(self._no_positions)
-                nb_margin.append(self._no_margins)
+            age = ages.get(nid, math.inf)
+            if plan is None or age > s.plan_forget_s or age < -s.period_s:
+                nb_pos.append(None)
+                inflations.append(math.inf)
                 continue
-            age = ages[nid]
-            age = 0.0 if age < 0.0 else age
-            positions = plan.position_list(when_ns, M, max_extrapolation_s=reach_s)
+            positions = plan.position_list(when_ns, M, max_extrapolation_s=s.plan_extrapolation_s)
             nb_pos.append(positions)
-            inflation = v_max * age
-            nb_margin.append([m + inflation for m in self._margin_m])
-            if age <= stale_s:
-                kx, ky = offsets[self._fleet_index[nid]]
-                if pull is None:
-                    pull = [
-                        (px - (cx + kx), py - (cy + ky))
-                        for (px, py), (cx, cy) in zip(positions, slot_centres, strict=True)
-                    ]
-                else:  # the same terms, added as they are formed
-                    pull = [
-                        (a + (px - (cx + kx)), b + (py - (cy + ky)))
-                        for (a, b), (px, py), (cx, cy) in zip(
-                            pull, positions, slot_centres, strict=True
-                        )
-                    ]
+            inflations.append(s.speed_max_m_s * max(0.0, age - s.period_s))
+            if age <= s.plan_stale_s:
+                k = self._fleet_index[nid]
+                terms = [
+                    (px - (cx + o[k][0]), py - (cy + o[k][1]))
+                    for (px, py), ((cx, cy), o) in zip(positions, steps, strict=True)
+                ]
+                pull = (
+                    terms
+                    if pull is None
+                    else [(a + b, c + d) for (a, c), (b, d) in zip(pull, terms, strict=True)]
+                )
                 n_terms += 1
-        return nb_pos, nb_margin, pull, n_terms
+        return nb_pos, inflations, pull, n_terms
+
+    def _planes(
+        self,
+        inp: AgentInput,
+        here: tuple[float, float],
+        ages: dict[int, float],
+        inflations: list[float],
+    ) -> list[list[Plane]]:
+        """Separation half-planes against each neighbour at j = 1..M (`separation_planes`),
+        between this vehicle's previous plan (or, without one, where it is) and the neighbour's;
+        the distance is shared while the neighbour's plan is at most two periods old."""
+        s, M = self.settings, self.settings.horizon
+        reach = s.plan_extrapolation_s
+        if self._last_plan is None:
+            own = [here] * (M + 1)
+        else:
+            own = self._last_plan.position_list(inp.stamp_ns, M + 1, max_extrapolation_s=reach)
+        planes = []
+        for nid, inflation in zip(self.neighbour_ids, inflations, strict=True):
+            plan = inp.neighbour_plans.get(nid)
+            if plan is None or not math.isfinite(inflation):
+                planes.append(self._no_planes)
+                continue
+            shared = ages[nid] <= 2.0 * s.period_s + 1e-9
+            margin = (self._margin_m if shared else self._alone_margin_m) + inflation
+            theirs = plan.position_list(inp.stamp_ns, M + 1, max_extrapolation_s=reach)
+            planes.append(separation_planes(own, theirs, margin, here, shared=shared))
+        return planes
 
     def _goal(
         self,
@@ -312,20 +399,31 @@ class Agent:
             for (x, y), (px, py) in zip(slots, pull, strict=True)
         ]
 
-    @staticmethod
-    def _safe_stop(
-        z0: np.ndarray, u: np.ndarray, nb_pos: np.ndarray, nb_margin: np.ndarray
+    def _safe_fallback(
+        self, z0: list[float], u: np.ndarray, beta: list[float], planes: list[list[Plane]]
     ) -> np.ndarray:
-        """Fallback safety: no forward speed toward a neighbour already inside its margin."""
-        heading = np.array([math.cos(z0[2]), math.sin(z0[2])])
-        for k in range(nb_pos.shape[0]):
-            if not math.isfinite(nb_margin[k, 0]):
-                continue
-            towards = nb_pos[k, 0] - z0[:2]
-            dist = math.hypot(towards[0], towards[1])
-            if dist < nb_margin[k, 0] and u[0] * (heading @ towards) > 0:
-                return np.array([0.0, u[1]])
-        return u
+        """The fallback input: the tube law `u` if, held over the horizon, it keeps every
+        separation half-plane; otherwise, of `u` and the corners and mid-points of U (stop,
+        half and full speed, turning either way or not), the input whose rollout leaves the
+        half-planes least (the largest smallest slack over steps and neighbours)."""
+        s = self.settings
+        v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
+        candidates = [tuple(u.tolist())] + [
+            (v, w) for v in (0.0, 0.5 * v_max, v_max) for w in (-w_max, 0.0, w_max)
+        ]
+        best, best_slack = candidates[0], -math.inf
+        for v, w in candidates:
+            z, slack = tuple(z0), math.inf
+            for j in range(s.horizon):
+                z = advance(*z, v, w, beta, s.period_s)
+                slack = min(
+                    slack, min((plane_slack(z[0], z[1], p[j]) for p in planes), default=slack)
+                )
+            if slack >= 0.0 and (v, w) == candidates[0]:
+                return u
+            if slack > best_slack:
+                best, best_slack = (v, w), slack
+        return np.array(best)
 
     # -- the period -----------------------------------------------------------------------------
     def step(self, inp: AgentInput) -> AgentOutput:
@@ -359,28 +457,39 @@ class Agent:
             )
         z0, beta = self.dekf.z.copy(), self.dekf.beta.copy()
         z0_f, beta_f = z0.tolist(), beta.tolist()
-        # Target and slots over j = 0..M+1: slot i = target - trail + offsets[i].
-        track, tgt_vel = self.target.predicted_track(inp.stamp_ns, s.period_ns, M + 2)
-        trail_x, trail_y, offsets = self.formation.placement(tgt_vel)
-        centres = [(x - trail_x, y - trail_y) for x, y in track]
-        ox, oy = offsets[self.index]
-        mine = [(cx + ox, cy + oy) for cx, cy in centres]
+        # The target, the reference course and the slots over j = 0..M+1: at each step, slot
+        # i = target - trail + offset i, both turned to that step's reference course.
+        track, velocities = self.target.predicted_track(inp.stamp_ns, s.period_ns, M + 2)
+        centres, offsets = [], []
+        for (tx, ty), course in zip(
+            track, self._reference_courses(inp.stamp_ns, velocities), strict=True
+        ):
+            trail_x, trail_y, step_offsets = self.formation.placement(course)
+            centres.append((tx - trail_x, ty - trail_y))
+            offsets.append(step_offsets)
+        mine = [
+            (cx + o[self.index][0], cy + o[self.index][1])
+            for (cx, cy), o in zip(centres, offsets, strict=True)
+        ]
         u_s, heading_s = self._steady_inputs(mine, beta_f, z0_f[2])
-        nb_pos, nb_margin, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
+        nb_pos, inflations, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
         weight = s.q_position + n_terms * s.q_formation
         goal = self._goal(mine[1 : M + 1], pull, n_terms, weight)
         # Linearization trajectory.
         (sx0, sy0), (sx1, sy1) = mine[0], mine[-1]
         slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))
         candidates = [u_s, self._pursuit_inputs(z0_f, mine, slot_vel, beta_f)]
+        incumbent = None
         if self._last_plan is not None:
             shifted = self._last_plan.inputs.tolist()
             candidates.append(shifted[1:] + shifted[-1:])
-        lin_states, lin_inputs = self._seed(z0_f, candidates, beta_f, goal)
-        # (The rollout's headings are continuous from z0's: no unwrapping needed.)
-        # Target headings: the steady headings, unwrapped near the linearization's.
+            incumbent = len(candidates) - 1
+        lin_states, lin_inputs = self._seed(z0_f, candidates, beta_f, goal, incumbent=incumbent)
+        planes = self._planes(inp, (z0_f[0], z0_f[1]), ages, inflations)
+        # Target headings: the steady headings, unwrapped near the linearization's (whose
+        # rollout headings are continuous from z0's).
         targets = [
-            (gx, gy, ref + (h - ref + math.pi) % _TWO_PI - math.pi)
+            (gx, gy, ref + wrap(h - ref))
             for (gx, gy), h, (_, _, ref) in zip(
                 goal, heading_s[1 : M + 1], lin_states[1:], strict=True
             )
@@ -395,8 +504,7 @@ class Agent:
             targets=targets,
             position_weights=self._position_weights[n_terms],
             terminal_scale=weight / self._full_weight,
-            neighbour_positions=nb_pos,
-            neighbour_margins=nb_margin,
+            separation_planes=planes,
         )
         sol = self.mpc.solve(data)
         if sol.ok:
@@ -407,16 +515,14 @@ class Agent:
             self.fallbacks += 1
             ref = np.array([mine[0][0], mine[0][1], heading_s[0]])
             u = self.mpc.fallback_input(z0, ref, np.array(u_s[0]))
-            u = self._safe_stop(z0, u, np.array(nb_pos), np.array(nb_margin))
+            u = self._safe_fallback(z0_f, u, beta_f, planes)
             inputs = np.repeat(u[None, :], M, axis=0)
             states, c, status = (
                 rollout(z0, inputs, beta, tau),
                 np.zeros((M, 2)),
                 f"fallback: {sol.status}",
             )
-        states[:, 2] = [  # wrapped to [-pi, pi), in floats (M + 1 of them)
-            (h + math.pi) % _TWO_PI - math.pi for h in states[:, 2].tolist()
-        ]
+        states[:, 2] = [wrap(h) for h in states[:, 2].tolist()]
         plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, states, inputs)
         self._last_plan = plan
         self._last_command = inputs[0].copy()
@@ -431,6 +537,7 @@ class Agent:
             slot_m=np.array(mine[0]),
             neighbour_ages_s=ages,
             formation_terms=n_terms,
+            target_prediction_m=np.array(track[M]),
         )
 
     def _hold(self, inp: AgentInput, why: str, ages: dict[int, float]) -> AgentOutput:
@@ -459,4 +566,5 @@ class Agent:
             slot_m=np.full(2, np.nan),
             neighbour_ages_s=ages,
             formation_terms=0,
+            target_prediction_m=np.full(2, np.nan),
         )

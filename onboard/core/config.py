@@ -46,8 +46,16 @@ class ControllerSettings:
     """Plan age beyond which a neighbour's formation term is dropped [s]."""
     plan_forget_s: float = 10.0
     """Plan age beyond which a neighbour is ignored entirely [s]."""
-    target_accel_std_m_s2: float = 0.02
-    """White-acceleration noise of the target's constant-velocity filter [m/s^2]."""
+    target_accel_std_m_s2: float = 0.01
+    """White-acceleration noise of the target filter's velocity [m/s^2]."""
+    target_turn_accel_std_rad_s2: float = 0.002
+    """Random-walk noise of the target filter's turn rate [rad/s^2]."""
+    yaw_rate_trust_rad_s: float = 0.25
+    """Trust region of the QP: each planned yaw rate stays within this of the linearization
+    trajectory's, so the plan's headings stay where the linearized model holds [rad/s]."""
+    seed_switch_ratio: float = 0.7
+    """The linearization keeps following its previous plan unless another seed's rollout scores
+    at most this fraction of the plan's (hysteresis against alternating seeds)."""
     solver_eps: float = 1e-6
     """OSQP eps_abs and eps_rel."""
     solver_max_iter: int = 4000
@@ -71,11 +79,14 @@ class ControllerSettings:
             "plan_stale_s",
             "plan_forget_s",
             "target_accel_std_m_s2",
+            "target_turn_accel_std_rad_s2",
+            "yaw_rate_trust_rad_s",
         ):
             positive(f"controller.{name}", getattr(self, name))
         for name in ("q_heading", "q_formation", "w_position_m", "w_heading_rad", "d_safe_m"):
             positive(f"controller.{name}", getattr(self, name), allow_zero=True)
         in_range("controller.solver_eps", self.solver_eps, 1e-12, 1e-5)
+        in_range("controller.seed_switch_ratio", self.seed_switch_ratio, 0.0, 1.0)
         if not isinstance(self.solver_max_iter, int) or self.solver_max_iter < 10:
             raise ConfigError(
                 "controller.solver_max_iter",

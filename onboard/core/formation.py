@@ -1,64 +1,212 @@
-"""Formation geometry: slots around a centre that trails the target by d_s along its course.
+"""Formation geometry: slots around a centre that trails the target by d_s along a reference
+course, and the reference course itself (docs/design.md, "Formation reference").
 
 World frame: slot offsets are (North, East). Course frame: offsets are (forward, right) in the
-frame whose x axis is the target's course (the direction of its velocity); with NED axes "right"
-is the positive rotation, so a course-frame offset o maps to Rot(course) o.
+frame whose x axis is the reference course; with NED axes "right" is the positive rotation, so a
+course-frame offset o maps to Rot(course) o. In both frames the centre trails the target by d_s
+along the reference course.
+
+The reference course follows the target's course but turns at most at a bounded rate, so a slot
+never asks its vehicle for more than it can fly: when the formation turns at rate r about the
+target, slot i moves at the target's velocity plus r times its lever arm L_i (its distance from
+the target: |o_i - (d_s, 0)| in the course frame, d_s in the world frame). With the tightened
+speed bound V̄ and the cruise speed V_c, the limit spends three quarters of the spare speed on
+the turn and keeps a quarter (SPEED_RESERVE) for wind, effectiveness errors and catching up, and
+half the tightened yaw-rate bound ω̄:
+    r_max = min(ω̄ / 2, (1 - SPEED_RESERVE) (V̄ - V_c) / max_i L_i).
+The reference course turns at the target's turn rate plus a gentle correction toward the
+target's course, the sum clipped to r_max:
+    dpsi/dt = clip(omega_target + k (course - psi), -r_max, r_max),   k = COURSE_GAIN_PER_S,
+so on a steady turn it keeps up without lag, the noise of the course estimate reaches it only
+through k, and at a waypoint corner the formation sweeps round at r_max instead of jumping.
 """
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
 from onboard.core.config import FormationSettings
+from onboard.core.unicycle import wrap_angle
 
-__all__ = ["Formation"]
+__all__ = [
+    "Formation",
+    "ReferenceCourse",
+    "TrueReference",
+    "course_rate_limit",
+    "reference_courses",
+]
+
+MIN_COURSE_SPEED_M_S = 0.05
+"""Below this target speed the course is not defined: the reference course holds."""
+
+SPEED_RESERVE = 0.25
+"""Share of the spare speed (tightened bound less cruise speed) the reference course's turn
+leaves for wind, effectiveness errors and catching up."""
+
+COURSE_GAIN_PER_S = 0.2
+"""How fast the reference course corrects toward the target's course [1/s]: a 5 s time constant,
+so the noise of a course estimate reaches it attenuated about 25-fold per period, while the
+target's estimated turn rate carries it round a steady turn without lag."""
+
+MIN_COURSE_RATE_RAD_S = 0.01
+"""The reference course turns at least this fast, even when the team has no spare speed (the
+feasibility check reports that case)."""
 
 
 class Formation:
-    """Slot positions of every vehicle for a (predicted) target trajectory."""
+    """Slot positions of every vehicle for a reference course."""
 
-    def __init__(self, settings: FormationSettings, *, min_course_speed_m_s: float = 0.05) -> None:
+    def __init__(self, settings: FormationSettings) -> None:
         self.settings = settings
         self._offsets = np.array(settings.slots_m)
         self._offsets_list = [(float(x), float(y)) for x, y in settings.slots_m]
-        self._min_speed = min_course_speed_m_s
-        self._course = 0.0
 
     @property
     def size(self) -> int:
         return self._offsets.shape[0]
 
-    def course(self, target_velocity_m_s: np.ndarray | tuple[float, float]) -> float:
-        """Target course [rad]; the last known course while the target is (nearly) still."""
-        vx, vy = target_velocity_m_s
-        vx, vy = float(vx), float(vy)  # plain floats from an array or a pair alike
-        if math.hypot(vx, vy) >= self._min_speed:
-            self._course = math.atan2(vy, vx)
-        return self._course
+    def lever_arms_m(self) -> np.ndarray:
+        """Each slot's distance from the target, about which the formation turns (N,) [m]."""
+        trail = self.settings.trail_m
+        if self.settings.frame == "course":
+            return np.hypot(self._offsets[:, 0] - trail, self._offsets[:, 1])
+        return np.full(self.size, abs(trail))
 
-    def placement(
-        self, target_velocity_m_s: np.ndarray | tuple[float, float]
-    ) -> tuple[float, float, list[tuple[float, float]]]:
-        """Where the slots sit around the target, in the world frame, as plain floats.
+    def placement(self, course_rad: float) -> tuple[float, float, list[tuple[float, float]]]:
+        """Where the slots sit around the target at a reference course, as plain floats.
 
         Returns (trail_x, trail_y, offsets): the centre is the target position less
         (trail_x, trail_y), and slot i is the centre plus offsets[i].
         """
-        c = self.course(target_velocity_m_s)
-        ux, uy = math.cos(c), math.sin(c)
+        ux, uy = math.cos(course_rad), math.sin(course_rad)
         trail = self.settings.trail_m
         offsets = self._offsets_list
         if self.settings.frame == "course":  # (forward, right) rotated by the course
             offsets = [(ox * ux - oy * uy, ox * uy + oy * ux) for ox, oy in offsets]
         return trail * ux, trail * uy, offsets
 
-    def slots(self, target_positions_m: np.ndarray, target_velocity_m_s: np.ndarray) -> np.ndarray:
-        """Slots (K, N, 2) for target positions (K, 2) moving with one velocity (2,)."""
-        trail_x, trail_y, offsets = self.placement(target_velocity_m_s)
-        centre = np.asarray(target_positions_m, dtype=float) - np.array([trail_x, trail_y])
-        return centre[:, None, :] + np.array(offsets)
+    def slots(self, target_m: np.ndarray, courses_rad: np.ndarray) -> np.ndarray:
+        """Slots (K, N, 2) for target positions (K, 2) at reference courses (K,)."""
+        out = np.empty((len(courses_rad), self.size, 2))
+        for k, (course, (tx, ty)) in enumerate(zip(courses_rad, target_m, strict=True)):
+            trail_x, trail_y, offsets = self.placement(float(course))
+            out[k] = np.array(offsets) + (tx - trail_x, ty - trail_y)
+        return out
 
     def desired_distances(self) -> np.ndarray:
         """Desired distance between every pair of slots (N, N) [m]."""
         d = self._offsets[:, None, :] - self._offsets[None, :, :]
         return np.hypot(d[..., 0], d[..., 1])
+
+
+def course_rate_limit(
+    formation: Formation,
+    *,
+    speed_bound_m_s: float,
+    yaw_rate_bound_rad_s: float,
+    cruise_speed_m_s: float,
+) -> float:
+    """r_max [rad/s] (module docstring) from the tightened input bounds and the lever arms."""
+    lever = float(formation.lever_arms_m().max())
+    spare = (1.0 - SPEED_RESERVE) * (speed_bound_m_s - cruise_speed_m_s)
+    by_speed = math.inf if lever < 1e-9 else spare / lever
+    return max(MIN_COURSE_RATE_RAD_S, min(0.5 * yaw_rate_bound_rad_s, by_speed))
+
+
+class ReferenceCourse:
+    """The formation's reference course: the target's course, turned at most at `rate_max`.
+
+    Angles are unwrapped (continuous over time), in radians.
+    """
+
+    def __init__(self, rate_max_rad_s: float) -> None:
+        if not rate_max_rad_s > 0:
+            raise ValueError(f"rate_max_rad_s must be > 0, got {rate_max_rad_s}")
+        self.rate_max_rad_s = rate_max_rad_s
+        self.value: float | None = None
+        """The reference course now, None before the target's course was known."""
+
+    @staticmethod
+    def course_of(velocity_m_s: Sequence[float]) -> float | None:
+        """The course of a velocity, None when it is too slow to have one."""
+        vx, vy = velocity_m_s
+        if math.hypot(vx, vy) < MIN_COURSE_SPEED_M_S:
+            return None
+        return math.atan2(vy, vx)
+
+    def _turned(
+        self, current: float, velocity_m_s: Sequence[float], turn_rate: float, dt_s: float
+    ) -> float:
+        course = self.course_of(velocity_m_s)
+        if course is None:
+            return current
+        rate_max = self.rate_max_rad_s
+        rate = turn_rate + COURSE_GAIN_PER_S * math.remainder(course - current, 2.0 * math.pi)
+        return current + dt_s * (-rate_max if rate < -rate_max else min(rate, rate_max))
+
+    def reset(self, velocity_m_s: Sequence[float]) -> None:
+        """Take the target's course as it is (no rate limit), if it has one."""
+        course = self.course_of(velocity_m_s)
+        if course is not None:
+            self.value = (
+                course
+                if self.value is None
+                else self.value + math.remainder(course - self.value, 2.0 * math.pi)
+            )
+
+    def follow(
+        self, velocity_m_s: Sequence[float], dt_s: float, *, turn_rate_rad_s: float = 0.0
+    ) -> float | None:
+        """Advance by dt_s with the target's velocity and turn rate now; the new value."""
+        if self.value is None:
+            self.reset(velocity_m_s)
+        else:
+            self.value = self._turned(self.value, velocity_m_s, turn_rate_rad_s, dt_s)
+        return self.value
+
+    def ahead(
+        self,
+        velocities_m_s: Sequence[Sequence[float]],
+        dt_s: float,
+        *,
+        turn_rate_rad_s: float = 0.0,
+    ) -> list[float]:
+        """The reference courses along a predicted path (one per velocity, dt_s apart, turning
+        at turn_rate_rad_s), from the current value (which stays as it is); needs a value."""
+        if self.value is None:
+            raise RuntimeError("the reference course is not known yet")
+        out, current = [], self.value
+        for v in velocities_m_s:
+            current = self._turned(current, v, turn_rate_rad_s, dt_s)
+            out.append(current)
+        return out
+
+
+class TrueReference:
+    """The reference course of a target whose true velocity is known at each period, as the
+    agents would place it from a perfect estimate (the turn rate from consecutive courses): the
+    slots a run is judged against."""
+
+    def __init__(self, rate_max_rad_s: float) -> None:
+        self._course = ReferenceCourse(rate_max_rad_s)
+        self._last: float | None = None
+
+    def follow(self, velocity_m_s: Sequence[float], dt_s: float) -> float:
+        """The reference course [rad] after dt_s more, for the target's velocity now."""
+        course = ReferenceCourse.course_of(velocity_m_s)
+        rate = 0.0
+        if course is not None and self._last is not None and dt_s > 0:
+            rate = math.remainder(course - self._last, 2.0 * math.pi) / dt_s
+        if course is not None:
+            self._last = course
+        value = self._course.follow(velocity_m_s, dt_s, turn_rate_rad_s=rate)
+        return 0.0 if value is None else value
+
+
+def reference_courses(velocities_m_s: np.ndarray, dt_s: float, rate_max_rad_s: float) -> np.ndarray:
+    """`TrueReference` over a whole run: courses (K,) for velocities (K, 2) dt_s apart, wrapped
+    to [-pi, pi)."""
+    ref = TrueReference(rate_max_rad_s)
+    out = [ref.follow(v, dt_s) for v in np.asarray(velocities_m_s, float).tolist()]
+    return np.asarray(wrap_angle(np.array(out)))

@@ -5,13 +5,15 @@ Decision variables: c_j in R^2, j = 0..M-1 (stacked, 2M). Inputs are parametrize
 where zref is the nominal model's rollout of the steady-state inputs u_s (so c = 0 reproduces u_s
 and c -> 0 at steady state), and K_j = K0 T(theta_j)' is the DARE gain rotated to the heading of
 the linearization point. Both predictions are affine in c (condensed form):
-    nominal  zbar_{j+1} = A_j zbar_j + B_j u_j + e_j            (constraints: tube-tightened U,
-                                                                  minimum separation)
-    learned  ztil_{j+1} = A~_j ztil_j + B~_j u_j + e~_j          (cost)
+    nominal  zbar_{j+1} = A_j zbar_j + B_j u_j + e_j            (the feedback's reference)
+    learned  ztil_{j+1} = A~_j ztil_j + B~_j u_j + e~_j          (cost, minimum separation)
 The model is linearized along a trajectory chosen by the caller (never at V = 0).
 Cost: sum_{j=1}^{M-1} ||ztil_j - r_j||^2_{Q_j} + ||ztil_M - r_M||^2_{P} + sum_j ||u_j - u_s,j||^2_R.
-Constraints: u_j in U ⊖ K R_j (box), n_kj' (pbar_j - p_kj) >= margin_kj for every neighbour k whose
-predicted position is within reach (a half-plane inner approximation of the disc constraint).
+Constraints: u_j in U ⊖ K R_j (box) and, for the linearization to stay valid, a yaw rate within a
+trust region about the linearization's (the heading enters the model through sin and cos, so a
+plan that turned the other way would be predicted wrongly), and n_kj' ptil_j >= b_kj for every
+neighbour k and step j whose half-plane the caller set (`onboard.core.separation` places them;
+docs/design.md, "Safety").
 
 OSQP is set up once with a fixed sparsity pattern (structural zeros kept) and updated every period
 with warm start; every solve is checked (status, finiteness, bounds).
@@ -86,10 +88,10 @@ class QpData:
     """Position weight of each stage j = 1..M (M,) [1/m^2]."""
     terminal_scale: float
     """Scale of the terminal weight P (formation weight present / formation weight assumed)."""
-    neighbour_positions: Floats
-    """Neighbours' predicted positions at j = 1..M (N, M, 2)."""
-    neighbour_margins: Floats
-    """Required distance from each neighbour at j = 1..M (N, M) [m]; inf or nan disables a row."""
+    separation_planes: Floats
+    """Per neighbour k and step j = 1..M, a half-plane (n_x, n_y, b) that the learned prediction's
+    position must keep to, n' ptil_j >= b, with n a unit normal (N, M, 3); a non-finite b
+    disables the row."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,6 +123,8 @@ class TubeLbmpc:
         self.tau = s.period_s
         self.n_neighbours = n_neighbours
         self.u_max = np.array([s.speed_max_m_s, s.yaw_rate_max_rad_s])
+        self.u_min = np.array([0.0, -s.yaw_rate_max_rad_s])
+        """U's lower corner: the vehicle flies forward (docs/design.md, "Input set")."""
         self.A0, self.B0 = cruise_linearization(s.reference_speed_m_s, s.period_s)
         q_pos = s.q_position + n_neighbours * s.q_formation
         self.Q0 = np.diag([q_pos, q_pos, s.q_heading])
@@ -148,13 +152,14 @@ class TubeLbmpc:
 
         Condensing as one triangular system. Stack, per step j = 0..M, the two predictions and
         the input they lead to, v_j = [zbar_j; ztil_j; u_j] (8 rows, `_BLOCK`; u_M is padding),
-        then the separation rows s_kj = n_kj' pbar_j for neighbour k and step j = 1..M (N M
-        rows). Their derivatives with respect to c obey
+        then the separation rows s_kj = n_kj' ptil_j for neighbour k and step j = 1..M (N M
+        rows; on the learned prediction, where the vehicle is expected to be, wind included).
+        Their derivatives with respect to c obey
             dzbar_0 = dztil_0 = 0
             du_j         - K_j dzbar_j                  = E_j   (E_j injects c_j into u_j)
             dzbar_{j+1}  - A_j dzbar_j   - B_j du_j     = 0
             dztil_{j+1}  - A~_j dztil_j  - B~_j du_j    = 0
-            ds_kj        - n_kj' dpbar_j                = 0,
+            ds_kj        - n_kj' dptil_j                = 0,
         a unit lower-triangular system T D = E (m x m, m = 8 (M + 1) + N M) whose forward
         substitution (one BLAS dtrsm) is the recursion through the horizon.
 
@@ -267,7 +272,7 @@ class TubeLbmpc:
                 dest += entries.ravel().tolist()
         for k in range(N):
             for j in range(1, M + 1):
-                dest += iT[steps + k * M + j - 1, zbar_row[j] : zbar_row[j] + 2].tolist()
+                dest += iT[steps + k * M + j - 1, ztil_row[j] : ztil_row[j] + 2].tolist()
                 dest.append(int(il[2 * M + k * M + j - 1]))
         # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its column n):
         # q_heading and the stage position weights (`_stage_weights`) on ztil_j, the terminal P
@@ -299,10 +304,15 @@ class TubeLbmpc:
         """The step rows as the solution hands them out: inputs, learned, nominal predictions."""
         self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
         """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
-        bound = self.u_max[None, :] - self.tightening
-        self._input_box = [(-v, -w, v, w) for v, w in bound.tolist()]
+        # (The speed's lower bound 0 is not tightened: a plan may stop, and a feedback that
+        # would take the speed below it is clipped there.)
+        lower = (self.u_min[None, :] + self.tightening * [0.0, 1.0]).tolist()
+        upper = (self.u_max[None, :] - self.tightening).tolist()
+        self._input_box = [(*lo, *hi) for lo, hi in zip(lower, upper, strict=True)]
         """The tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
-        self._first_input_limit = tuple(float(u) * (1 + 1e-3) + 1e-6 for u in self.u_max)
+        slack = 1e-3 * self.u_max + 1e-6
+        self._first_input_box = (*(self.u_min - slack).tolist(), *(self.u_max + slack).tolist())
+        """U with a solver's tolerance: a first input outside it fails the solve's check."""
         self._warm = np.zeros(n)
         self._x_ext = np.zeros(n + 2)  # [c; 0; 1]: Y's rows at c
         self._x_ext[-1] = 1.0
@@ -326,7 +336,7 @@ class TubeLbmpc:
         err[2] = (err[2] + np.pi) % (2 * np.pi) - np.pi
         u = np.asarray(u_s, float) + self.feedback_gain(float(reference[2])) @ err
         u = np.where(np.isfinite(u), u, 0.0)
-        return np.clip(u, -self.u_max, self.u_max)
+        return np.clip(u, self.u_min, self.u_max)
 
     def _failed(self, status: str, d: QpData) -> QpSolution:
         return QpSolution(
@@ -361,7 +371,7 @@ class TubeLbmpc:
         hundred floats becomes an array 3-4x faster than through np.array). With M a handful of
         steps, a float loop is cheaper than a few dozen numpy calls on (M,)-arrays.
         """
-        tau = self.tau
+        tau, trust = self.tau, self.settings.yaw_rate_trust_rad_s
         a_v, a_w, d_x, d_y = _rows(d.beta)
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
@@ -370,7 +380,9 @@ class TubeLbmpc:
         xb, yb, hb = _rows(d.z0)
         xt, yt, ht = xb, yb, hb
         out = [xb, yb, hb, xt, yt, ht]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
-        ref: list[tuple[float, float]] = []  # zref's positions, j = 1..M
+        ref: list[
+            tuple[float, float]
+        ] = []  # ptil(0)'s positions, j = 1..M (the separation rows' linearization)
         lin = _rows(d.lin_states)
         steps = zip(
             lin[: self.M],
@@ -382,6 +394,8 @@ class TubeLbmpc:
         )
         for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
             c, s = cos(th), sin(th)
+            # The yaw rate keeps within the trust region about the linearization's.
+            lo_w, hi_w = max(lo_w, min(w - trust, hi_w)), min(hi_w, max(w + trust, lo_w))
             out += (
                 k01 * s - k00 * c, -k00 * s - k01 * c,  # -K_j's position columns
                 k11 * s - k10 * c, -k10 * s - k11 * c,
@@ -412,9 +426,9 @@ class TubeLbmpc:
                 xb, yb, hb, xt, yt, ht,  # zref_{j+1}, ztil_{j+1} at c = 0
                 xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,  # cost residual
             )  # fmt: skip
-            ref.append((xb, yb))
+            ref.append((xt, yt))
         if self.n_neighbours:
-            self._separation(d, (out[0], out[1]), lin, ref, out)
+            self._separation(d, ref, out)
         # The terminal P at the last target heading rh (doubled).
         out += self._terminal_entries(rh, 2.0 * d.terminal_scale)
         self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
@@ -485,8 +499,8 @@ class TubeLbmpc:
         y = self._Y_steps.dot(self._x_ext).take(self._by_kind)
         inputs, learned, nominal = y[:n], y[n : n + 3 * M + 3], y[n + 3 * M + 3 :]
         u0, w0 = inputs[:2].tolist()
-        v_lim, w_lim = self._first_input_limit
-        if ok and (abs(u0) > v_lim or abs(w0) > w_lim):
+        v_lo, w_lo, v_hi, w_hi = self._first_input_box
+        if ok and not (v_lo <= u0 <= v_hi and w_lo <= w0 <= w_hi):
             ok, status = False, "first input outside U"
         if ok:
             self._last_c = x
@@ -500,42 +514,22 @@ class TubeLbmpc:
             iterations=iterations,
         )
 
-    def _separation(
-        self,
-        d: QpData,
-        z0: tuple[float, float],
-        lin: Sequence[Sequence[float]],
-        ref: list[tuple[float, float]],
-        out: list[float],
-    ) -> None:
+    @staticmethod
+    def _separation(d: QpData, ref: list[tuple[float, float]], out: list[float]) -> None:
         """Separation rows, for neighbour k and step j = 1..M: appends to `out` -n_kj (the
         system's entries) and the row's lower bound.
 
-        The normal n_kj points from neighbour k's predicted position to the linearization point
-        (`lin`, j = 0..M) at step j (from z0's position when the two coincide); the row is
-        n_kj' pbar_j(c) >= margin_kj, i.e. n_kj' dpbar_j/dc c >= margin_kj - n_kj' (zref_j - p_kj),
-        with `ref` the zref_j. A row whose margin is not finite is off: zero normal, lower bound
+        The row is n_kj' ptil_j(c) >= b_kj, i.e. n_kj' dptil_j/dc c >= b_kj - n_kj' ptil_j(0),
+        with `ref` the ptil_j(0). A row whose bound is not finite is off: zero normal, lower bound
         -infinity. Plain floats: N M is a handful of pairs.
         """
-        x_0, y_0 = z0
-        hypot, isfinite = math.hypot, math.isfinite
-        for p_k, margins in zip(
-            _rows(d.neighbour_positions), _rows(d.neighbour_margins), strict=True
-        ):
-            for (px, py), margin, (lx, ly, _), (rx, ry) in zip(
-                p_k, margins, lin[1:], ref, strict=True
-            ):
-                if not isfinite(margin):
+        isfinite = math.isfinite
+        for planes in _rows(d.separation_planes):
+            for (nx, ny, b), (rx, ry) in zip(planes, ref, strict=True):
+                if isfinite(b):
+                    out += (-nx, -ny, b - (nx * rx + ny * ry))
+                else:
                     out += (0.0, 0.0, -INFINITY)
-                    continue
-                ax, ay = lx - px, ly - py
-                dist = hypot(ax, ay)
-                if dist < 1e-6:
-                    ax, ay = x_0 - px, y_0 - py
-                    dist = hypot(ax, ay)
-                dist = 1e-9 if dist < 1e-9 else dist
-                nx, ny = ax / dist, ay / dist
-                out += (-nx, -ny, margin - (nx * (rx - px) + ny * (ry - py)))
 
     def _terminal_entries(self, yaw: float, scale: float) -> tuple[float, ...]:
         """The 9 entries (row-major) of scale T(yaw) P0 T(yaw)', from P0's entries."""

@@ -30,6 +30,10 @@ class Plan:
     def horizon(self) -> int:
         return int(self.inputs.shape[0])
 
+    def position_at(self, stamp_ns: int) -> tuple[float, float]:
+        """The planned position at stamp_ns (its first before the plan, held after its end)."""
+        return self.position_list(stamp_ns, 1, max_extrapolation_s=0.0)[0]
+
     def positions_at(self, stamp_ns: int, count: int, *, max_extrapolation_s: float) -> np.ndarray:
         """Positions at stamp_ns + k * period_ns, k = 0..count-1, shape (count, 2).
 

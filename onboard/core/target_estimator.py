@@ -1,8 +1,15 @@
-"""Constant-velocity Kalman filter on noisy target observations, predicting over the horizon.
+"""The target's track: a coordinated-turn extended Kalman filter on noisy position observations.
 
-State (x, y, vx, vy) in the world frame [m, m/s]; white-acceleration process noise. The
-transition and process noise depend only on the time step, which is one control period almost
-always: they are cached by step (in integer nanoseconds), as are the prediction offsets.
+State (x, y, vx, vy, omega) in the world frame [m, m, m/s, m/s, rad/s]: the target flies a turn of
+rate omega (straight when omega = 0), its velocity perturbed by white acceleration and its turn
+rate by a random walk (docs/design.md, "Target"). The turn rate is always estimated, so the
+prediction over the horizon curves with the target; on a straight line omega stays near zero.
+Observations are positions, a linear measurement: filterpy's KalmanFilter updates the state, and
+the nonlinear predict (the exact turn, its Jacobian for the covariance) is this module's.
+
+A sharp corner (a waypoint) is not a turn this model expects: its position innovations grow and
+the velocity follows within a couple of seconds. The formation does not need more: its reference
+course turns at a bounded rate anyway (`onboard.core.formation`).
 """
 
 import math
@@ -10,51 +17,119 @@ import math
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-__all__ = ["TargetEstimator"]
+__all__ = ["TargetEstimator", "turn_motion"]
+
+_SMALL_TURN = 1e-6
+"""Below this |omega dt| [rad] the turn's formulas use their series expansions."""
+
+
+def turn_motion(
+    x: float, y: float, vx: float, vy: float, w: float, dt: float
+) -> tuple[float, float, float, float]:
+    """Position and velocity after dt of a coordinated turn at rate w (straight when w = 0)."""
+    a = w * dt
+    if abs(a) < _SMALL_TURN:
+        sin_w, cos_w = dt, 0.5 * a * dt  # sin(w dt) / w and (1 - cos(w dt)) / w
+    else:
+        sin_w, cos_w = math.sin(a) / w, (1.0 - math.cos(a)) / w
+    c, s = math.cos(a), math.sin(a)
+    return (
+        x + sin_w * vx - cos_w * vy,
+        y + cos_w * vx + sin_w * vy,
+        c * vx - s * vy,
+        s * vx + c * vy,
+    )
+
+
+def _process_noise(dt: float, accel_std: float, turn_std: float) -> np.ndarray:
+    """Process noise (5, 5) over dt: white acceleration of std accel_std on (x, y, vx, vy), and a
+    random walk of std turn_std per sqrt(s) on omega."""
+    q = accel_std**2
+    a, b, c = q * dt**4 / 4, q * dt**3 / 2, q * dt**2
+    Q = np.zeros((5, 5))
+    Q[0, 0] = Q[1, 1] = a
+    Q[0, 2] = Q[2, 0] = Q[1, 3] = Q[3, 1] = b
+    Q[2, 2] = Q[3, 3] = c
+    Q[4, 4] = turn_std**2 * dt
+    return Q
+
+
+def _inverse_2x2(S: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of the 2 x 2 innovation covariance (filterpy's `inv` hook)."""
+    (a, b), (c, d) = S.tolist()
+    det = a * d - b * c
+    return np.array((d / det, -b / det, -c / det, a / det)).reshape(2, 2)
+
+
+def _turn_jacobian(vx: float, vy: float, w: float, dt: float) -> np.ndarray:
+    """d turn_motion / d (x, y, vx, vy, omega), with omega kept (5, 5)."""
+    a = w * dt
+    s, c = math.sin(a), math.cos(a)
+    if abs(a) < _SMALL_TURN:
+        sw, cw = dt, 0.5 * a * dt
+        dsw, dcw = -w * dt**3 / 3.0, 0.5 * dt * dt  # their derivatives in omega
+    else:
+        sw, cw = s / w, (1.0 - c) / w
+        dsw, dcw = (dt * c - sw) / w, (dt * s - cw) / w
+    return np.array(
+        (
+            1.0, 0.0, sw, -cw, dsw * vx - dcw * vy,
+            0.0, 1.0, cw, sw, dcw * vx + dsw * vy,
+            0.0, 0.0, c, -s, -dt * (s * vx + c * vy),
+            0.0, 0.0, s, c, dt * (c * vx - s * vy),
+            0.0, 0.0, 0.0, 0.0, 1.0,
+        )
+    ).reshape(5, 5)  # fmt: skip
 
 
 class TargetEstimator:
     """Tracks the target from position observations; time is integer nanoseconds."""
 
-    def __init__(self, *, observation_std_m: float, accel_std_m_s2: float = 0.3) -> None:
-        self._kf = KalmanFilter(dim_x=4, dim_z=2)
-        self._H = self._kf.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    def __init__(
+        self,
+        *,
+        observation_std_m: float,
+        accel_std_m_s2: float = 0.01,
+        turn_accel_std_rad_s2: float = 0.002,
+    ) -> None:
+        self._kf = KalmanFilter(dim_x=5, dim_z=2)
+        self._kf.H = self._H = np.array([[1.0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0]])
         self._kf.R = np.eye(2) * max(observation_std_m, 1e-3) ** 2
-        self._q = accel_std_m_s2**2
+        self._kf.inv = _inverse_2x2
+        self._accel_std, self._turn_std = accel_std_m_s2, turn_accel_std_rad_s2
+        self._noise: dict[int, np.ndarray] = {}
         self._stamp_ns: int | None = None
         self.observations = 0
-        self._models: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._offsets: dict[tuple[int, int], list[float]] = {}
-        self._kf.inv = _inverse_2x2
 
     @property
     def ready(self) -> bool:
         """True once at least one observation has been fused."""
         return self._stamp_ns is not None
 
-    def _model(self, dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """F and Q over a step of dt_ns nanoseconds (cached; a handful of distinct steps)."""
-        model = self._models.get(dt_ns)
-        if model is None:
-            dt = dt_ns * 1e-9
-            F = np.eye(4)
-            F[0, 2] = F[1, 3] = dt
-            q = self._q
-            Q1 = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]]) * q
-            Q = np.zeros((4, 4))
-            Q[np.ix_([0, 2], [0, 2])] = Q1
-            Q[np.ix_([1, 3], [1, 3])] = Q1
-            if len(self._models) >= 64:  # irregular stamps: do not grow without bound
-                self._models.clear()
-            model = self._models[dt_ns] = (F, Q)
-        return model
+    @property
+    def turn_rate_rad_s(self) -> float:
+        """The estimated turn rate [rad/s]."""
+        return float(self._kf.x[4])
+
+    def velocity_std_m_s(self) -> float:
+        """Standard deviation of the velocity estimate (the larger axis's) [m/s]."""
+        P = self._kf.P
+        return math.sqrt(max(P[2, 2], P[3, 3]))
 
     def _predict_to(self, stamp_ns: int) -> None:
-        if self._stamp_ns is None or stamp_ns <= self._stamp_ns:
-            return
-        # F and Q as attributes, not arguments: a Q argument costs filterpy an isscalar check.
-        self._kf.F, self._kf.Q = self._model(stamp_ns - self._stamp_ns)
-        self._kf.predict()
+        """The filter's predict: the state turned exactly, the covariance through the Jacobian."""
+        dt_ns = stamp_ns - self._stamp_ns
+        dt = dt_ns * 1e-9
+        Q = self._noise.get(dt_ns)
+        if Q is None:  # (one period almost always: cached by step)
+            if len(self._noise) >= 64:  # irregular stamps: do not grow without bound
+                self._noise.clear()
+            Q = self._noise[dt_ns] = _process_noise(dt, self._accel_std, self._turn_std)
+        kf = self._kf
+        x, y, vx, vy, w = kf.x.tolist()
+        F = _turn_jacobian(vx, vy, w, dt)
+        kf.x = np.array((*turn_motion(x, y, vx, vy, w, dt), w))
+        kf.P = F.dot(kf.P).dot(F.T) + Q
         self._stamp_ns = stamp_ns
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
@@ -63,12 +138,13 @@ class TargetEstimator:
         if p.shape != (2,) or not all(map(math.isfinite, p.tolist())):
             return False
         if self._stamp_ns is None:
-            self._kf.x = np.array([p[0], p[1], 0.0, 0.0])
-            self._kf.P = np.diag([self._kf.R[0, 0], self._kf.R[1, 1], 4.0, 4.0])
+            r = self._kf.R[0, 0]
+            self._kf.x = np.array([p[0], p[1], 0.0, 0.0, 0.0])
+            self._kf.P = np.diag([r, r, 4.0, 4.0, 0.01])
             self._stamp_ns = stamp_ns
             self.observations = 1
             return True
-        if stamp_ns < self._stamp_ns:
+        if stamp_ns <= self._stamp_ns:
             return False
         self._predict_to(stamp_ns)
         self._kf.update(p, H=self._H)  # H given: p is used as it is (no reshape_z)
@@ -77,26 +153,21 @@ class TargetEstimator:
 
     def predicted_track(
         self, stamp_ns: int, period_ns: int, count: int
-    ) -> tuple[list[tuple[float, float]], tuple[float, float]]:
-        """Positions at stamp_ns + k period_ns (count pairs) and the velocity, as plain floats."""
+    ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+        """Positions and velocities at stamp_ns + k period_ns, k = 0..count-1, as float pairs."""
         if self._stamp_ns is None:
             raise RuntimeError("no target observation yet")
-        px, py, vx, vy = self._kf.x.tolist()
-        offsets = self._offsets.get((period_ns, count))
-        if offsets is None:
-            offsets = (period_ns * 1e-9 * np.arange(count)).tolist()
-            self._offsets[period_ns, count] = offsets
-        dt0 = (stamp_ns - self._stamp_ns) * 1e-9
-        return [(px + (dt0 + t) * vx, py + (dt0 + t) * vy) for t in offsets], (vx, vy)
+        x, y, vx, vy, w = self._kf.x.tolist()
+        x, y, vx, vy = turn_motion(x, y, vx, vy, w, (stamp_ns - self._stamp_ns) * 1e-9)
+        dt = period_ns * 1e-9
+        positions, velocities = [(x, y)], [(vx, vy)]
+        for _ in range(count - 1):
+            x, y, vx, vy = turn_motion(x, y, vx, vy, w, dt)
+            positions.append((x, y))
+            velocities.append((vx, vy))
+        return positions, velocities
 
     def predict(self, stamp_ns: int, period_ns: int, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted positions (count, 2) at stamp_ns + k period_ns, and the velocity (2,)."""
-        positions, velocity = self.predicted_track(stamp_ns, period_ns, count)
-        return np.array(positions).reshape(count, 2), np.array(velocity)
-
-
-def _inverse_2x2(S: np.ndarray) -> np.ndarray:
-    """Closed-form inverse of the 2 x 2 innovation covariance (filterpy's `inv` hook)."""
-    (a, b), (c, d) = S.tolist()
-    det = a * d - b * c
-    return np.array((d / det, -b / det, -c / det, a / det)).reshape(2, 2)
+        """Predicted positions and velocities (count, 2) at stamp_ns + k period_ns."""
+        positions, velocities = self.predicted_track(stamp_ns, period_ns, count)
+        return np.array(positions).reshape(count, 2), np.array(velocities).reshape(count, 2)

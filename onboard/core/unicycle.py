@@ -25,6 +25,8 @@ import numpy as np
 
 __all__ = [
     "NOMINAL_BETA",
+    "advance",
+    "wrap",
     "continuous_jacobians",
     "linearize",
     "oracle",
@@ -47,9 +49,33 @@ def _floats(a: np.ndarray | tuple[float, ...]) -> list[float]:
     return np.asarray(a, float).tolist()  # (dtype by position: numpy parses keywords slowly)
 
 
+def wrap(angle_rad: float) -> float:
+    """One angle wrapped to [-pi, pi), as a float."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
-    """Wrap angles to [-pi, pi)."""
+    """Angles (an array) wrapped to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def advance(
+    x: float,
+    y: float,
+    th: float,
+    v: float,
+    w: float,
+    beta: tuple[float, float, float, float] | list[float],
+    tau: float,
+) -> tuple[float, float, float]:
+    """One step of the learned model in plain floats: the unicycle step every rollout uses."""
+    a_v, a_w, d_x, d_y = beta
+    phi = th + 0.5 * tau * a_w * w
+    return (
+        x + tau * (a_v * v * math.cos(phi) + d_x),
+        y + tau * (a_v * v * math.sin(phi) + d_y),
+        th + tau * a_w * w,
+    )
 
 
 def continuous_jacobians(z: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -66,17 +92,9 @@ def step(z: np.ndarray, u: np.ndarray, beta: np.ndarray, tau: float) -> np.ndarr
 
     Broadcasts over leading axes: z (..., 3), u (..., 2), returns (..., 3).
     """
-    a_v, a_w, d_x, d_y = (float(b) for b in beta)
     if np.ndim(z) == 1 and np.ndim(u) == 1:
-        v, w, th = float(u[0]), float(u[1]), float(z[2])
-        phi = th + 0.5 * tau * a_w * w
-        return np.array(
-            [
-                z[0] + tau * (a_v * v * math.cos(phi) + d_x),
-                z[1] + tau * (a_v * v * math.sin(phi) + d_y),
-                th + tau * a_w * w,
-            ]
-        )
+        return np.array(advance(*_floats(z), *_floats(u), _floats(beta), tau))
+    a_v, a_w, d_x, d_y = (float(b) for b in beta)
     v, w = u[..., 0], u[..., 1]
     phi = z[..., 2] + 0.5 * tau * a_w * w
     out = np.empty(np.broadcast_shapes(np.shape(z), np.shape(v) + (3,)))
@@ -179,15 +197,12 @@ def rollout(z0: np.ndarray, inputs: np.ndarray, beta: np.ndarray, tau: float) ->
 
     A plain-float loop: for a handful of steps it is several times faster than numpy calls.
     """
-    a_v, a_w, d_x, d_y = _floats(beta)
-    x, y, th = _floats(z0)
-    out = [(x, y, th)]
+    b = _floats(beta)
+    z = tuple(_floats(z0))
+    out = [z]
     for v, w in np.asarray(inputs, dtype=float).tolist():
-        phi = th + 0.5 * tau * a_w * w
-        x += tau * (a_v * v * math.cos(phi) + d_x)
-        y += tau * (a_v * v * math.sin(phi) + d_y)
-        th += tau * a_w * w
-        out.append((x, y, th))
+        z = advance(*z, v, w, b, tau)
+        out.append(z)
     return np.array(out)
 
 

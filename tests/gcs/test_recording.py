@@ -58,7 +58,14 @@ def test_round_trip_is_bit_exact(run, rrd):
     back = read_recording(path)
     assert back.recording_id == rid == "test-run"
     assert back.run_info == {"learning": True}
+    # A recording holds what a live ground station sees; the agents' own target predictions are
+    # not in it (lockstep records only).
+    assert back.record.target_prediction is None
+    assert back.record.prediction_horizon_periods == 0
+    agents_only = {"target_prediction", "prediction_horizon_periods"}
     for field in dataclasses.fields(FlightRecord):
+        if field.name in agents_only:
+            continue
         a, b = getattr(rec, field.name), getattr(back.record, field.name)
         if isinstance(a, np.ndarray):
             assert b.shape == a.shape, field.name
@@ -70,6 +77,8 @@ def test_round_trip_is_bit_exact(run, rrd):
     assert again["separation_error_m"] == pytest.approx(direct["separation_error_m"], abs=1e-9)
     for key in ("centre_distance_error_m", "formation_rms_m", "c_norm_final", "min_separation_m"):
         assert again[key] == pytest.approx(direct[key], abs=1e-9), key
+    direct.pop("target_prediction_rms_m")
+    assert again.pop("target_prediction_rms_m") is None
     assert again == direct  # float64 is stored as float64: the round trip is exact
 
 
@@ -176,6 +185,8 @@ def test_sim_rrd_then_report_regenerates_figures_and_metrics(tmp_path, capsys):
         assert (out / name).stat().st_size > 1000, name
     direct = json.loads(sim_metrics.read_text())
     reported = json.loads((out / METRICS_FILE).read_text())
+    assert reported.pop("target_prediction_rms_m") is None  # the agents' predictions: sim only
+    assert direct.pop("target_prediction_rms_m") > 0
     assert {k: reported[k] for k in direct} == direct
 
 

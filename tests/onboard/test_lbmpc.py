@@ -17,8 +17,13 @@ def _random_data(rng: np.random.Generator, mpc: TubeLbmpc, *, separation: bool =
     lin_z = rollout(z0, lin_u, beta, mpc.tau)
     u_s = lin_u + 0.1 * rng.standard_normal((M, 2))
     targets = lin_z[1:] + np.column_stack([rng.normal(0, 1.0, (M, 2)), rng.normal(0, 0.2, M)])
-    nb = lin_z[None, 1:, :2] + rng.uniform(3, 6, (N, 1, 1)) * np.array([[[1.0, 0.0]]])
-    margins = np.full((N, M), 2.5) if separation else np.full((N, M), np.inf)
+    # Half-planes 1-3 m beside the linearization path, facing it.
+    angle = rng.uniform(-np.pi, np.pi, (N, 1))
+    normals = np.concatenate([np.cos(angle), np.sin(angle)], axis=1)  # (N, 2)
+    offsets = rng.uniform(1.0, 3.0, (N, 1))
+    bounds = lin_z[None, 1:, :2] @ normals[:, :, None]  # (N, M, 1)
+    bounds = bounds[..., 0] - offsets if separation else np.full((N, M), np.inf)
+    planes = np.concatenate([np.repeat(normals[:, None, :], M, axis=1), bounds[..., None]], axis=2)
     return QpData(
         z0=z0,
         lin_states=lin_z,
@@ -28,9 +33,21 @@ def _random_data(rng: np.random.Generator, mpc: TubeLbmpc, *, separation: bool =
         targets=targets,
         position_weights=np.full(M, 6.0),
         terminal_scale=1.0,
-        neighbour_positions=nb,
-        neighbour_margins=margins,
+        separation_planes=planes,
     )
+
+
+def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """U tightened at step j (not at speed 0), its yaw rate within the trust region about the
+    linearization's."""
+    lower = mpc.u_min + mpc.tightening[j] * [0.0, 1.0]
+    upper = mpc.u_max - mpc.tightening[j]
+    w, trust = d.lin_inputs[j, 1], SETTINGS.yaw_rate_trust_rad_s
+    lower[1], upper[1] = (
+        max(lower[1], min(w - trust, upper[1])),
+        min(upper[1], max(w + trust, lower[1])),
+    )
+    return lower, upper
 
 
 def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
@@ -51,16 +68,13 @@ def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
     for j in range(M):
         u = Hu[j] @ c + d.u_s[j]
         cost += cp.quad_form(u - d.u_s[j], np.diag([SETTINGS.r_speed, SETTINGS.r_yaw_rate]))
-        bound = mpc.u_max - mpc.tightening[j]
-        cons += [u <= bound, u >= -bound]
+        lower, upper = _input_bounds(mpc, d, j)
+        cons += [u <= upper, u >= lower]
     for k in range(mpc.n_neighbours):
         for j in range(1, M + 1):
-            if not np.isfinite(d.neighbour_margins[k, j - 1]):
-                continue
-            p_k = d.neighbour_positions[k, j - 1]
-            away = d.lin_states[j, :2] - p_k
-            n = away / np.linalg.norm(away)
-            cons.append(n @ (Sz[j, :2] @ c + sz[j, :2] - p_k) >= d.neighbour_margins[k, j - 1])
+            nx, ny, b = d.separation_planes[k, j - 1]
+            if np.isfinite(b):
+                cons.append(np.array([nx, ny]) @ (St[j, :2] @ c + st[j, :2]) >= b)
     prob = cp.Problem(cp.Minimize(cost), cons)
     prob.solve(solver=cp.CLARABEL)
     assert prob.status == cp.OPTIMAL
@@ -104,18 +118,33 @@ def test_infeasible_separation_gives_failure_and_fallback_stays_in_u():
     rng = np.random.default_rng(2)
     mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
     d = _random_data(rng, mpc)
-    # A neighbour sitting on the vehicle, demanding 50 m of separation after one step.
-    nb = np.repeat(d.lin_states[None, 1:, :2], 2, axis=0)
-    bad = QpData(
-        **{**d.__dict__, "neighbour_positions": nb, "neighbour_margins": np.full((2, mpc.M), 50.0)}
-    )
+    # Two half-planes facing each other, 50 m apart across the vehicle's path: no plan fits.
+    planes = np.zeros((2, mpc.M, 3))
+    planes[0, :, :2], planes[0, :, 2] = (1.0, 0.0), d.lin_states[1:, 0] + 25.0
+    planes[1, :, :2], planes[1, :, 2] = (-1.0, 0.0), -(d.lin_states[1:, 0] + 25.0) + 50.0
+    bad = QpData(**{**d.__dict__, "separation_planes": planes})
     sol = mpc.solve(bad)
     assert not sol.ok
     assert np.all(np.isfinite(sol.inputs))
     u = mpc.fallback_input(d.z0, np.array([1e3, -1e3, 3.0]), np.array([5.0, 2.0]))
-    assert np.all(np.abs(u) <= mpc.u_max)
+    assert np.all(u <= mpc.u_max) and np.all(u >= mpc.u_min)
     u = mpc.fallback_input(d.z0, np.array([np.nan, 0.0, 0.0]), np.array([0.5, 0.0]))
-    assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= mpc.u_max)
+    assert np.all(np.isfinite(u)) and np.all(u <= mpc.u_max) and np.all(u >= mpc.u_min)
+
+
+def test_the_plan_flies_forward_and_keeps_the_yaw_rate_trust_region():
+    rng = np.random.default_rng(4)
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    for _ in range(5):
+        d = _random_data(rng, mpc)
+        # Steady inputs that ask for flying backwards and turning hard the other way.
+        u_s = np.column_stack([np.full(mpc.M, -1.0), -np.sign(d.lin_inputs[:, 1]) * 0.5])
+        sol = mpc.solve(QpData(**{**d.__dict__, "u_s": u_s}))
+        assert sol.ok, sol.status
+        assert np.all(sol.inputs[:, 0] >= -1e-6)
+        np.testing.assert_array_less(
+            np.abs(sol.inputs[:, 1] - d.lin_inputs[:, 1]), SETTINGS.yaw_rate_trust_rad_s + 1e-5
+        )
 
 
 def test_terminal_weight_is_the_rotated_dare_solution():

@@ -1,0 +1,415 @@
+"""`fleetmpc suite [DIR]`: fly every scenario of a folder, over seeds, with learning on and off,
+and hold each run to the gates.
+
+Every ``*.toml`` in DIR (sorted) is flown in lockstep for seeds s, s + 1, ..., s + K - 1 (s the
+scenario's own seed) with learning on and off (only off when the file itself disables learning),
+one run per task on a process pool. Each task returns a row of plain numbers (the metrics the
+gates read, not the flight record). Gates (the constants below) are then applied to the rows:
+
+- slot RMS: learning-on runs with a feasible target (`check_scenario`) hold formation_rms_m
+  within `SLOT_RMS_MAX_M` (`PAPER_SLOT_RMS_MAX_M` for the paper scenario);
+- learning ratio: where the truth holds dynamics the nominal model lacks (an effectiveness
+  other than 1, or wind) and the target is feasible, learning cuts the formation RMS of the same
+  seed to at most `LEARNING_RATIO_MAX` of the learning-off run's;
+- min separation: no two vehicles ever come closer than the scenario's d_safe_m;
+- reversals: at most `REVERSALS_MAX_PER_VEHICLE_MIN` yaw-rate reversals per vehicle-minute;
+- QP fallbacks: at most `QP_FALLBACK_MAX_FRACTION` of the agent steps;
+- corner recovery: where the target turns corners, learning-on runs with a feasible target
+  settle within `CORNER_RECOVERY_MAX_S` of each.
+
+A run that raises is a row with its error and fails the gate "error"; when only the feasibility
+check raises, the run still flies and its row carries the numbers, the check's error (gate
+"error") and feasible = None, judged by the other gates as if its target were feasible.
+
+Output: a line per finished run (unless --quiet), the table, the wall time; the rows, the gates
+and the wall time as JSON (non-finite numbers as JSON's Infinity, which Python's json reads
+back). Exit status 1 when any gate is missed, 0 otherwise, 2 for a bad DIR or argument.
+"""
+
+import argparse
+import json
+import math
+import os
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+from gcs.check import check_scenario
+from gcs.lockstep import run_lockstep
+from gcs.metrics import compute_metrics
+from onboard.core.errors import ConfigError
+from protocol.scenario import Scenario, load_scenario
+
+__all__ = [
+    "CORNER_RECOVERY_MAX_S",
+    "DEFAULT_JSON",
+    "GATES",
+    "LEARNING_RATIO_MAX",
+    "PAPER_SCENARIO",
+    "PAPER_SLOT_RMS_MAX_M",
+    "QP_FALLBACK_MAX_FRACTION",
+    "REVERSALS_MAX_PER_VEHICLE_MIN",
+    "SLOT_RMS_MAX_M",
+    "SuiteTask",
+    "add_arguments",
+    "apply_gates",
+    "fly",
+    "format_table",
+    "has_unmodeled_dynamics",
+    "run",
+    "suite_tasks",
+]
+
+SLOT_RMS_MAX_M = 0.15
+"""Largest formation RMS (distance to slot over the last 10 s) of a learning-on run whose target
+is feasible [m]."""
+
+PAPER_SLOT_RMS_MAX_M = 0.05
+"""The same for the paper's scenario (`PAPER_SCENARIO`), which the README's results hold [m]."""
+
+PAPER_SCENARIO = "paper"
+"""Name of the scenario held to `PAPER_SLOT_RMS_MAX_M`."""
+
+LEARNING_RATIO_MAX = 0.3
+"""Largest formation RMS with learning over the same seed's without, where the truth has
+unmodeled dynamics and the target is feasible [-]."""
+
+REVERSALS_MAX_PER_VEHICLE_MIN = 3.0
+"""Most yaw-rate reversals per vehicle and minute of flight, every run [1/min]."""
+
+QP_FALLBACK_MAX_FRACTION = 0.01
+"""Largest share of agent steps (periods x vehicles) whose QP fell back, every run [-]."""
+
+CORNER_RECOVERY_MAX_S = 15.0
+"""Longest recovery from a corner of the target, learning-on runs with a feasible target [s]."""
+
+GATES: dict[str, str] = {
+    "slot_rms": f"learning on, feasible target: formation RMS <= {SLOT_RMS_MAX_M} m "
+    f"({PAPER_SLOT_RMS_MAX_M} m for {PAPER_SCENARIO!r})",
+    "learning_ratio": "learning on, feasible target, unmodeled dynamics: formation RMS on / off "
+    f"(same seed) <= {LEARNING_RATIO_MAX}",
+    "min_separation": "every run: min separation >= the scenario's d_safe_m",
+    "reversals": f"every run: yaw-rate reversals <= {REVERSALS_MAX_PER_VEHICLE_MIN:g} per "
+    "vehicle-minute",
+    "qp_fallbacks": f"every run: QP fallbacks <= {100 * QP_FALLBACK_MAX_FRACTION:g} % of agent "
+    "steps",
+    "corner_recovery": "learning on, feasible target with corners: corner recovery <= "
+    f"{CORNER_RECOVERY_MAX_S:g} s",
+    "error": "every run: it completes",
+}
+"""Every gate by name, with what it asks."""
+
+DEFAULT_JSON = Path("runs/suite/suite.json")
+"""Where the JSON goes without --json."""
+
+
+@dataclass(frozen=True)
+class SuiteTask:
+    """One run of the suite."""
+
+    path: str
+    """Scenario file."""
+    seed: int
+    """Random seed of the run."""
+    learning: bool
+    """Learn beta online (False: plain tube MPC)."""
+    duration_s: float
+    """Simulated seconds."""
+
+
+def has_unmodeled_dynamics(sc: Scenario) -> bool:
+    """True when some vehicle's truth differs from the nominal model: an effectiveness other than
+    1 or a wind (mean or gust)."""
+    return any(
+        v.truth.speed_effectiveness != 1.0
+        or v.truth.yaw_rate_effectiveness != 1.0
+        or any(w != 0.0 for w in v.truth.wind.mean_m_s)
+        or v.truth.wind.gust_amplitude_m_s != 0.0
+        for v in sc.vehicles
+    )
+
+
+def _load(path: Path) -> Scenario:
+    try:
+        return load_scenario(path)
+    except ConfigError as e:
+        raise ConfigError(str(path), str(e)) from None
+
+
+def suite_tasks(
+    paths: list[Path], *, seeds: int, duration_s: float | None = None
+) -> list[SuiteTask]:
+    """The runs of the suite, in table order: file, seed, learning on then off (off only when the
+    file disables learning); each for `duration_s`, or the scenario's duration if None."""
+    tasks = []
+    for path in paths:
+        sc = _load(path)
+        learning = (True, False) if sc.learning.enabled else (False,)
+        duration = sc.duration_s if duration_s is None else duration_s
+        for seed in range(sc.seed, sc.seed + seeds):
+            tasks += [SuiteTask(str(path), seed, on, duration) for on in learning]
+    return tasks
+
+
+def _error_text(error: BaseException) -> str:
+    return traceback.format_exception_only(error)[-1].strip()
+
+
+def _error_row(task: SuiteTask, error: BaseException, *, wall_s: float) -> dict:
+    """The row of a run that did not fly: no numbers, its error."""
+    return {
+        "scenario": Path(task.path).stem,
+        "file": task.path,
+        "seed": task.seed,
+        "learning": task.learning,
+        "error": _error_text(error),
+        "wall_s": wall_s,
+    }
+
+
+def _flew(row: dict) -> bool:
+    return "formation_rms_m" in row
+
+
+def fly(task: SuiteTask) -> dict:
+    """Fly one run (in a worker process): its row of plain numbers, or its error."""
+    t0 = time.monotonic()
+    check_error = None
+    try:
+        sc = load_scenario(task.path).with_overrides(duration_s=task.duration_s)
+        try:
+            feasible = check_scenario(sc).feasible
+        except Exception as e:  # feasibility unknown; the run still flies
+            feasible, check_error = None, f"check: {_error_text(e)}"
+        rec = run_lockstep(sc, learning=task.learning, seed=task.seed)
+        m = compute_metrics(rec)
+    except Exception as e:  # a crash is reported as a row; the other runs go on
+        return _error_row(task, e, wall_s=time.monotonic() - t0)
+    periods = len(rec.t_s)
+    steps = periods * len(sc.vehicles)
+    return {
+        "scenario": sc.name,
+        "file": task.path,
+        "seed": task.seed,
+        "learning": task.learning,
+        "error": check_error,
+        "vehicles": len(sc.vehicles),
+        "d_safe_m": sc.controller.d_safe_m,
+        "unmodeled_dynamics": has_unmodeled_dynamics(sc),
+        "feasible": feasible,
+        "duration_s": float(rec.t_s[-1]),
+        "periods": periods,
+        "formation_rms_m": m["formation_rms_m"],
+        "slot_rms_max_vehicle_m": m["slot_rms_max_vehicle_m"],
+        "min_separation_m": m["min_separation_m"],
+        "yaw_rate_reversals_per_vehicle_min": m["yaw_rate_reversals_per_vehicle_min"],
+        "qp_fallbacks": m["qp_fallbacks"],
+        "qp_fallback_fraction": m["qp_fallbacks"] / steps,
+        "target_prediction_rms_m": m["target_prediction_rms_m"],
+        "corners": m["corners"],
+        "corner_recovery_s": m["corner_recovery_s"],
+        "wall_s": time.monotonic() - t0,
+    }
+
+
+def _failures(row: dict) -> list[str]:
+    failed = [] if row.get("error") is None else ["error"]
+    if not _flew(row):
+        return failed
+    judged = row["learning"] and row["feasible"] is not False  # unknown: judged
+    limit = PAPER_SLOT_RMS_MAX_M if row["scenario"] == PAPER_SCENARIO else SLOT_RMS_MAX_M
+    if judged and not row["formation_rms_m"] <= limit:
+        failed.append("slot_rms")
+    ratio = row.get("learning_ratio")
+    if (
+        judged
+        and row["unmodeled_dynamics"]
+        and ratio is not None
+        and not ratio <= LEARNING_RATIO_MAX
+    ):
+        failed.append("learning_ratio")
+    if not row["min_separation_m"] >= row["d_safe_m"]:
+        failed.append("min_separation")
+    if not row["yaw_rate_reversals_per_vehicle_min"] <= REVERSALS_MAX_PER_VEHICLE_MIN:
+        failed.append("reversals")
+    if not row["qp_fallback_fraction"] <= QP_FALLBACK_MAX_FRACTION:
+        failed.append("qp_fallbacks")
+    if judged and row["corners"] and not row["corner_recovery_s"] <= CORNER_RECOVERY_MAX_S:
+        failed.append("corner_recovery")
+    return failed
+
+
+def apply_gates(rows: list[dict]) -> list[dict]:
+    """The rows with `learning_ratio` (learning-on rows: formation RMS over the learning-off
+    run's of the same file and seed; None without one) and `gates_failed` (names from GATES)."""
+    off = {
+        (r["file"], r["seed"]): r["formation_rms_m"] for r in rows if not r["learning"] and _flew(r)
+    }
+    out = []
+    for r in rows:
+        ratio = None
+        base = off.get((r["file"], r["seed"]))
+        if r["learning"] and _flew(r) and base is not None and base > 0.0:
+            ratio = r["formation_rms_m"] / base
+        r = {**r, "learning_ratio": ratio}
+        out.append({**r, "gates_failed": _failures(r)})
+    return out
+
+
+def _number(x: float | None, fmt: str, *, none: str = "-") -> str:
+    if x is None:
+        return none
+    return "inf" if x == math.inf else format(x, fmt)
+
+
+_COLUMNS = (
+    ("scenario", "<"),
+    ("seed", ">"),
+    ("learn", "<"),
+    ("form RMS m", ">"),
+    ("worst slot m", ">"),
+    ("on/off", ">"),
+    ("min sep m", ">"),
+    ("rev/veh-min", ">"),
+    ("QP fb %", ">"),
+    ("pred RMS m", ">"),
+    ("corner rec s", ">"),
+    ("gates", "<"),
+)
+
+
+def _cells(r: dict) -> tuple[str, ...]:
+    head = (r["scenario"], str(r["seed"]), "on" if r["learning"] else "off")
+    verdict = ", ".join(r["gates_failed"]) or "ok"
+    if not _flew(r):
+        return (*head, *("-" for _ in range(8)), verdict)
+    corners = "-" if not r["corners"] else _number(r["corner_recovery_s"], ".1f")
+    return (
+        *head,
+        _number(r["formation_rms_m"], ".3f"),
+        _number(r["slot_rms_max_vehicle_m"], ".3f"),
+        _number(r.get("learning_ratio"), ".2f"),
+        _number(r["min_separation_m"], ".2f"),
+        _number(r["yaw_rate_reversals_per_vehicle_min"], ".2f"),
+        _number(100.0 * r["qp_fallback_fraction"], ".2f"),
+        _number(r["target_prediction_rms_m"], ".3f", none="unknown"),
+        corners,
+        verdict,
+    )
+
+
+def format_table(rows: list[dict]) -> str:
+    """The rows (after `apply_gates`) as a text table; an infeasible target is marked '*', one
+    whose feasibility is unknown (the check failed) '?'; the errors follow the table."""
+    marks = {False: " *", None: " ?"}
+    cells = [
+        (c[0] + (marks.get(r["feasible"], "") if _flew(r) else ""), *c[1:])
+        for r, c in ((r, _cells(r)) for r in rows)
+    ]
+    names = [name for name, _ in _COLUMNS]
+    widths = [max(len(x) for x in col) for col in zip(names, *cells, strict=True)]
+    lines = []
+    for line in (names, *cells):
+        parts = [f"{x:{align}{w}}" for x, (_, align), w in zip(line, _COLUMNS, widths, strict=True)]
+        lines.append("  ".join(parts).rstrip())
+    feasibility = {r["feasible"] for r in rows if _flew(r)}
+    if False in feasibility:
+        lines.append("* infeasible target (fleetmpc check): slot RMS, ratio and corner gates off")
+    if None in feasibility:
+        lines.append("? feasibility unknown (the check failed): judged as feasible")
+    errors: dict[str, int] = {}
+    for r in rows:
+        if r.get("error") is not None:
+            errors[r["error"]] = errors.get(r["error"], 0) + 1
+    for message, count in errors.items():
+        lines.append(f"error in {count} run{'s' if count > 1 else ''}: {message}")
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "dir",
+        nargs="?",
+        default="scenarios",
+        help="folder of scenario TOML files (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--seeds", type=int, default=3, metavar="K", help="seeds per scenario (default: 3)"
+    )
+    parser.add_argument(
+        "--jobs", type=int, default=None, metavar="J", help="worker processes (default: CPUs)"
+    )
+    parser.add_argument(
+        "--json", type=Path, default=DEFAULT_JSON, metavar="FILE", help="JSON output file"
+    )
+    parser.add_argument(
+        "--duration", type=float, metavar="S", help="simulated seconds (default: each scenario's)"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no line per finished run")
+
+
+def _progress(done: int, total: int, row: dict) -> str:
+    head = f"[{done}/{total}] {row['scenario']} seed {row['seed']} "
+    head += f"learning {'on' if row['learning'] else 'off'}"
+    if not _flew(row):
+        return f"{head}: ERROR {row['error']}"
+    line = (
+        f"{head}: formation RMS {row['formation_rms_m']:.3f} m, "
+        f"min separation {row['min_separation_m']:.2f} m ({row['wall_s']:.1f} s)"
+    )
+    return line if row.get("error") is None else f"{line}; ERROR {row['error']}"
+
+
+def run(args: argparse.Namespace) -> int:
+    folder = Path(args.dir)
+    if not folder.is_dir():
+        raise ConfigError("DIR", f"not a folder: {folder}")
+    paths = sorted(folder.glob("*.toml"))
+    if not paths:
+        raise ConfigError("DIR", f"no scenario (*.toml) in {folder}")
+    if args.seeds < 1:
+        raise ConfigError("--seeds", f"must be >= 1, got {args.seeds}")
+    jobs = (os.cpu_count() or 1) if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise ConfigError("--jobs", f"must be >= 1, got {jobs}")
+    if args.duration is not None and not args.duration > 0:
+        raise ConfigError("--duration", f"must be > 0, got {args.duration}")
+    tasks = suite_tasks(paths, seeds=args.seeds, duration_s=args.duration)
+    t0 = time.monotonic()
+    results: dict[SuiteTask, dict] = {}
+    with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
+        # the longest runs first, so that none starts late while the other workers stand idle
+        futures = {pool.submit(fly, t): t for t in sorted(tasks, key=lambda t: -t.duration_s)}
+        for future in as_completed(futures):
+            task = futures[future]
+            try:
+                row = future.result()
+            except Exception as e:  # the worker itself died (BrokenProcessPool)
+                row = _error_row(task, e, wall_s=time.monotonic() - t0)
+            results[task] = row
+            if not args.quiet:
+                print(_progress(len(results), len(tasks), row), flush=True)
+    wall_s = time.monotonic() - t0
+    rows = apply_gates([results[t] for t in tasks])
+    print(format_table(rows))
+    failed = sorted({g for r in rows for g in r["gates_failed"]})
+    doc = {
+        "dir": str(folder),
+        "seeds": args.seeds,
+        "jobs": jobs,
+        "wall_time_s": wall_s,
+        "passed": not failed,
+        "gates": GATES,
+        "failed_gates": failed,
+        "rows": rows,
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"{len(rows)} runs in {wall_s:.1f} s wall time on {jobs} workers; JSON: {args.json}")
+    if failed:
+        print(f"gates missed: {', '.join(failed)}")
+        return 1
+    print("every gate held")
+    return 0
