@@ -278,21 +278,21 @@ class Agent:
     ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float]]]:
         """The linearization trajectory: (states, inputs) of one candidate input sequence.
 
-        Each candidate is clipped to U with its speed kept at least min_linearization_speed_m_s,
-        rolled out with the learned model and scored by the
+        Each candidate is clipped to the tube-tightened U with its speed kept at least
+        min_linearization_speed_m_s, rolled out with the learned model and scored by the
         squared distance of its positions to the goal (M points). The incumbent (the previous
         plan, shifted) is kept unless another candidate scores at most seed_switch_ratio of it.
         """
         s = self.settings
-        v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
         v_min = s.min_linearization_speed_m_s
         scored = []
         for candidate in candidates:
             z = tuple(z0)
             states, inputs, cost = [z], [], 0.0
-            for (v, w), (gx, gy) in zip(candidate, goal, strict=True):
-                v = max(v_min, min(v_max, v))
-                w = max(-w_max, min(w_max, w))
+            steps = zip(candidate, goal, self.mpc.input_box, strict=True)
+            for (v, w), (gx, gy), (_, w_lo, v_hi, w_hi) in steps:
+                v = max(v_min, min(v_hi, v))
+                w = max(w_lo, min(w_hi, w))
                 z = advance(*z, v, w, beta, s.period_s)
                 states.append(z)
                 inputs.append((v, w))
@@ -355,18 +355,19 @@ class Agent:
         self,
         inp: AgentInput,
         here: tuple[float, float],
+        drift: tuple[float, float],
         ages: dict[int, float],
         inflations: list[float],
     ) -> list[list[Plane]]:
         """Separation half-planes against each neighbour at j = 1..M (`separation_planes`),
-        between this vehicle's previous plan (or, without one, where it is) and the neighbour's;
-        the distance is shared while the neighbour's plan is at most two periods old."""
+        between where this vehicle's previous plan (or, without one, the vehicle) and the
+        neighbour's plan are now; the distance is shared while the neighbour's plan is at most
+        two periods old."""
         s, M = self.settings, self.settings.horizon
-        reach = s.plan_extrapolation_s
-        if self._last_plan is None:
-            own = [here] * (M + 1)
-        else:
-            own = self._last_plan.position_list(inp.stamp_ns, M + 1, max_extrapolation_s=reach)
+        own = here if self._last_plan is None else self._last_plan.position_at(inp.stamp_ns)
+        drift_steps = [
+            (drift[0] * j * s.period_s, drift[1] * j * s.period_s) for j in range(1, M + 1)
+        ]
         planes = []
         for nid, inflation in zip(self.neighbour_ids, inflations, strict=True):
             plan = inp.neighbour_plans.get(nid)
@@ -375,8 +376,8 @@ class Agent:
                 continue
             shared = ages[nid] <= 2.0 * s.period_s + 1e-9
             margin = (self._margin_m if shared else self._alone_margin_m) + inflation
-            theirs = plan.position_list(inp.stamp_ns, M + 1, max_extrapolation_s=reach)
-            planes.append(separation_planes(own, theirs, margin, here, shared=shared))
+            theirs = plan.position_at(inp.stamp_ns)
+            planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
         return planes
 
     def _goal(
@@ -398,6 +399,35 @@ class Agent:
             )
             for (x, y), (px, py) in zip(slots, pull, strict=True)
         ]
+
+    def _give_way(
+        self,
+        goal: list[tuple[float, float]],
+        planes: list[list[Plane]],
+        here: tuple[float, float],
+    ) -> list[tuple[float, float]]:
+        """The goal moved to the right of every neighbour it lies behind: the rule of the road
+        that breaks a deadlock.
+
+        Two vehicles whose goals lie beyond each other's separation lines would stop nose to
+        nose, each holding its side. When the goal's last point lies beyond a neighbour's line
+        and the vehicle is within its margin of that line, every goal point moves along the
+        line, to the right of the way toward the neighbour, by twice the margin; both vehicles
+        do so, each to its own right, and they slide past each other as two ships keep to
+        starboard.
+        """
+        shift_x = shift_y = 0.0
+        (gx, gy), (hx, hy) = goal[-1], here
+        for plane in planes:
+            nx, ny, b = plane[-1]
+            blocked = nx * gx + ny * gy < b and nx * hx + ny * hy - b < self._margin_m
+            if math.isfinite(b) and blocked:
+                # Toward the neighbour is -n; its right (NED: a positive rotation) is (n_y, -n_x).
+                shift_x += 2.0 * self._margin_m * ny
+                shift_y -= 2.0 * self._margin_m * nx
+        if shift_x == shift_y == 0.0:
+            return goal
+        return [(x + shift_x, y + shift_y) for x, y in goal]
 
     def _safe_fallback(
         self, z0: list[float], u: np.ndarray, beta: list[float], planes: list[list[Plane]]
@@ -474,7 +504,9 @@ class Agent:
         u_s, heading_s = self._steady_inputs(mine, beta_f, z0_f[2])
         nb_pos, inflations, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
         weight = s.q_position + n_terms * s.q_formation
+        planes = self._planes(inp, (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3]), ages, inflations)
         goal = self._goal(mine[1 : M + 1], pull, n_terms, weight)
+        goal = self._give_way(goal, planes, (z0_f[0], z0_f[1]))
         # Linearization trajectory.
         (sx0, sy0), (sx1, sy1) = mine[0], mine[-1]
         slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))
@@ -485,7 +517,6 @@ class Agent:
             candidates.append(shifted[1:] + shifted[-1:])
             incumbent = len(candidates) - 1
         lin_states, lin_inputs = self._seed(z0_f, candidates, beta_f, goal, incumbent=incumbent)
-        planes = self._planes(inp, (z0_f[0], z0_f[1]), ages, inflations)
         # Target headings: the steady headings, unwrapped near the linearization's (whose
         # rollout headings are continuous from z0's).
         targets = [
@@ -504,6 +535,7 @@ class Agent:
             targets=targets,
             position_weights=self._position_weights[n_terms],
             terminal_scale=weight / self._full_weight,
+            speed_now_m_s=float(self._last_command[0]),
             separation_planes=planes,
         )
         sol = self.mpc.solve(data)

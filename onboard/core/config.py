@@ -50,6 +50,8 @@ class ControllerSettings:
     """White-acceleration noise of the target filter's velocity [m/s^2]."""
     target_turn_accel_std_rad_s2: float = 0.002
     """Random-walk noise of the target filter's turn rate [rad/s^2]."""
+    speed_rate_max_m_s2: float = 2.0
+    """How fast a plan may change its speed [m/s^2]: planned stops take time, as real ones do."""
     yaw_rate_trust_rad_s: float = 0.25
     """Trust region of the QP: each planned yaw rate stays within this of the linearization
     trajectory's, so the plan's headings stay where the linearized model holds [rad/s]."""
@@ -81,6 +83,7 @@ class ControllerSettings:
             "target_accel_std_m_s2",
             "target_turn_accel_std_rad_s2",
             "yaw_rate_trust_rad_s",
+            "speed_rate_max_m_s2",
         ):
             positive(f"controller.{name}", getattr(self, name))
         for name in ("q_heading", "q_formation", "w_position_m", "w_heading_rad", "d_safe_m"):

@@ -9,7 +9,9 @@ the linearization point. Both predictions are affine in c (condensed form):
     learned  ztil_{j+1} = A~_j ztil_j + B~_j u_j + e~_j          (cost, minimum separation)
 The model is linearized along a trajectory chosen by the caller (never at V = 0).
 Cost: sum_{j=1}^{M-1} ||ztil_j - r_j||^2_{Q_j} + ||ztil_M - r_M||^2_{P} + sum_j ||u_j - u_s,j||^2_R.
-Constraints: u_j in U ⊖ K R_j (box) and, for the linearization to stay valid, a yaw rate within a
+Constraints: u_j in U ⊖ K R_j (box), speed changes |V_j - V_{j-1}| <= a_max tau from the speed
+now (the vehicle cannot stop at once: a plan that could would be overtaken by the actuators),
+and, for the linearization to stay valid, a yaw rate within a
 trust region about the linearization's (the heading enters the model through sin and cos, so a
 plan that turned the other way would be predicted wrongly), and n_kj' ptil_j >= b_kj for every
 neighbour k and step j whose half-plane the caller set (`onboard.core.separation` places them;
@@ -47,6 +49,14 @@ from onboard.core.tube import (
 )
 
 __all__ = ["QpData", "QpSolution", "TubeLbmpc"]
+
+_UNCONVERGED = ("solved inaccurate", "maximum iterations reached")
+"""OSQP statuses whose iterate is used if it keeps every constraint (`FEASIBILITY_TOL`): the cost
+may be a little short of its optimum, the plan is still one the vehicle may fly."""
+
+FEASIBILITY_TOL = 1e-3
+"""How far an unconverged iterate may break a constraint row and still be used [m, m/s, rad/s]:
+a millimetre on a separation row, well inside every margin."""
 
 _BLOCK = 8
 """Rows per step j in the condensing system: zbar_j (3), ztil_j (3), u_j (2)."""
@@ -88,6 +98,9 @@ class QpData:
     """Position weight of each stage j = 1..M (M,) [1/m^2]."""
     terminal_scale: float
     """Scale of the terminal weight P (formation weight present / formation weight assumed)."""
+    speed_now_m_s: float
+    """The speed the vehicle was last commanded [m/s]: the first planned speed changes from it
+    by at most speed_rate_max_m_s2 tau."""
     separation_planes: Floats
     """Per neighbour k and step j = 1..M, a half-plane (n_x, n_y, b) that the learned prediction's
     position must keep to, n' ptil_j >= b, with n a unit normal (N, M, 3); a non-finite b
@@ -153,14 +166,16 @@ class TubeLbmpc:
         Condensing as one triangular system. Stack, per step j = 0..M, the two predictions and
         the input they lead to, v_j = [zbar_j; ztil_j; u_j] (8 rows, `_BLOCK`; u_M is padding),
         then the separation rows s_kj = n_kj' ptil_j for neighbour k and step j = 1..M (N M
-        rows; on the learned prediction, where the vehicle is expected to be, wind included).
-        Their derivatives with respect to c obey
+        rows; on the learned prediction, where the vehicle is expected to be, wind included),
+        then the speed-change rows a_j = V_j - V_{j-1}, j = 0..M-1 (M rows; V_{-1} is the speed
+        now, a constant). Their derivatives with respect to c obey
             dzbar_0 = dztil_0 = 0
             du_j         - K_j dzbar_j                  = E_j   (E_j injects c_j into u_j)
             dzbar_{j+1}  - A_j dzbar_j   - B_j du_j     = 0
             dztil_{j+1}  - A~_j dztil_j  - B~_j du_j    = 0
-            ds_kj        - n_kj' dptil_j                = 0,
-        a unit lower-triangular system T D = E (m x m, m = 8 (M + 1) + N M) whose forward
+            ds_kj        - n_kj' dptil_j                = 0
+            da_j         - dV_j + dV_{j-1}              = 0   (no dV_{-1} term),
+        a unit lower-triangular system T D = E (m x m, m = 8 (M + 1) + N M + M) whose forward
         substitution (one BLAS dtrsm) is the recursion through the horizon.
 
         Y (m x 2M + 2) holds D in its first 2M columns, then two constant columns: the learned
@@ -169,7 +184,7 @@ class TubeLbmpc:
         u_s from z0). With W twice the cost weights on the step rows (block diagonal by step:
         Q on ztil_j, the terminal P on ztil_M, R on u_j, 0 on zbar), the cost is
         (Y c + y)' W (Y c + y) / 2 over the first 2M + 1 columns, so one product H = Y' W Y
-        holds OSQP's P and q as [[P, q], [q', .]]; OSQP's A is the u and s rows of Y; and one
+        holds OSQP's P and q as [[P, q], [q', .]]; OSQP's A is the u, s and a rows of Y; and one
         product Y [c; 0; 1] gives every prediction and input of the solution. W is diagonal but
         for the terminal P, so it is kept as its diagonal (0 on the ztil_M rows), repeated along
         the columns of Y (`_w`, so that the diagonal part of W Y is an elementwise product of
@@ -193,7 +208,8 @@ class TubeLbmpc:
         """
         s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
         steps = _BLOCK * (M + 1)
-        m = steps + N * M
+        m = steps + N * M + M
+        accel = steps + N * M  # the first speed-change row
         self._K0_entries = tuple(float(k) for k in self.K0.ravel())
         self._P0_entries = tuple(self.P0.ravel().tolist())
         zbar_row = [_BLOCK * j for j in range(M + 1)]  # rows of zbar_j, ztil_j and u_j
@@ -209,7 +225,10 @@ class TubeLbmpc:
         for k in range(N):
             for j in range(1, M + 1):
                 sep_mask[k * M + j - 1, : 2 * j] = True
-        a_mask = np.vstack([in_mask, sep_mask])
+        accel_mask = np.zeros((M, n), dtype=bool)  # u_j - u_{j-1} on c_0..c_j
+        for j in range(M):
+            accel_mask[j, : 2 * j + 2] = True
+        a_mask = np.vstack([in_mask, sep_mask, accel_mask])
         # The period buffer (OSQP's values, T, Y) and, carved from np.arange alongside, each
         # entry's flat index.
         shapes = {
@@ -228,6 +247,8 @@ class TubeLbmpc:
             index[name] = np.arange(start, stop).reshape(shape, order=order)
             start = stop
         a_rows = [u_row[j] + i for j in range(M) for i in (0, 1)] + list(range(steps, m))
+        self._a_rows = np.array(a_rows)
+        """Y's rows that are A's, in A's order."""
         self._qp = qp = FixedPatternQp(
             p_mask,
             a_mask,
@@ -237,7 +258,7 @@ class TubeLbmpc:
             a_row_length=n + 2,
             data=views["qp"],
         )
-        qp.u[2 * M :] = INFINITY
+        qp.u[2 * M : 2 * M + N * M] = INFINITY  # separation rows: lower bounds only
         il, iu = index["qp"][qp.layout["l"]], index["qp"][qp.layout["u"]]
         self._T, self._Y = T, Y = views["T"], views["Y"]
         T[np.arange(m), np.arange(m)] = 1.0
@@ -247,6 +268,10 @@ class TubeLbmpc:
             for r in range(3):  # the identity parts of A_j and A~_j
                 T[zbar_row[j + 1] + r, zbar_row[j] + r] = -1.0
                 T[ztil_row[j + 1] + r, ztil_row[j] + r] = -1.0
+        for j in range(M):  # the speed-change rows: ds_j - du_j + du_{j-1} = 0
+            T[accel + j, u_row[j]] = -1.0
+            if j:
+                T[accel + j, u_row[j - 1]] = 1.0
         self._E = np.zeros((m, n), order="F")
         for j in range(M):
             self._E[u_row[j] : u_row[j] + 2, 2 * j : 2 * j + 2] = np.eye(2)
@@ -274,6 +299,8 @@ class TubeLbmpc:
             for j in range(1, M + 1):
                 dest += iT[steps + k * M + j - 1, ztil_row[j] : ztil_row[j] + 2].tolist()
                 dest.append(int(il[2 * M + k * M + j - 1]))
+        for j in range(M):  # the speed-change rows' bounds
+            dest += (int(il[2 * M + N * M + j]), int(iu[2 * M + N * M + j]))
         # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its column n):
         # q_heading and the stage position weights (`_stage_weights`) on ztil_j, the terminal P
         # on ztil_M (written every period, through the scatter), R on u_j.
@@ -308,7 +335,7 @@ class TubeLbmpc:
         # would take the speed below it is clipped there.)
         lower = (self.u_min[None, :] + self.tightening * [0.0, 1.0]).tolist()
         upper = (self.u_max[None, :] - self.tightening).tolist()
-        self._input_box = [(*lo, *hi) for lo, hi in zip(lower, upper, strict=True)]
+        self.input_box = [(*lo, *hi) for lo, hi in zip(lower, upper, strict=True)]
         """The tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
         slack = 1e-3 * self.u_max + 1e-6
         self._first_input_box = (*(self.u_min - slack).tolist(), *(self.u_max + slack).tolist())
@@ -389,7 +416,7 @@ class TubeLbmpc:
             _rows(d.lin_inputs),
             _rows(d.u_s),
             _rows(d.targets),
-            self._input_box,
+            self.input_box,
             strict=True,
         )
         for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
@@ -429,6 +456,13 @@ class TubeLbmpc:
             ref.append((xt, yt))
         if self.n_neighbours:
             self._separation(d, ref, out)
+        # Speed changes: u_0 - V_now and u_j - u_{j-1} within +-a_max tau, less their values at
+        # c = 0 (the steady speeds' changes).
+        step = self.settings.speed_rate_max_m_s2 * tau
+        last = float(d.speed_now_m_s)
+        for us_v, _ in _rows(d.u_s):
+            out += (-step - (us_v - last), step - (us_v - last))
+            last = us_v
         # The terminal P at the last target heading rh (doubled).
         out += self._terminal_entries(rh, 2.0 * d.terminal_scale)
         self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
@@ -488,6 +522,8 @@ class TubeLbmpc:
             self._warm[:-2] = self._last_c[2:]
             qp.warm_start(self._warm)
         ok, status, x, iterations = qp.solve()
+        if not ok and status in _UNCONVERGED and self._feasible(x):
+            ok, status = True, f"{status}, constraints checked"
         if ok and not math.isfinite(x.dot(x)):
             ok, status = False, "non-finite solution"
         if not ok:
@@ -513,6 +549,14 @@ class TubeLbmpc:
             learned=learned.reshape(M + 1, 3),
             iterations=iterations,
         )
+
+    def _feasible(self, x: np.ndarray) -> bool:
+        """True when x keeps every constraint of this period's QP to within FEASIBILITY_TOL."""
+        if not math.isfinite(x.dot(x)):
+            return False
+        Ax = self._Y[self._a_rows, : 2 * self.M].dot(x)
+        qp, tol = self._qp, FEASIBILITY_TOL
+        return bool(np.all(Ax >= qp.l - tol) and np.all(Ax <= qp.u + tol))
 
     @staticmethod
     def _separation(d: QpData, ref: list[tuple[float, float]], out: list[float]) -> None:

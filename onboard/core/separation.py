@@ -1,23 +1,28 @@
 """Minimum separation as buffered half-planes between plans (docs/design.md, "Safety").
 
-For a pair of vehicles i, k, both know the same positions: where i's previous plan puts i and
-where k's previous plan puts k, now (a_0, b_0) and at every step j of the horizon (a_j, b_j),
-since each broadcast its plan. At step j each vehicle keeps its predicted position on its own
-side of the line through the midpoint (a_j + b_j) / 2 normal to a_0 - b_0 (the direction between
-them now, so that two plans that cross do not swap the sides), at least its margin away:
-    n' (p_j - (a_j + b_j) / 2) >= d_safe / 2 + r_M + s / 2 + v_max (age - tau),
-    n = (a_0 - b_0) / |a_0 - b_0|,   j = 1..M,
-with r_M the tube's widest position radius (the true position stays within it of the predicted
-one), s the inter-sample allowance (how much two vehicles can close between two control instants
-beyond what the instants show) and age the neighbour's plan age beyond the one period a plan
-always has (the neighbour may have moved v_max per second of it). Both vehicles compute the same
-lines with opposite normals, so while both keep to their sides the true distance is at least
-d_safe + s, whatever each of them replans: no vehicle has to trust the other's new plan. Where
-the old plans meet, both give way by half the shortfall.
+For a pair of vehicles i, k, both know the same two positions now: where i's previous plan puts
+i (a) and where k's previous plan puts k (b), since each broadcast its plan. The line through
+their midpoint, normal to a - b, splits the plane between them (a buffered Voronoi cell); over
+the horizon each vehicle keeps its predicted positions on its own side, at least its margin away
+from the line:
+    n' (p_j - (a + b) / 2 - d j tau) >= d_safe / 2 + r_M + s / 2 + v_max (age - tau),
+    n = (a - b) / |a - b|,   j = 1..M,
+with d the learned drift (the wind carries both vehicles and their line alike), r_M the tube's
+widest position radius (the true position stays within it of the predicted one), s the
+inter-sample allowance (how much two vehicles can close between two control instants beyond
+what the instants show) and age the neighbour's plan age beyond the one period a plan always has
+(the neighbour may have moved v_max per second of it). Both vehicles compute the same line with
+opposite normals, so while both keep to their sides the true distance is at least d_safe + s,
+whatever each of them replans: no vehicle has to trust the other's new plan. The cells move
+with the vehicles every period, so two vehicles slide past each other over several periods.
+
+A vehicle found inside its margin (pushed there by what the model does not know, beyond the
+tube's W) keeps to the line through where it is: it may not close further, and stopping is
+always a plan that does that, so the problem stays feasible.
 
 A neighbour whose plan is stale (older than two periods: it may not be getting ours either) is
-not trusted to keep to its half: the line then passes through the neighbour's predicted position
-itself, and this vehicle keeps the whole distance, d_safe + r_M + s + v_max (age - tau), alone.
+not trusted to keep to its half: the line then passes through the neighbour's position itself,
+and this vehicle keeps the whole distance, d_safe + r_M + s + v_max (age - tau), alone.
 """
 
 import math
@@ -40,27 +45,27 @@ def intersample_allowance(*, speed_max_m_s: float, period_s: float, d_safe_m: fl
 
 
 def separation_planes(
-    own: Sequence[tuple[float, float]],
-    neighbour: Sequence[tuple[float, float]],
+    own: tuple[float, float],
+    neighbour: tuple[float, float],
     margin: float,
     here: tuple[float, float],
+    drift_steps: Sequence[tuple[float, float]],
     *,
     shared: bool = True,
 ) -> list[Plane]:
     """The half-planes this vehicle keeps to against one neighbour at j = 1..M (module
     docstring).
 
-    `own` and `neighbour` are where this vehicle's previous plan and the neighbour's plan put
-    them at j = 0..M (this vehicle's position throughout when it has no plan); `margin` is the
-    distance to keep from each line; `here`, this vehicle's position, gives the normal's
-    direction when the two are at one point now. The lines bisect the pair when they `shared`
-    the distance, and pass through the neighbour's positions otherwise. A non-finite margin
-    gives none.
+    `own` and `neighbour` are where this vehicle's previous plan (its position when it has none)
+    and the neighbour's plan put them now; `margin` is the distance to keep from the line; `here`
+    is this vehicle's position (its direction from the neighbour gives the normal when the two
+    plans meet at a point); `drift_steps` the drift's displacement d j tau at j = 1..M. The line
+    bisects the pair when they `shared` the distance and passes through the neighbour's position
+    otherwise. A non-finite margin gives none.
     """
-    M = len(own) - 1
     if not math.isfinite(margin):
-        return [NO_PLANE] * M
-    (ax, ay), (bx, by) = own[0], neighbour[0]
+        return [NO_PLANE] * len(drift_steps)
+    (ax, ay), (bx, by) = own, neighbour
     nx, ny = ax - bx, ay - by
     dist = math.hypot(nx, ny)
     if dist < 1e-6:
@@ -69,11 +74,10 @@ def separation_planes(
     if dist < 1e-9:
         nx, ny, dist = 1.0, 0.0, 1.0
     nx, ny = nx / dist, ny / dist
-    w = 0.5 if shared else 0.0  # the anchor's share of the way from the neighbour to this one
-    return [
-        (nx, ny, nx * (bx + w * (ax - bx)) + ny * (by + w * (ay - by)) + margin)
-        for (ax, ay), (bx, by) in zip(own[1:], neighbour[1:], strict=True)
-    ]
+    if shared:
+        bx, by = 0.5 * (ax + bx), 0.5 * (ay + by)
+    line = min(nx * bx + ny * by + margin, nx * here[0] + ny * here[1])
+    return [(nx, ny, line + nx * dx + ny * dy) for dx, dy in drift_steps]
 
 
 def plane_slack(x: float, y: float, plane: Plane) -> float:

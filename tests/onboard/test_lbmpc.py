@@ -34,6 +34,7 @@ def _random_data(rng: np.random.Generator, mpc: TubeLbmpc, *, separation: bool =
         position_weights=np.full(M, 6.0),
         terminal_scale=1.0,
         separation_planes=planes,
+        speed_now_m_s=float(lin_u[0, 0]),
     )
 
 
@@ -65,11 +66,13 @@ def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
             Q = d.terminal_scale * mpc.terminal_weight(float(d.targets[-1, 2]))
         cost += cp.quad_form(err, Q)
     cons = []
+    step, speed = SETTINGS.speed_rate_max_m_s2 * mpc.tau, d.speed_now_m_s
     for j in range(M):
         u = Hu[j] @ c + d.u_s[j]
         cost += cp.quad_form(u - d.u_s[j], np.diag([SETTINGS.r_speed, SETTINGS.r_yaw_rate]))
         lower, upper = _input_bounds(mpc, d, j)
-        cons += [u <= upper, u >= lower]
+        cons += [u <= upper, u >= lower, cp.abs(u[0] - speed) <= step]
+        speed = u[0]
     for k in range(mpc.n_neighbours):
         for j in range(1, M + 1):
             nx, ny, b = d.separation_planes[k, j - 1]
@@ -132,7 +135,7 @@ def test_infeasible_separation_gives_failure_and_fallback_stays_in_u():
     assert np.all(np.isfinite(u)) and np.all(u <= mpc.u_max) and np.all(u >= mpc.u_min)
 
 
-def test_the_plan_flies_forward_and_keeps_the_yaw_rate_trust_region():
+def test_the_plan_flies_forward_keeps_the_yaw_rate_trust_region_and_its_speed_rate():
     rng = np.random.default_rng(4)
     mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
     for _ in range(5):
@@ -145,6 +148,9 @@ def test_the_plan_flies_forward_and_keeps_the_yaw_rate_trust_region():
         np.testing.assert_array_less(
             np.abs(sol.inputs[:, 1] - d.lin_inputs[:, 1]), SETTINGS.yaw_rate_trust_rad_s + 1e-5
         )
+        speeds = np.concatenate([[d.speed_now_m_s], sol.inputs[:, 0]])
+        step = SETTINGS.speed_rate_max_m_s2 * mpc.tau
+        np.testing.assert_array_less(np.abs(np.diff(speeds)), step + 1e-5)
 
 
 def test_terminal_weight_is_the_rotated_dare_solution():
