@@ -211,23 +211,27 @@ class Agent:
         """u_s (M pairs) and steady headings (M + 1) keeping the learned model on slots (M + 2).
 
         The ground velocity between consecutive slots, less the learned drift, gives the speed
-        and heading; a (nearly) still slot keeps the vehicle's heading; headings are unwrapped.
+        and the course of each chord (a (nearly) still slot keeps the vehicle's heading). The
+        model flies a step along its midpoint heading (`onboard.core.unicycle`), so the heading
+        at a slot is the mean of the courses of the chords either side of it, and a step along
+        a chord then keeps to it (exactly, when the slots turn steadily). Headings are unwrapped.
         """
         tau = self.settings.period_s
         a_v, a_w, d_x, d_y = beta
-        speeds, headings = [], []
-        last = None
+        speeds, courses = [], []
         (x0, y0), raw_last = slots[0], None
         for x1, y1 in slots[1:]:
             gx, gy = (x1 - x0) / tau - d_x, (y1 - y0) / tau - d_y
             speed = math.hypot(gx, gy)
             raw = math.atan2(gy, gx) if speed >= 1e-3 else yaw
-            last = raw if last is None else last + wrap(raw - raw_last)
+            courses.append(raw if raw_last is None else courses[-1] + wrap(raw - raw_last))
             raw_last, x0, y0 = raw, x1, y1
             speeds.append(speed)
-            headings.append(last)
+        c0, c1 = courses[0], courses[1]
+        ahead = zip(courses, courses[1:], strict=False)
+        headings = [c0 - 0.5 * (c1 - c0)] + [0.5 * (a + b) for a, b in ahead]
         tw = tau * a_w
-        steps = zip(speeds[: self.settings.horizon], headings, headings[1:], strict=False)
+        steps = zip(speeds, headings, headings[1:], strict=False)
         u_s = [(v / a_v, (h1 - h0) / tw) for v, h0, h1 in steps]  # (M pairs)
         return u_s, headings
 
@@ -410,18 +414,23 @@ class Agent:
         that breaks a deadlock.
 
         Two vehicles whose goals lie beyond each other's separation lines would stop nose to
-        nose, each holding its side. When the goal's last point lies beyond a neighbour's line
-        and the vehicle is within its margin of that line, every goal point moves along the
-        line, to the right of the way toward the neighbour, by twice the margin; both vehicles
-        do so, each to its own right, and they slide past each other as two ships keep to
-        starboard.
+        nose, each holding its side. When the vehicle has (nearly) stopped (flying slower than
+        min_linearization_speed_m_s), its goal's last point lies beyond a neighbour's line and
+        it is within its margin of that line, every goal point moves along the line, to the
+        right of the way toward the neighbour, by twice the margin; both vehicles do so, each to
+        its own right, and they slide past each other as two ships keep to starboard.
         """
+        if self._last_command[0] >= self.settings.min_linearization_speed_m_s:
+            return goal  # (still under way: not stuck)
         shift_x = shift_y = 0.0
         (gx, gy), (hx, hy) = goal[-1], here
         for plane in planes:
             nx, ny, b = plane[-1]
-            blocked = nx * gx + ny * gy < b and nx * hx + ny * hy - b < self._margin_m
-            if math.isfinite(b) and blocked:
+            if not math.isfinite(b):
+                continue
+            beyond = nx * gx + ny * gy < b
+            pressed = nx * hx + ny * hy - b < self._margin_m
+            if beyond and pressed:
                 # Toward the neighbour is -n; its right (NED: a positive rotation) is (n_y, -n_x).
                 shift_x += 2.0 * self._margin_m * ny
                 shift_y -= 2.0 * self._margin_m * nx

@@ -115,7 +115,7 @@ class LearningSettings:
     """Initial speed effectiveness, yaw-rate effectiveness, drift North [m/s], drift East [m/s]."""
     beta_std_initial: tuple[float, float, float, float] = (0.2, 0.2, 0.5, 0.5)
     """Initial standard deviation of each parameter."""
-    beta_random_walk: tuple[float, float, float, float] = (1e-3, 1e-3, 2e-3, 2e-3)
+    beta_random_walk: tuple[float, float, float, float] = (1e-3, 1e-3, 5e-3, 5e-3)
     """Random-walk standard deviation of each parameter per second (per sqrt(s))."""
     beta_min: tuple[float, float, float, float] = (0.5, 0.5, -3.0, -3.0)
     """Lower bound of each parameter."""

@@ -7,9 +7,13 @@ prediction over the horizon curves with the target; on a straight line omega sta
 Observations are positions, a linear measurement: filterpy's KalmanFilter updates the state, and
 the nonlinear predict (the exact turn, its Jacobian for the covariance) is this module's.
 
-A sharp corner (a waypoint) is not a turn this model expects: its position innovations grow and
-the velocity follows within a couple of seconds. The formation does not need more: its reference
-course turns at a bounded rate anyway (`onboard.core.formation`).
+A sharp corner (a waypoint) is not a turn this model expects. The filter notices it by its
+innovations: while their normalized square, averaged over the last few observations, stays above
+what a target that keeps to the model would give (MANEUVER_NIS), the process noise of each
+prediction is scaled up (MANEUVER_SCALE), so the velocity follows the new course within a couple
+of observations instead of tens of seconds; on a steady path the noise stays low and the
+estimate quiet (Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to Tracking and
+Navigation*, 2001, Sec. 11.2: maneuver detection and process noise adjustment).
 """
 
 import math
@@ -18,6 +22,16 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 __all__ = ["TargetEstimator", "turn_motion"]
+
+MANEUVER_NIS = 10.0
+"""Averaged normalized innovation squared above which the target is taken to be manoeuvring (a
+position innovation has 2 degrees of freedom: its mean is 2 while the model holds)."""
+
+MANEUVER_AVERAGING = 0.5
+"""Weight of the newest observation in the averaged normalized innovation squared."""
+
+MANEUVER_SCALE = 1000.0
+"""Factor on the process noise while the target manoeuvres (about 30x the standard deviations)."""
 
 _SMALL_TURN = 1e-6
 """Below this |omega dt| [rad] the turn's formulas use their series expansions."""
@@ -99,6 +113,8 @@ class TargetEstimator:
         self._accel_std, self._turn_std = accel_std_m_s2, turn_accel_std_rad_s2
         self._noise: dict[int, np.ndarray] = {}
         self._stamp_ns: int | None = None
+        self._nis = 2.0
+        """The averaged normalized innovation squared (its mean while the model holds)."""
         self.observations = 0
 
     @property
@@ -116,8 +132,14 @@ class TargetEstimator:
         P = self._kf.P
         return math.sqrt(max(P[2, 2], P[3, 3]))
 
+    @property
+    def manoeuvring(self) -> bool:
+        """True while the innovations say the target leaves the model (a corner)."""
+        return self._nis > MANEUVER_NIS
+
     def _predict_to(self, stamp_ns: int) -> None:
-        """The filter's predict: the state turned exactly, the covariance through the Jacobian."""
+        """The filter's predict: the state turned exactly, the covariance through the Jacobian
+        (with the process noise scaled up while the target manoeuvres)."""
         dt_ns = stamp_ns - self._stamp_ns
         dt = dt_ns * 1e-9
         Q = self._noise.get(dt_ns)
@@ -129,7 +151,7 @@ class TargetEstimator:
         x, y, vx, vy, w = kf.x.tolist()
         F = _turn_jacobian(vx, vy, w, dt)
         kf.x = np.array((*turn_motion(x, y, vx, vy, w, dt), w))
-        kf.P = F.dot(kf.P).dot(F.T) + Q
+        kf.P = F.dot(kf.P).dot(F.T) + (MANEUVER_SCALE * Q if self.manoeuvring else Q)
         self._stamp_ns = stamp_ns
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
@@ -148,6 +170,9 @@ class TargetEstimator:
             return False
         self._predict_to(stamp_ns)
         self._kf.update(p, H=self._H)  # H given: p is used as it is (no reshape_z)
+        innovation, S_inv = self._kf.y, self._kf.SI
+        nis = float(innovation.dot(S_inv).dot(innovation))
+        self._nis += MANEUVER_AVERAGING * (nis - self._nis)
         self.observations += 1
         return True
 
