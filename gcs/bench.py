@@ -19,6 +19,9 @@
    largest difference in c is reported, with OSQP's iterations per solve of our replays.
 Figures are wall-clock times on this machine, whose load is reported with them; nothing here is
 asserted (speed targets belong to the benchmark, not to unit tests).
+
+With `--baseline DIR`, instead: this tree's agent step and lockstep real-time factor against those
+of another checkout, side by side in one run (`gcs.bench_baseline`).
 """
 
 import argparse
@@ -34,11 +37,12 @@ import numpy as np
 from gcs.ground_station import SERIES_FLUSH_S
 from gcs.lockstep import run_lockstep
 from onboard.core.dekf import DualEkf
+from onboard.core.errors import FleetMpcError
 from onboard.core.lbmpc import QpData, TubeLbmpc
 from onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
 from protocol.scenario import load_scenario
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "load_average", "run"]
 
 TARGETS = {
     "agent_step_median_ms": 0.3,
@@ -104,14 +108,29 @@ def _as_arrays(d: QpData) -> QpData:
     """The same QpData with numpy arrays (the agent hands the QP plain-float sequences)."""
     return QpData(
         **{
-            name: value if name == "terminal_scale" else np.asarray(value, dtype=float)
+            name: value if isinstance(value, float) else np.asarray(value, dtype=float)
             for name, value in vars(d).items()
         }
     )
 
 
+def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds of u_j: U tightened by the tube at step j (all but the speed's lower bound 0),
+    its yaw rate also within the trust region about the linearization's."""
+    lower = mpc.u_min + mpc.tightening[j] * [0.0, 1.0]
+    upper = mpc.u_max - mpc.tightening[j]
+    w, trust = d.lin_inputs[j, 1], mpc.settings.yaw_rate_trust_rad_s
+    lower[1], upper[1] = (
+        max(lower[1], min(w - trust, upper[1])),
+        min(upper[1], max(w + trust, lower[1])),
+    )
+    return lower, upper
+
+
 def _cvxpy_rebuild(mpc: TubeLbmpc) -> Callable[[QpData], np.ndarray | None]:
-    """The same QP written out in cvxpy and built from scratch on every call."""
+    """The same QP written out in cvxpy and built from scratch on every call: the cost on the
+    learned prediction, the input box (`_input_bounds`), the speed changes from the speed now,
+    and the separation half-planes on the learned prediction."""
     import cvxpy as cp
 
     s = mpc.settings
@@ -128,19 +147,18 @@ def _cvxpy_rebuild(mpc: TubeLbmpc) -> Callable[[QpData], np.ndarray | None]:
             else:
                 Q = d.terminal_scale * mpc.terminal_weight(float(d.targets[-1, 2]))
             terms.append(cp.quad_form(err, Q))
+        step, speed = s.speed_rate_max_m_s2 * mpc.tau, d.speed_now_m_s  # speed changes
         for j in range(M):
             u = Hu[j] @ c + d.u_s[j]
             terms.append(cp.quad_form(u - d.u_s[j], np.diag([s.r_speed, s.r_yaw_rate])))
-            bound = mpc.u_max - mpc.tightening[j]
-            cons += [u <= bound, u >= -bound]
-        for k in range(mpc.n_neighbours):
+            lower, upper = _input_bounds(mpc, d, j)
+            cons += [u <= upper, u >= lower, cp.abs(u[0] - speed) <= step]
+            speed = u[0]
+        for k in range(mpc.n_neighbours):  # n' ptil_j >= b, on the learned prediction
             for j in range(1, M + 1):
-                margin = d.neighbour_margins[k, j - 1]
-                if np.isfinite(margin):
-                    p_k = d.neighbour_positions[k, j - 1]
-                    away = d.lin_states[j, :2] - p_k
-                    n = away / max(float(np.linalg.norm(away)), 1e-9)
-                    cons.append(n @ (Sz[j, :2] @ c + sz[j, :2] - p_k) >= margin)
+                nx, ny, b = d.separation_planes[k, j - 1]
+                if np.isfinite(b):
+                    cons.append(np.array([nx, ny]) @ (St[j, :2] @ c + st[j, :2]) >= b)
         prob = cp.Problem(cp.Minimize(sum(terms)), cons)
         prob.solve(
             solver=cp.OSQP,
@@ -160,12 +178,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "scenario", nargs="?", default="scenarios/paper.toml", help="scenario TOML file"
     )
     parser.add_argument(
-        "--repeats", type=int, default=3, help="lockstep runs for the real-time factor"
+        "--repeats",
+        type=int,
+        default=3,
+        help="lockstep runs for the real-time factor (with --baseline: rounds)",
     )
     parser.add_argument(
         "--cvxpy-samples", type=int, default=150, help="QP instances for the cvxpy comparison"
     )
     parser.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    parser.add_argument(
+        "--baseline",
+        metavar="DIR",
+        help="instead: this tree's agent step and lockstep speed against those of another"
+        " checkout DIR, side by side, --repeats rounds of one run each (gcs.bench_baseline)",
+    )
     parser.add_argument(
         "--gcs-logging",
         action="store_true",
@@ -190,7 +217,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _load() -> list[float]:
+def load_average() -> list[float]:
+    """The machine's load averages over 1, 5 and 15 min (empty where the OS has none)."""
     try:
         return [round(x, 2) for x in os.getloadavg()]
     except OSError:
@@ -198,12 +226,18 @@ def _load() -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.baseline and args.gcs_logging:
+        raise FleetMpcError("--baseline and --gcs-logging: one at a time")
+    if args.baseline:
+        from gcs import bench_baseline
+
+        return bench_baseline.run(args)
     if args.gcs_logging:
         from gcs import bench_logging
 
         return bench_logging.run(args)
     sc = load_scenario(args.scenario)
-    load_before = _load()
+    load_before = load_average()
     # 1 and 2, alternately (so both see the same machine): uninstrumented runs for the real-time
     # factor and the agent step; runs with timers for the split. The first timed run records
     # each vehicle's QPs in flight order.
@@ -270,7 +304,7 @@ def run(args: argparse.Namespace) -> int:
             ours_ns.append(times[i])
             if solutions[i].ok and c_ref is not None:
                 diffs.append(float(np.max(np.abs(solutions[i].c.ravel() - c_ref))))
-    load_after = _load()
+    load_after = load_average()
     step = _stats(steps_ns)
     result = {
         "scenario": sc.name,
@@ -335,12 +369,16 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"  {'':32s} {'median ms':>10s} {'p99 ms':>10s}")
     for name, med, p99 in rows:
-        print(f"  {name:32s} {med:>10s} {p99:>10s}")
+        print(f"  {name:32s} {med:>10s} {p99:>10s}".rstrip())
     print(
         f"  (split from the timed runs: step median "
         f"{result['split_run_agent_step']['median_ms']:.3f} ms; "
         f"{len(cvx_ns)} QPs side by side"
-        + (f", ours and cvxpy agree on c within {max(diffs):.1e}" if diffs else "")
+        + (
+            f", ours and cvxpy agree on c within {max(diffs):.1e} on the {len(diffs)} both solved"
+            if diffs
+            else ", none that both solved"
+        )
         + f"; OSQP iterations per solve, median {result['osqp_iterations']['median']:.0f}, "
         f"mean {result['osqp_iterations']['mean']:.1f}, p99 {result['osqp_iterations']['p99']:.0f})"
     )

@@ -25,6 +25,7 @@ from onboard.core.agent import reference_course_rate
 from onboard.core.errors import InfeasibleError
 from onboard.core.formation import Formation, TrueReference
 from onboard.core.lbmpc import TubeLbmpc
+from onboard.core.unicycle import wrap
 from protocol.scenario import Scenario, load_scenario
 
 __all__ = ["FeasibilityReport", "add_arguments", "check_scenario", "run"]
@@ -96,9 +97,7 @@ def _slot_requirements(sc: Scenario, dt_s: float = _CHECK_STEP_S) -> _Requiremen
         turns = []
         for i, air in enumerate(air_all):
             a, b = air[before], air[after]
-            angle = abs(
-                math.remainder(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0]), 2 * math.pi)
-            )
+            angle = abs(wrap(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])))
             turns.append((angle, float(np.hypot(*(b - a))), float(np.hypot(*b)), i))
         angle, jump, speed_after, _ = max(turns)
         jumps.append((float(t[k]), angle, jump, speed_after))

@@ -31,6 +31,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from onboard.core.errors import ConfigError, FleetMpcError
+from onboard.core.unicycle import NOMINAL_BETA_FLOATS, advance, wrap
 from protocol.mavlink_map import (
     Autopilot,
     FlightMode,
@@ -495,7 +496,7 @@ class FakeAutopilotLink(AutopilotLink):
             north_m=self._pose[0],
             east_m=self._pose[1],
             down_m=0.0,
-            yaw_rad=math.remainder(self._pose[2], 2 * math.pi),
+            yaw_rad=wrap(self._pose[2]),
             **extra,
         )
 
@@ -539,10 +540,7 @@ class FakeAutopilotLink(AutopilotLink):
                 self._pose[0], self._pose[1] = self.hold_point[:2]  # an ideal position hold
             elif flying:
                 v, w = self.command
-                dt = dt_ns * 1e-9
-                self._pose[0] += v * math.cos(self._pose[2]) * dt
-                self._pose[1] += v * math.sin(self._pose[2]) * dt
-                self._pose[2] += w * dt
+                self._pose[:] = advance(*self._pose, v, w, NOMINAL_BETA_FLOATS, dt_ns * 1e-9)
             self._now_ns += dt_ns
         self._publish()
 

@@ -32,14 +32,14 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from onboard.core.config import LearningSettings
-from onboard.core.unicycle import step, step_jacobians, step_with_jacobians, wrap_angle
+from onboard.core.unicycle import step, step_jacobians, step_with_jacobians, wrap, wrap_angle
 
 __all__ = ["DekfState", "DualEkf", "dekf_step", "initial_dekf_state"]
 
 
 def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     r = a - b
-    r[2] = (r[2] + math.pi) % (2.0 * math.pi) - math.pi
+    r[2] = wrap(float(r[2]))
     return r
 
 
@@ -304,7 +304,7 @@ class DualEkf:
         sf.x = z_m
         sf.P = J_s.dot(sf.P).dot(J_s.T) + n.Q_s
         (y_x, y_y, y_th), th_m = y.tolist(), float(z_m[2])
-        th = th_m + ((y_th - th_m + math.pi) % (2.0 * math.pi) - math.pi)  # near th_m
+        th = th_m + wrap(y_th - th_m)  # near th_m
         sf.update(np.array((y_x, y_y, th)), H=self._H_s)
         if n.learn:
             # Innovation y ⊖ z^- (sf.y) and covariance R_p = P_s^- + R (sf.S) as the state
@@ -317,7 +317,7 @@ class DualEkf:
                 pf.x, pf.P = _consider_update(beta_prior, P_p_prior, pf.K, H_p, R_p, pf.y, hold)
             pf.x, pf.P = _bound(pf.x, pf.P, n)
         x = sf.x
-        x[2] = (x.item(2) + math.pi) % (2.0 * math.pi) - math.pi  # (float maths: numpy's is slow)
+        x[2] = wrap(x.item(2))
         nis = float(sf.y.dot(sf.SI).dot(sf.y))  # innovation and its inverse covariance
         if not (_all_finite(x, sf.P) and nis <= self._gate_sq):
             self.resets += 1

@@ -27,7 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from onboard.core.config import FormationSettings
-from onboard.core.unicycle import wrap_angle
+from onboard.core.unicycle import wrap, wrap_angle
 
 __all__ = [
     "Formation",
@@ -142,18 +142,14 @@ class ReferenceCourse:
         if course is None:
             return current
         rate_max = self.rate_max_rad_s
-        rate = turn_rate + COURSE_GAIN_PER_S * math.remainder(course - current, 2.0 * math.pi)
+        rate = turn_rate + COURSE_GAIN_PER_S * wrap(course - current)
         return current + dt_s * (-rate_max if rate < -rate_max else min(rate, rate_max))
 
     def reset(self, velocity_m_s: Sequence[float]) -> None:
         """Take the target's course as it is (no rate limit), if it has one."""
         course = self.course_of(velocity_m_s)
         if course is not None:
-            self.value = (
-                course
-                if self.value is None
-                else self.value + math.remainder(course - self.value, 2.0 * math.pi)
-            )
+            self.value = course if self.value is None else self.value + wrap(course - self.value)
 
     def follow(
         self, velocity_m_s: Sequence[float], dt_s: float, *, turn_rate_rad_s: float = 0.0
@@ -197,7 +193,7 @@ class TrueReference:
         course = ReferenceCourse.course_of(velocity_m_s)
         rate = 0.0
         if course is not None and self._last is not None and dt_s > 0:
-            rate = math.remainder(course - self._last, 2.0 * math.pi) / dt_s
+            rate = wrap(course - self._last) / dt_s
         if course is not None:
             self._last = course
         value = self._course.follow(velocity_m_s, dt_s, turn_rate_rad_s=rate)

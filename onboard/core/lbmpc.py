@@ -47,6 +47,7 @@ from onboard.core.tube import (
     position_tube_radius,
     robust_input_tightening,
 )
+from onboard.core.unicycle import wrap
 
 __all__ = ["QpData", "QpSolution", "TubeLbmpc"]
 
@@ -360,7 +361,7 @@ class TubeLbmpc:
     def fallback_input(self, z: np.ndarray, reference: np.ndarray, u_s: np.ndarray) -> np.ndarray:
         """The tube feedback law u = u_s + K (z - z_ref), clipped to U (used when a solve fails)."""
         err = np.asarray(z, float) - np.asarray(reference, float)
-        err[2] = (err[2] + np.pi) % (2 * np.pi) - np.pi
+        err[2] = wrap(float(err[2]))
         u = np.asarray(u_s, float) + self.feedback_gain(float(reference[2])) @ err
         u = np.where(np.isfinite(u), u, 0.0)
         return np.clip(u, self.u_min, self.u_max)
@@ -403,7 +404,7 @@ class TubeLbmpc:
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
         k00, k01, _, k10, k11, _ = self._K0_entries
-        sin, cos, pi, two_pi = math.sin, math.cos, math.pi, 2.0 * math.pi
+        sin, cos = math.sin, math.cos
         xb, yb, hb = _rows(d.z0)
         xt, yt, ht = xb, yb, hb
         out = [xb, yb, hb, xt, yt, ht]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
@@ -451,7 +452,7 @@ class TubeLbmpc:
                 -dx, -dy, -b00, -b01, -b10, -b11,  # -A_j's heading column, -B_j
                 -tx, -ty, -t00, -t01, -t10, -t11, -tw,  # the same of A~_j, B~_j
                 xb, yb, hb, xt, yt, ht,  # zref_{j+1}, ztil_{j+1} at c = 0
-                xt - rx, yt - ry, (ht - rh + pi) % two_pi - pi,  # cost residual
+                xt - rx, yt - ry, wrap(ht - rh),  # cost residual
             )  # fmt: skip
             ref.append((xt, yt))
         if self.n_neighbours:

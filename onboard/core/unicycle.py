@@ -25,6 +25,7 @@ import numpy as np
 
 __all__ = [
     "NOMINAL_BETA",
+    "NOMINAL_BETA_FLOATS",
     "advance",
     "wrap",
     "continuous_jacobians",
@@ -40,6 +41,9 @@ __all__ = [
 
 NOMINAL_BETA = np.array([1.0, 1.0, 0.0, 0.0])
 """beta of the nominal model: unit effectiveness, no drift."""
+
+NOMINAL_BETA_FLOATS = (1.0, 1.0, 0.0, 0.0)
+"""NOMINAL_BETA as plain floats (for `advance`)."""
 
 _EYE3 = np.eye(3)
 
@@ -149,9 +153,7 @@ def step_with_jacobians(
     s, c = math.sin(phi), math.cos(phi)
     dx_dth, dy_dth = -tau * a_v * v * s, tau * a_v * v * c
     half_w = 0.5 * tau * w
-    z_next = np.array(
-        (x + tau * (a_v * v * c + d_x), y + tau * (a_v * v * s + d_y), th + tau * a_w * w)
-    )
+    z_next = np.array(advance(x, y, th, v, w, (a_v, a_w, d_x, d_y), tau))
     A = _EYE3.copy()
     A[0, 2], A[1, 2] = dx_dth, dy_dth
     G = np.array(

@@ -1,0 +1,220 @@
+"""`fleetmpc bench --baseline DIR`: this tree's speed against another checkout's, side by side.
+
+Speed is quoted as a ratio measured in one run on one machine. DIR is another checkout of this
+repository (e.g. `git worktree add /tmp/base <commit>`). For each of `--repeats` rounds, each tree
+flies the scenario in a process of its own (`sys.executable` with PYTHONPATH and the working
+directory at the tree: both trees have the same package names), the two in turn and in
+alternating order, so that both see the same machine. A process flies a short warm-up, then the
+scenario with `gcs.lockstep.run_lockstep`, which both trees have, and reports the agent step
+times its FlightRecord holds (`step_time_ms`, one per agent and period) and the wall time of the
+run. Per tree: the median and p99 of the agent steps of every round pooled, and the median of
+the rounds' real-time factors (simulated seconds per wall second); then this tree over the
+baseline for each. Wall-clock times; nothing is asserted.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from gcs.bench import load_average
+from onboard.core.errors import FleetMpcError
+
+__all__ = ["TARGETS", "THIS_TREE", "compare", "run"]
+
+THIS_TREE = Path(__file__).resolve().parents[1]
+"""The checkout this module belongs to."""
+
+TARGETS = {"step_median_over_baseline": 1.5, "lockstep_realtime_factor": 100.0}
+"""The issue's speed targets: this tree's agent step median at most 1.5x the baseline's, and its
+lockstep at least 100x real time."""
+
+_CHILD = """
+import json, sys, time
+from gcs.lockstep import run_lockstep
+from protocol.scenario import load_scenario
+
+scenario = load_scenario(sys.argv[1])
+run_lockstep(scenario, duration_s=2.0)  # warm-up: a process's first steps pay for first calls
+t0 = time.perf_counter()
+record = run_lockstep(scenario)
+wall_s = time.perf_counter() - t0
+packages = ("gcs", "onboard", "protocol", "sitl")
+ours = [m for name, m in sys.modules.items() if name.split(".")[0] in packages]
+result = {
+    "duration_s": scenario.duration_s,
+    "wall_s": wall_s,
+    "step_ms": record.step_time_ms.ravel().tolist(),
+    "modules": [m.__file__ for m in ours if getattr(m, "__file__", None)],
+}
+print(json.dumps(result))
+"""
+"""One tree's measurement, run as `python -c _CHILD SCENARIO` in that tree."""
+
+
+def _fly(tree: Path, scenario: Path) -> dict:
+    """Fly the scenario once in a process running the tree's code; the child's report."""
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    done = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(scenario)],
+        cwd=tree,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        tail = "\n".join(done.stderr.strip().splitlines()[-5:])
+        raise FleetMpcError(f"the run in {tree} failed (exit {done.returncode}):\n{tail}")
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    strays = [f for f in report["modules"] if not Path(f).resolve().is_relative_to(tree)]
+    if strays:
+        raise FleetMpcError(f"the run in {tree} imported code from elsewhere: {strays[0]}")
+    return report
+
+
+def _describe(tree: Path) -> str:
+    """The tree's commit, with `-dirty` when it has uncommitted changes (`git describe`)."""
+    done = subprocess.run(
+        ["git", "-C", str(tree), "describe", "--always", "--dirty"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return done.stdout.strip() if done.returncode == 0 else "not a git checkout"
+
+
+def _tree(path: str | Path, *, role: str) -> Path:
+    tree = Path(path).resolve()
+    for name in ("gcs/lockstep.py", "protocol/scenario.py"):
+        if not (tree / name).is_file():
+            raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no {name})")
+    return tree
+
+
+def _summary(reports: list[dict]) -> dict:
+    steps = np.concatenate([r["step_ms"] for r in reports])
+    factors = [r["duration_s"] / r["wall_s"] for r in reports]
+    return {
+        "step_median_ms": float(np.median(steps)),
+        "step_p99_ms": float(np.percentile(steps, 99)),
+        "steps": int(steps.size),
+        "realtime_factor": float(np.median(factors)),
+        "round_step_medians_ms": [float(np.median(r["step_ms"])) for r in reports],
+        "round_realtime_factors": factors,
+    }
+
+
+def compare(
+    scenario: str | Path, *, baseline: str | Path, rounds: int, tree: str | Path = THIS_TREE
+) -> dict:
+    """Measure `tree` (this one by default) and the baseline tree on the scenario, `rounds` times
+    each, in turn; their figures and tree / baseline."""
+    trees = {"this": _tree(tree, role="tree"), "baseline": _tree(baseline, role="--baseline")}
+    path = Path(scenario).resolve()
+    if not path.is_file():
+        raise FleetMpcError(f"scenario: no such file: {scenario}")
+    reports: dict[str, list[dict]] = {name: [] for name in trees}
+    for r in range(rounds):
+        order = list(trees) if r % 2 == 0 else list(reversed(trees))
+        for name in order:
+            reports[name].append(_fly(trees[name], path))
+    this, base = _summary(reports["this"]), _summary(reports["baseline"])
+    return {
+        "scenario": str(path),
+        "rounds": rounds,
+        "trees": {name: {"path": str(t), "commit": _describe(t)} for name, t in trees.items()},
+        "this": this,
+        "baseline": base,
+        "this_over_baseline": {
+            key: this[key] / base[key]
+            for key in ("step_median_ms", "step_p99_ms", "realtime_factor")
+        },
+        "round_ratios": {
+            "step_median": [
+                a / b
+                for a, b in zip(
+                    this["round_step_medians_ms"], base["round_step_medians_ms"], strict=True
+                )
+            ],
+            "realtime_factor": [
+                a / b
+                for a, b in zip(
+                    this["round_realtime_factors"], base["round_realtime_factors"], strict=True
+                )
+            ],
+        },
+        "targets": TARGETS,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    from protocol.scenario import load_scenario
+
+    sc = load_scenario(args.scenario)
+    load_before = load_average()
+    result = compare(args.scenario, baseline=args.baseline, rounds=max(args.repeats, 1))
+    load_after = load_average()
+    result |= {"load_average_before": load_before, "load_average_after": load_after}
+    this, base, ratio = result["this"], result["baseline"], result["this_over_baseline"]
+    trees = result["trees"]
+    print(
+        f"fleetmpc bench --baseline: scenario {sc.name!r}, M = {sc.controller.horizon}, "
+        f"{len(sc.vehicles)} vehicles; {result['rounds']} rounds, each tree in its own process, "
+        f"in turn (load average {load_before} before, {load_after} after)"
+    )
+    print(f"  this tree: {trees['this']['path']} ({trees['this']['commit']})")
+    print(f"  baseline:  {trees['baseline']['path']} ({trees['baseline']['commit']})")
+    print(f"  {'':28s} {'this tree':>10s} {'baseline':>10s} {'this / baseline':>16s}")
+    median_target = TARGETS["step_median_over_baseline"]
+    rows = [
+        (
+            "agent step median ms",
+            f"{this['step_median_ms']:.3f}",
+            f"{base['step_median_ms']:.3f}",
+            f"{ratio['step_median_ms']:.2f}x",
+            f"(target <= {median_target:g}x)",
+        ),
+        (
+            "agent step p99 ms",
+            f"{this['step_p99_ms']:.3f}",
+            f"{base['step_p99_ms']:.3f}",
+            f"{ratio['step_p99_ms']:.2f}x",
+            "",
+        ),
+        (
+            "lockstep real-time factor",
+            f"{this['realtime_factor']:.0f}x",
+            f"{base['realtime_factor']:.0f}x",
+            f"{ratio['realtime_factor']:.2f}x",
+            f"(this tree: target >= {TARGETS['lockstep_realtime_factor']:.0f}x)",
+        ),
+    ]
+    for name, a, b, r, note in rows:
+        print(f"  {name:28s} {a:>10s} {b:>10s} {r:>16s}  {note}".rstrip())
+    rounds = result["round_ratios"]
+    print(
+        "  (this / baseline by round: step median "
+        + " ".join(f"{x:.2f}" for x in rounds["step_median"])
+        + "; real-time factor "
+        + " ".join(f"{x:.2f}" for x in rounds["realtime_factor"])
+        + ")"
+    )
+    print(
+        f"  ({this['steps']} and {base['steps']} agent steps; this / baseline above 1x is slower"
+        " for the times, below 1x for the factor)"
+    )
+    met = {
+        "step_median_over_baseline": ratio["step_median_ms"] <= median_target,
+        "lockstep_realtime_factor": this["realtime_factor"] >= TARGETS["lockstep_realtime_factor"],
+    }
+    result["targets_met"] = met
+    missed = [k for k, ok in met.items() if not ok]
+    print("  targets: " + ("all met" if not missed else "missed " + ", ".join(missed)))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
