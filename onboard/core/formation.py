@@ -17,6 +17,7 @@ half the tightened yaw-rate bound ω̄:
 The reference course turns at the target's turn rate plus a gentle correction toward the
 target's course, the sum clipped to r_max:
     dpsi/dt = clip(omega_target + k (course - psi), -r_max, r_max),   k = COURSE_GAIN_PER_S,
+(stepped as psi += dt clip(omega + k (course - psi - omega dt)): a steady turn is followed exactly)
 so on a steady turn it keeps up without lag, the noise of the course estimate reaches it only
 through k, and at a waypoint corner the formation sweeps round at r_max instead of jumping.
 """
@@ -142,7 +143,8 @@ class ReferenceCourse:
         if course is None:
             return current
         rate_max = self.rate_max_rad_s
-        rate = turn_rate + COURSE_GAIN_PER_S * wrap(course - current)
+        # (The error against where the turn alone would take it: a steady turn has none.)
+        rate = turn_rate + COURSE_GAIN_PER_S * wrap(course - current - turn_rate * dt_s)
         return current + dt_s * (-rate_max if rate < -rate_max else min(rate, rate_max))
 
     def reset(self, velocity_m_s: Sequence[float]) -> None:
