@@ -6,7 +6,8 @@ Checks, each reported with its numbers:
   speed in turns, and the wind and effectiveness the scenario's truth states) fits inside the
   tightened speed bound — otherwise the target outruns the team. The slots are the ones the
   agents fly: the formation at its rate-limited reference course (`onboard.core.formation`);
-- turn rate: every slot's required yaw rate fits inside the tightened yaw-rate bound, except at
+- turn rate: every slot's required yaw rate (its turn over YAW_RATE_WINDOW_S) fits inside the
+  tightened yaw-rate bound, except at
   the target's sharp corners (a waypoint), where the slots' velocities turn at once and no
   vehicle can: each corner is reported as a transient instead (how long the worst vehicle takes
   to turn, how far it falls behind, how long until it is back);
@@ -49,6 +50,11 @@ class FeasibilityReport:
 _CHECK_STEP_S = 0.05
 """Sampling step of the check's slot trajectories [s]."""
 
+YAW_RATE_WINDOW_S = 2.0
+"""A slot's yaw rate is judged as its turn over this window [s]: a slot that turns faster than the
+bound for a moment but not over the window costs its vehicle a heading lag of at most the excess
+rate times the window (about a degree at the end of a corner's sweep), not the formation."""
+
 
 @dataclass(frozen=True)
 class _Requirements:
@@ -88,8 +94,15 @@ def _slot_requirements(sc: Scenario, dt_s: float = _CHECK_STEP_S) -> _Requiremen
         speed = np.hypot(air[:, 0], air[:, 1])
         speeds.append(float(np.max(speed)))
         heading = np.unwrap(np.arctan2(air[:, 1], air[:, 0]))
-        rate = np.abs(np.gradient(heading, dt_s)) / v.truth.yaw_rate_effectiveness
+        # The turn over a window: a vehicle lags a heading it cannot follow for a moment by a
+        # fraction of a degree, and what it must keep up with is the turn over the window.
+        half = max(1, round(0.5 * YAW_RATE_WINDOW_S / dt_s))
+        turn = np.zeros_like(heading)
+        turn[half:-half] = (heading[2 * half :] - heading[: -2 * half]) / (2 * half * dt_s)
+        rate = np.abs(turn) / v.truth.yaw_rate_effectiveness
         judged = (speed > 0.1) & steady
+        for k in np.flatnonzero(~steady):  # no window reaching over a corner
+            judged[max(k - half, 0) : k + half + 1] = False
         rates.append(float(np.max(rate[judged])) if judged.any() else 0.0)
     jumps = []
     for k in corners:
@@ -131,7 +144,8 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
     speeds, rates = needs.speeds_m_s, needs.yaw_rates_rad_s
     for v, sp, wr in zip(sc.vehicles, speeds, rates, strict=True):
         lines.append(
-            f"vehicle {v.id}: slot needs airspeed up to {sp:.3f} m/s, yaw rate up to {wr:.3f} rad/s"
+            f"vehicle {v.id}: slot needs airspeed up to {sp:.3f} m/s, yaw rate up to {wr:.3f} "
+            f"rad/s (over {YAW_RATE_WINDOW_S:g} s)"
         )
     worst = int(np.argmax(speeds))
     if speeds[worst] > v_bound:

@@ -350,7 +350,8 @@ class LiveRecord:
         return track.plans[track.plan_periods[-1]] if track.plans else None
 
     def target_prediction(self, stamp_ns: int) -> np.ndarray | None:
-        """The ground station's own constant-velocity prediction of the target over the horizon."""
+        """The ground station's own prediction of the target over the horizon (the coordinated-turn
+        filter of the agents)."""
         pending, self._target_pending = self._target_pending, None
         if pending is not None:
             self._target.observe(pending.stamp_ns, np.array([pending.north_m, pending.east_m]))

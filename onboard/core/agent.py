@@ -9,7 +9,8 @@ trajectories (extrapolated while stale, formation term dropped when too old); pl
 separation half-planes between this vehicle's previous plan and each neighbour's; pick a
 linearization trajectory (the shifted previous plan, kept unless the steady inputs or a pursuit
 path toward the slot score clearly better: hysteresis); solve the tube LBMPC QP; on failure apply
-the clipped tube feedback law, stopped or reversed if it would leave a half-plane.
+the clipped tube feedback law, or, if held over the horizon it would leave a half-plane, the stop
+or turn that leaves them least.
 No I/O, no clocks: time arrives as integer nanoseconds. docs/design.md has the maths.
 """
 

@@ -10,7 +10,7 @@ __all__ = ["ControllerSettings", "FormationSettings", "LearningSettings"]
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    """Tube LBMPC settings (paper Sec. V-B, as corrected in DESIGN.md)."""
+    """Tube LBMPC settings (paper Sec. V-B, as corrected in docs/design.md, "Controller")."""
 
     period_s: float = 0.2
     """Control period tau [s]."""

@@ -1,7 +1,7 @@
 """Dual Extended Kalman Filter (Wan & Nelson) learning the oracle parameters beta.
 
-Two EKFs run side by side (paper Sec. V-A, Eqs. 7-10, with DESIGN.md's corrections: Eq. 7b reads
-P_p^-(t) = P_p(t-1) + R_p and Eq. 8a propagates from z^(t-1)):
+Two EKFs run side by side (paper Sec. V-A, Eqs. 7-10, with the corrections of docs/design.md,
+"Learning": Eq. 7b reads P_p^-(t) = P_p(t-1) + R_p and Eq. 8a propagates from z^(t-1)):
     parameter prediction   beta^- = beta(t-1),            P_p^- = P_p(t-1) + Q_p
     state prediction       z^-    = f(z^(t-1), u, beta^-), P_s^- = J_s P_s J_s' + Q_s
     state correction       z^     = z^- + K_s (y - z^-)

@@ -1,4 +1,4 @@
-"""The tube LBMPC quadratic program (paper Eqs. 11-13 as corrected in DESIGN.md).
+"""The tube LBMPC quadratic program (paper Eqs. 11-13 as corrected in docs/design.md, "Controller").
 
 Decision variables: c_j in R^2, j = 0..M-1 (stacked, 2M). Inputs are parametrized as
     u_j = K_j (zbar_j - zref_j) + u_s,j + c_j,

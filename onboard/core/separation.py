@@ -17,8 +17,10 @@ whatever each of them replans: no vehicle has to trust the other's new plan. The
 with the vehicles every period, so two vehicles slide past each other over several periods.
 
 A vehicle found inside its margin (pushed there by what the model does not know, beyond the
-tube's W) keeps to the line through where it is: it may not close further, and stopping is
-always a plan that does that, so the problem stays feasible.
+tube's W) keeps to the line through where it is: it may not close further, rather than being
+asked for a jump out that no plan can make. (A vehicle still closing on the line at speed may
+not be able to stop within the speed-rate limit; its problem is then infeasible and the
+fallback takes over.)
 
 A neighbour whose plan is stale (older than two periods: it may not be getting ours either) is
 not trusted to keep to its half: the line then passes through the neighbour's position itself,

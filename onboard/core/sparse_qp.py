@@ -4,11 +4,11 @@
 
 The pattern of P (upper triangle) and A is given once as boolean masks; every masked entry is a
 structural nonzero (zeros are kept), so the nonzero count never changes and OSQP accepts every
-update (DESIGN.md). Each period the caller computes P and A densely; `gather` copies the masked
-entries into OSQP's CSC order through flat index maps computed at setup (no scipy.sparse object
-is built per period), and the caller writes q, l and u straight into their views. A's rows may
-be read from a larger array whose rows come in another order (`a_rows`), so that a caller whose
-constraint rows are interleaved with other rows needs no copy to gather them.
+update (docs/design.md, "Controller"). Each period the caller computes P and A densely; `gather`
+copies the masked entries into OSQP's CSC order through flat index maps computed at setup (no
+scipy.sparse object is built per period), and the caller writes q, l and u straight into their
+views. A's rows may be read from a larger array whose rows come in another order (`a_rows`), so
+that a caller whose constraint rows are interleaved with other rows needs no copy to gather them.
 
 All five value arrays live in one buffer, so one check (`finite`) covers the whole problem before
 the solver sees it. Infinite bounds are written as +-OSQP_INFTY (1e30, what OSQP treats as

@@ -1,4 +1,4 @@
-"""Feedback gain and tube of the tube MPC (paper Sec. V-B, corrected in DESIGN.md).
+"""Feedback gain and tube of the tube MPC (paper Sec. V-B; docs/design.md, "Controller").
 
 K comes from the standard discrete algebraic Riccati equation
     P = A'PA - A'PB (R + B'PB)^-1 B'PA + Q,  K = -(R + B'PB)^-1 B'PA,

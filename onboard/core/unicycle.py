@@ -3,7 +3,7 @@
 State z = (x, y, theta): x North [m], y East [m], theta yaw [rad]. Input u = (V, omega):
 forward speed [m/s], yaw rate [rad/s]. Continuous dynamics (paper Eq. 2):
     xdot = V cos(theta), ydot = V sin(theta), thetadot = omega.
-Continuous Jacobians (DESIGN.md; the paper's Eq. 14 misplaces -sin(theta) in B):
+Continuous Jacobians (docs/design.md, "Model"; the paper's Eq. 14 misplaces -sin(theta) in B):
     A_c = [[0, 0, -V sin th], [0, 0, V cos th], [0, 0, 0]],
     B_c = [[cos th, 0], [sin th, 0], [0, 1]].
 
