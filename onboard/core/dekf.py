@@ -282,15 +282,6 @@ class DualEkf:
         """Current parameter estimate (a_V, a_w, d_x, d_y)."""
         return self.param_filter.x
 
-    def as_state(self) -> DekfState:
-        return DekfState(
-            self.z.copy(),
-            self.state_filter.P.copy(),
-            self.beta.copy(),
-            self.param_filter.P.copy(),
-            self.resets,
-        )
-
     def step(self, y: np.ndarray, u: np.ndarray) -> None:
         """Advance one period: input u was applied over the last tau; y is the new measurement."""
         y = np.asarray(y, float)

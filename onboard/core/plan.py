@@ -34,19 +34,14 @@ class Plan:
         """The planned position at stamp_ns (its first before the plan, held after its end)."""
         return self.position_list(stamp_ns, 1, max_extrapolation_s=0.0)[0]
 
-    def positions_at(self, stamp_ns: int, count: int, *, max_extrapolation_s: float) -> np.ndarray:
-        """Positions at stamp_ns + k * period_ns, k = 0..count-1, shape (count, 2).
+    def position_list(
+        self, stamp_ns: int, count: int, *, max_extrapolation_s: float
+    ) -> list[tuple[float, float]]:
+        """Positions at stamp_ns + k * period_ns, k = 0..count-1, as (x, y) pairs of floats.
 
         Interpolates linearly inside the plan and extrapolates at the last planned velocity
         beyond its end, for at most `max_extrapolation_s` past the last state (held after that).
         """
-        out = self.position_list(stamp_ns, count, max_extrapolation_s=max_extrapolation_s)
-        return np.array(out).reshape(count, 2)
-
-    def position_list(
-        self, stamp_ns: int, count: int, *, max_extrapolation_s: float
-    ) -> list[tuple[float, float]]:
-        """`positions_at` as (x, y) pairs of plain floats."""
         k0 = (stamp_ns - self.stamp_ns) / self.period_ns  # in periods
         M = len(self.inputs)
         period_s = self.period_ns * 1e-9

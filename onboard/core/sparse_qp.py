@@ -4,11 +4,12 @@
 
 The pattern of P (upper triangle) and A is given once as boolean masks; every masked entry is a
 structural nonzero (zeros are kept), so the nonzero count never changes and OSQP accepts every
-update (docs/design.md, "Controller"). Each period the caller computes P and A densely; `gather`
-copies the masked entries into OSQP's CSC order through flat index maps computed at setup (no
-scipy.sparse object is built per period), and the caller writes q, l and u straight into their
-views. A's rows may be read from a larger array whose rows come in another order (`a_rows`), so
-that a caller whose constraint rows are interleaved with other rows needs no copy to gather them.
+update (docs/design.md, "Controller"). Each period the caller computes P and A densely and
+copies the masked entries into OSQP's CSC order through flat index maps computed at setup
+(`value_sources`; no scipy.sparse object is built per period), and writes q, l and u straight
+into their views. A's rows may be read from a larger array whose rows come in another order
+(`a_rows`), so that a caller whose constraint rows are interleaved with other rows needs no copy
+to gather them.
 
 All five value arrays live in one buffer, so one check (`finite`) covers the whole problem before
 the solver sees it. Infinite bounds are written as +-OSQP_INFTY (1e30, what OSQP treats as
@@ -59,7 +60,7 @@ def _csc_pattern(
 
 
 class FixedPatternQp:
-    """OSQP on a fixed pattern: write values, `gather`, check, `update`, `solve`."""
+    """OSQP on a fixed pattern: write values, check, `update`, `solve`."""
 
     def __init__(
         self,
@@ -72,7 +73,7 @@ class FixedPatternQp:
         a_row_length: int | None = None,
         data: np.ndarray | None = None,
     ) -> None:
-        """`a_rows[i]` is the row of the array handed to `gather` as A that holds A's row i, and
+        """`a_rows[i]` is the row, in the caller's dense array that holds A, of A's row i, and
         `a_row_length` that array's row length (defaults: A itself, (m, n)). `data`, if given,
         is the zero 1-D array of `data_size(p_mask, a_mask)` entries to hold the values (a view
         of a caller's buffer, so that the caller can write them and values of its own through
@@ -126,9 +127,10 @@ class FixedPatternQp:
     ) -> np.ndarray:
         """Where Px, Ax and q (the head of `data`, in order) come from in a caller's buffer.
 
-        Given the flat buffer position of every entry of dense P (n, n), of the array handed to
-        `gather` as A and of q (n,), returns the position of each value in `data[:Px + Ax + q]`:
-        a caller whose P, A and q live in one buffer then gathers them all with one take.
+        Given the flat buffer position of every entry of dense P (n, n), of the array holding A
+        (A itself, or the array that `a_rows` and `a_row_length` describe) and of q (n,), returns
+        the position of each value in `data[:Px + Ax + q]`: a caller whose P, A and q live in one
+        buffer then gathers them all with one take.
         """
         return np.concatenate(
             [
@@ -137,14 +139,6 @@ class FixedPatternQp:
                 np.asarray(q_index).ravel(),
             ]
         ).astype(np.intp)
-
-    def gather(self, P_dense: np.ndarray, A_dense: np.ndarray) -> None:
-        """Copy the pattern's entries of dense P (n, n) and A into Px and Ax.
-
-        A_dense is (m, n), or the C-contiguous array that `a_rows` and `a_row_length` describe.
-        """
-        P_dense.take(self._p_flat, out=self.Px)
-        A_dense.take(self._a_flat, out=self.Ax)
 
     def finite(self) -> bool:
         """True when P, A, q, l and u hold no inf or nan (infinite bounds are +-INFINITY).

@@ -5,6 +5,11 @@ The mix: random bytes, CRC-valid frames of every message in the dialect with ran
 random bit patterns (NaN, Inf, huge), bad CRCs, truncated frames, unknown message ids and several
 frames per datagram. A PING round trip every window paces the flood so the kernel does not drop
 it: what is sent is what the vehicle has to chew through.
+
+What is asserted is behaviour, not throughput (a faster machine floods faster): at checkpoints
+spread through the flood the test client's REQUEST_MESSAGE, sent between hostile frames, is ACKed
+and followed by position telemetry within a wall-clock bound; after the flood the vehicle still
+streams, answers, obeys a mode change, and never reported a speed above its limit.
 """
 
 import math
@@ -17,12 +22,16 @@ import time
 import pytest
 from sim_client import M, SimClient, fly_offboard, horizontal_speed, px4_args
 
-from protocol.mavlink_map import Frame, MavResult, encode_setpoint
+from protocol.mavlink_map import FlightMode, Frame, MavResult, encode_setpoint
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 WINDOW = 250
+CHECKPOINTS = 20
+"""Points spread through the flood where a valid request must be answered."""
+ANSWER_TIMEOUT_S = 5.0
+"""Wall-clock bound on each answer at a checkpoint (the ACK, the telemetry after it) [s]."""
 VEHICLE = 1
 TARGET_FIELDS = ("target_system", "target_component")
 
@@ -140,10 +149,47 @@ def wait_pong(sock: socket.socket, seq: int, parser, *, timeout_s: float = 2.0) 
     return False
 
 
-def drain_client(client: SimClient, speeds: list[float]) -> None:
-    while (m := client.pump(timeout_s=0.0)) is not None:
+def record_speeds(speeds: list[float], predicate):
+    """`predicate`, which also keeps the ground speed of every LOCAL_POSITION_NED it sees."""
+
+    def seen(m) -> bool:
         if m.get_type() == "LOCAL_POSITION_NED":
             speeds.append(horizontal_speed(m))
+        return predicate(m)
+
+    return seen
+
+
+def drain_client(client: SimClient, speeds: list[float]) -> None:
+    seen = record_speeds(speeds, lambda m: False)
+    while (m := client.pump(timeout_s=0.0)) is not None:
+        seen(m)
+
+
+def request_position(client: SimClient) -> None:
+    """Ask the vehicle for one LOCAL_POSITION_NED (REQUEST_MESSAGE) without waiting."""
+    request = (M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, *[0] * 6)
+    client.conn.mav.command_long_send(VEHICLE, 1, *request)
+
+
+def check_answers(client: SimClient, speeds: list[float], *, checkpoint: int) -> None:
+    """The request sent at `checkpoint` is ACKed, then fresh position telemetry arrives."""
+    ack = client.wait(
+        record_speeds(
+            speeds,
+            lambda m: m.get_type() == "COMMAND_ACK" and m.command == M.MAV_CMD_REQUEST_MESSAGE,
+        ),
+        what=f"COMMAND_ACK of the request at checkpoint {checkpoint}",
+        wall_s=ANSWER_TIMEOUT_S,
+    )
+    assert ack.result == MavResult.ACCEPTED, f"checkpoint {checkpoint}: result {ack.result}"
+    # Sent after the ACK (the requested message, or the stream): made after the request.
+    lp = client.wait(
+        record_speeds(speeds, lambda m: m.get_type() == "LOCAL_POSITION_NED"),
+        what=f"LOCAL_POSITION_NED after the ACK at checkpoint {checkpoint}",
+        wall_s=ANSWER_TIMEOUT_S,
+    )
+    assert all(math.isfinite(v) for v in (lp.x, lp.y, lp.z, lp.vx, lp.vy, lp.vz)), lp
 
 
 @pytest.mark.parametrize("n_frames", [100_000, pytest.param(1_000_000, marks=pytest.mark.slow)])
@@ -162,36 +208,55 @@ def test_hostile_frames_do_not_break_the_vehicle(start_sitl, n_frames):
         parser = mavlink.MAVLink(None)
         parser.robust_parsing = True
         speeds: list[float] = []
-        lost_pongs, sent, t0 = 0, 0, time.monotonic()
-        while sent < n_frames:
-            for _ in range(WINDOW):
+        n_windows = n_frames // WINDOW
+        checkpoint_every = n_windows // CHECKPOINTS
+        lost_pongs, answered, t0 = 0, 0, time.monotonic()
+        for window in range(1, n_windows + 1):
+            checkpoint = window % checkpoint_every == checkpoint_every // 2
+            for i in range(WINDOW):
+                if checkpoint and i == WINDOW // 2:
+                    # A valid request in the middle of the hostile frames, as a GCS would send.
+                    request_position(client)
                 fuzz.sendto(factory.datagram(), target)
-            sent += WINDOW
-            seq = sent // WINDOW
-            fuzz.sendto(ping(fuzz, seq, pinger), target)
-            lost_pongs += not wait_pong(fuzz, seq, parser)
+            fuzz.sendto(ping(fuzz, window, pinger), target)
+            lost_pongs += not wait_pong(fuzz, window, parser)
+            if checkpoint:
+                check_answers(client, speeds, checkpoint=window // checkpoint_every + 1)
+                answered += 1
             drain_client(client, speeds)
             assert sitl.proc.poll() is None, "the vehicle process died"
         flood_s = time.monotonic() - t0
-        print(f"{sent} frames in {flood_s:.1f} s, {lost_pongs} pongs lost, mix {factory.counts}")
+        print(
+            f"{n_windows * WINDOW} frames in {flood_s:.1f} s, {answered} checkpoints answered, "
+            f"{lost_pongs} pongs lost, mix {factory.counts}"
+        )
+        assert answered == CHECKPOINTS
         assert lost_pongs <= max(4, n_frames // 25_000)
 
-        # Still serving: fresh heartbeats and telemetry, and commands are answered.
+        # Still serving: fresh heartbeats and telemetry, and commands are answered and obeyed.
         result = client.command(
             M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0
         )
         assert result == MavResult.ACCEPTED
         t_after = client.t_ms
-        client.wait(lambda m: m.get_type() == "HEARTBEAT", what="heartbeat after the flood")
+        client.wait(
+            record_speeds(speeds, lambda m: m.get_type() == "HEARTBEAT"),
+            what="heartbeat after the flood",
+        )
         lp = client.wait(
-            lambda m: m.get_type() == "LOCAL_POSITION_NED" and m.time_boot_ms > t_after,
+            record_speeds(
+                speeds,
+                lambda m: m.get_type() == "LOCAL_POSITION_NED" and m.time_boot_ms > t_after,
+            ),
             what="fresh LOCAL_POSITION_NED",
         )
-        speeds.append(horizontal_speed(lp))
+        assert all(math.isfinite(v) for v in (lp.x, lp.y, lp.z, lp.vx, lp.vy, lp.vz)), lp
         result = client.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         assert result == MavResult.ACCEPTED
         client.wait_type("AUTOPILOT_VERSION", wall_s=5)
-        assert len(speeds) > 100
+        client.stream(None)
+        assert client.set_px4_mode(FlightMode.HOLD) == MavResult.ACCEPTED
+        assert client.mode() == FlightMode.HOLD  # announced before the ACK
         assert max(speeds) <= 2.0 + 1e-6, "commanded speed exceeded the vehicle's limit"
         assert all(math.isfinite(s) for s in speeds)
     finally:
