@@ -146,8 +146,6 @@ class Agent:
         M = controller.horizon
         self._input_box = (np.tile(self.mpc.u_min, (M, 1)), np.tile(self.u_max, (M, 1)))
         """U's bounds for the M planned inputs (full shape: broadcasting costs a ufunc more)."""
-        self._no_positions = [(0.0, 0.0)] * M
-        """An absent neighbour's positions (ignored: its margins are infinite)."""
         self._no_planes = [NO_PLANE] * M
         between = intersample_allowance(
             speed_max_m_s=controller.speed_max_m_s,
@@ -314,20 +312,17 @@ class Agent:
         ages: dict[int, float],
         centres: list[tuple[float, float]],
         offsets: list[list[tuple[float, float]]],
-    ) -> tuple[
-        list[list[tuple[float, float]] | None], list[float], list[tuple[float, float]] | None, int
-    ]:
-        """Neighbours' predicted positions at j = 1..M, their plan-age inflations, the pull.
+    ) -> tuple[list[float], list[tuple[float, float]] | None, int]:
+        """The neighbours' plan-age inflations and their pull on this vehicle's goal.
 
-        Returns the positions (N entries of M pairs, None for an absent neighbour), the margin
-        inflation v_max x (age beyond one period) of each [m], the pull
-        sum_k (p_kj - slot_kj) over the neighbours whose plan is fresh (None if there is none)
-        and their count. `centres` and `offsets` are the formation's centre and every vehicle's
+        Returns the margin inflation v_max x (age beyond one period) of each neighbour [m]
+        (infinite for an absent or forgotten one), the pull sum_k (p_kj - slot_kj) at
+        j = 1..M over the neighbours whose plan is fresh (None if there is none) and their
+        count. `centres` and `offsets` are the formation's centre and every vehicle's
         offset at j = 0..M+1.
         """
         s, M = self.settings, self.settings.horizon
         when_ns = inp.stamp_ns + s.period_ns
-        nb_pos: list[list[tuple[float, float]] | None] = []
         inflations: list[float] = []
         pull: list[tuple[float, float]] | None = None
         n_terms = 0
@@ -336,13 +331,12 @@ class Agent:
             plan = inp.neighbour_plans.get(nid)
             age = ages.get(nid, math.inf)
             if plan is None or age > s.plan_forget_s or age < -s.period_s:
-                nb_pos.append(None)
                 inflations.append(math.inf)
                 continue
-            positions = plan.position_list(when_ns, M, max_extrapolation_s=s.plan_extrapolation_s)
-            nb_pos.append(positions)
             inflations.append(s.speed_max_m_s * max(0.0, age - s.period_s))
             if age <= s.plan_stale_s:
+                reach = s.plan_extrapolation_s
+                positions = plan.position_list(when_ns, M, max_extrapolation_s=reach)
                 k = self._fleet_index[nid]
                 terms = [
                     (px - (cx + o[k][0]), py - (cy + o[k][1]))
@@ -354,7 +348,7 @@ class Agent:
                     else [(a + b, c + d) for (a, c), (b, d) in zip(pull, terms, strict=True)]
                 )
                 n_terms += 1
-        return nb_pos, inflations, pull, n_terms
+        return inflations, pull, n_terms
 
     def _planes(
         self,
@@ -512,7 +506,7 @@ class Agent:
             for (cx, cy), o in zip(centres, offsets, strict=True)
         ]
         u_s, heading_s = self._steady_inputs(mine, beta_f, z0_f[2])
-        nb_pos, inflations, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
+        inflations, pull, n_terms = self._neighbours(inp, ages, centres, offsets)
         weight = s.q_position + n_terms * s.q_formation
         planes = self._planes(inp, (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3]), ages, inflations)
         goal = self._goal(mine[1 : M + 1], pull, n_terms, weight)
