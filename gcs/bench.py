@@ -148,12 +148,14 @@ def _cvxpy_rebuild(mpc: TubeLbmpc) -> Callable[[QpData], np.ndarray | None]:
                 Q = d.terminal_scale * mpc.terminal_weight(float(d.targets[-1, 2]))
             terms.append(cp.quad_form(err, Q))
         step, speed = s.speed_rate_max_m_s2 * mpc.tau, d.speed_now_m_s  # speed changes
+        yaw_rate = d.yaw_rate_now_rad_s  # and yaw-rate changes, penalized
         for j in range(M):
             u = Hu[j] @ c + d.u_s[j]
             terms.append(cp.quad_form(u - d.u_s[j], np.diag([s.r_speed, s.r_yaw_rate])))
+            terms.append(s.r_yaw_rate_change * cp.square(u[1] - yaw_rate))
             lower, upper = _input_bounds(mpc, d, j)
             cons += [u <= upper, u >= lower, cp.abs(u[0] - speed) <= step]
-            speed = u[0]
+            speed, yaw_rate = u[0], u[1]
         for k in range(mpc.n_neighbours):  # n' ptil_j >= b, on the learned prediction
             for j in range(1, M + 1):
                 nx, ny, b = d.separation_planes[k, j - 1]

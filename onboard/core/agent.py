@@ -540,6 +540,7 @@ class Agent:
             position_weights=self._position_weights[n_terms],
             terminal_scale=weight / self._full_weight,
             speed_now_m_s=float(self._last_command[0]),
+            yaw_rate_now_rad_s=float(self._last_command[1]),
             separation_planes=planes,
         )
         sol = self.mpc.solve(data)

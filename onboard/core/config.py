@@ -50,6 +50,9 @@ class ControllerSettings:
     """White-acceleration noise of the target filter's velocity [m/s^2]."""
     target_turn_accel_std_rad_s2: float = 0.002
     """Random-walk noise of the target filter's turn rate [rad/s^2]."""
+    r_yaw_rate_change: float = 1.0
+    """Input weight on the change of yaw rate from one step to the next [s^2/rad^2]: smooths the
+    yaw-rate command (0: no such term)."""
     speed_rate_max_m_s2: float = 2.0
     """How fast a plan may change its speed [m/s^2]: planned stops take time, as real ones do."""
     yaw_rate_trust_rad_s: float = 0.25
@@ -86,7 +89,14 @@ class ControllerSettings:
             "speed_rate_max_m_s2",
         ):
             positive(f"controller.{name}", getattr(self, name))
-        for name in ("q_heading", "q_formation", "w_position_m", "w_heading_rad", "d_safe_m"):
+        for name in (
+            "q_heading",
+            "q_formation",
+            "w_position_m",
+            "w_heading_rad",
+            "d_safe_m",
+            "r_yaw_rate_change",
+        ):
             positive(f"controller.{name}", getattr(self, name), allow_zero=True)
         in_range("controller.solver_eps", self.solver_eps, 1e-12, 1e-5)
         in_range("controller.seed_switch_ratio", self.seed_switch_ratio, 0.0, 1.0)

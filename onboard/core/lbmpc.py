@@ -8,7 +8,8 @@ the linearization point. Both predictions are affine in c (condensed form):
     nominal  zbar_{j+1} = A_j zbar_j + B_j u_j + e_j            (the feedback's reference)
     learned  ztil_{j+1} = A~_j ztil_j + B~_j u_j + e~_j          (cost, minimum separation)
 The model is linearized along a trajectory chosen by the caller (never at V = 0).
-Cost: sum_{j=1}^{M-1} ||ztil_j - r_j||^2_{Q_j} + ||ztil_M - r_M||^2_{P} + sum_j ||u_j - u_s,j||^2_R.
+Cost: sum_{j=1}^{M-1} ||ztil_j - r_j||^2_{Q_j} + ||ztil_M - r_M||^2_{P} + sum_j ||u_j - u_s,j||^2_R
+      + rho sum_j (w_j - w_{j-1})^2 (rho = r_yaw_rate_change; w_{-1} the yaw rate flown now).
 Constraints: u_j in U ⊖ K R_j (box), speed changes |V_j - V_{j-1}| <= a_max tau from the speed
 now (the vehicle cannot stop at once: a plan that could would be overtaken by the actuators),
 and, for the linearization to stay valid, a yaw rate within a
@@ -102,6 +103,9 @@ class QpData:
     speed_now_m_s: float
     """The speed the vehicle was last commanded [m/s]: the first planned speed changes from it
     by at most speed_rate_max_m_s2 tau."""
+    yaw_rate_now_rad_s: float
+    """The yaw rate the vehicle was last commanded [rad/s]: the first planned yaw rate's change
+    from it is penalized like the later ones' (r_yaw_rate_change)."""
     separation_planes: Floats
     """Per neighbour k and step j = 1..M, a half-plane (n_x, n_y, b) that the learned prediction's
     position must keep to, n' ptil_j >= b, with n a unit normal (N, M, 3); a non-finite b
@@ -321,6 +325,11 @@ class TubeLbmpc:
         self._qp_values = qp.data[: qp.layout["q"].stop]
         """OSQP's Px, Ax and q, gathered from H and Y with one take."""
         self._Y_steps = Y[:steps]
+        self._yaw_rows = np.array([u_row[j] + 1 for j in range(M)])
+        """Y's rows of the planned yaw rates."""
+        self._yaw_change = np.zeros((M, n + 1))
+        """Each planned yaw rate's change from the one before (the first: from the yaw rate
+        flown now), as [derivative in c; value at c = 0]."""
         self._WY = np.zeros((steps, n + 2))
         terminal = slice(ztil_row[M], ztil_row[M] + 3)
         self._Y_terminal, self._WY_terminal = Y[terminal], self._WY[terminal]
@@ -507,6 +516,16 @@ class TubeLbmpc:
         np.multiply(self._w, self._Y_steps, out=self._WY)  # W's diagonal part
         np.dot(self._P_M, self._Y_terminal, out=self._WY_terminal)
         np.dot(self._Y_steps.T, self._WY, out=self._H)
+        rho = self.settings.r_yaw_rate_change
+        if rho:  # + rho sum_j (w_j - w_{j-1})^2, w_{-1} the yaw rate flown now
+            n = 2 * self.M
+            rows = self._Y.take(self._yaw_rows, axis=0)
+            change = self._yaw_change
+            change[:, :n] = rows[:, :n]
+            change[:, n] = rows[:, n + 1]
+            change[1:] -= change[:-1].copy()
+            change[0, n] -= d.yaw_rate_now_rad_s
+            self._H[: n + 1, : n + 1] += (2.0 * rho) * change.T.dot(change)
         self._buffer.take(self._qp_sources, out=self._qp_values)
 
     def solve(self, d: QpData) -> QpSolution:

@@ -45,6 +45,7 @@ def _data(rng: np.random.Generator, mpc: TubeLbmpc) -> QpData:
         terminal_scale=1.0,
         separation_planes=planes,
         speed_now_m_s=float(lin_u[0, 0]),
+        yaw_rate_now_rad_s=float(lin_u[0, 1]),
     )
 
 

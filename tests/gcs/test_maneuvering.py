@@ -55,12 +55,9 @@ def test_qp_fallbacks_stay_under_one_percent_of_agent_steps(rows):
     assert not _ids([r for r in rows if not r["qp_fallback_fraction"] <= QP_FALLBACK_MAX_FRACTION])
 
 
-def test_no_yaw_rate_chattering_where_the_target_is_feasible(rows):
-    # paper-strict's team cannot keep up with its target; flying at its speed limit, one of its
-    # vehicles weaves (up to about 7 reversals per vehicle-minute, seeds 8 and 9): a known miss.
-    judged = [r for r in rows if r["feasible"]]
+def test_no_yaw_rate_chattering_in_any_run(rows):
     limit = REVERSALS_MAX_PER_VEHICLE_MIN
-    assert not _ids([r for r in judged if not r["yaw_rate_reversals_per_vehicle_min"] <= limit])
+    assert not _ids([r for r in rows if not r["yaw_rate_reversals_per_vehicle_min"] <= limit])
 
 
 def test_formation_error_gates_with_learning(rows):
@@ -72,8 +69,8 @@ def test_formation_error_gates_with_learning(rows):
 
 
 def test_learning_reduces_the_error_in_every_scenario_with_unmodeled_dynamics(rows):
-    # The issue's gate is a ratio <= 0.3; figure-eight (0.41-0.44), some seeds of grid9, square
-    # and uturn-start (0.32-0.37) miss it: the target's estimated course, magnified by the
+    # The issue's gate is a ratio <= 0.3; figure-eight (0.31-0.37), some seeds of grid9, square
+    # and uturn-start (0.32-0.41) miss it: the target's estimated course, magnified by the
     # formation's lever arms, is the same error with learning on and off (see the README).
     judged = [r for r in rows if r["learning"] and r["feasible"] and r["unmodeled_dynamics"]]
     assert judged and not _ids([r for r in judged if not r["learning_ratio"] <= 0.5])
@@ -89,7 +86,7 @@ def test_the_square_is_feasible_with_its_corners_reported_and_recovered_from(row
     assert report.feasible, report.render()
     assert sum(line.startswith("corner at t = ") for line in report.lines) == 4
     square = [r for r in rows if r["scenario"] == "square" and r["learning"]]
-    # The issue asks for 15 s; seeds 22 and 23 take 21-23 s (see the README).
+    # The issue asks for 15 s; seed 23 takes 24.6 s (see the README).
     assert all(r["corners"] == 4 and r["corner_recovery_s"] <= 30.0 for r in square)
 
 

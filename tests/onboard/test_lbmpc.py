@@ -35,6 +35,7 @@ def _random_data(rng: np.random.Generator, mpc: TubeLbmpc, *, separation: bool =
         terminal_scale=1.0,
         separation_planes=planes,
         speed_now_m_s=float(lin_u[0, 0]),
+        yaw_rate_now_rad_s=float(lin_u[0, 1]),
     )
 
 
@@ -66,13 +67,18 @@ def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
             Q = d.terminal_scale * mpc.terminal_weight(float(d.targets[-1, 2]))
         cost += cp.quad_form(err, Q)
     cons = []
-    step, speed = SETTINGS.speed_rate_max_m_s2 * mpc.tau, d.speed_now_m_s
+    step, speed, yaw_rate = (
+        SETTINGS.speed_rate_max_m_s2 * mpc.tau,
+        d.speed_now_m_s,
+        d.yaw_rate_now_rad_s,
+    )
     for j in range(M):
         u = Hu[j] @ c + d.u_s[j]
         cost += cp.quad_form(u - d.u_s[j], np.diag([SETTINGS.r_speed, SETTINGS.r_yaw_rate]))
+        cost += SETTINGS.r_yaw_rate_change * cp.square(u[1] - yaw_rate)
         lower, upper = _input_bounds(mpc, d, j)
         cons += [u <= upper, u >= lower, cp.abs(u[0] - speed) <= step]
-        speed = u[0]
+        speed, yaw_rate = u[0], u[1]
     for k in range(mpc.n_neighbours):
         for j in range(1, M + 1):
             nx, ny, b = d.separation_planes[k, j - 1]
