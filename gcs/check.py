@@ -24,7 +24,7 @@ import numpy as np
 from gcs.metrics import corner_indices
 from onboard.core.agent import reference_course_rate
 from onboard.core.errors import InfeasibleError
-from onboard.core.formation import Formation, TrueReference
+from onboard.core.formation import Formation, ReferenceCourse, TrueReference
 from onboard.core.lbmpc import TubeLbmpc
 from onboard.core.unicycle import wrap
 from protocol.scenario import Scenario, load_scenario
@@ -69,11 +69,14 @@ class _Requirements:
     of a slot's velocity [m/s], the speed that slot's vehicle needs after the corner [m/s])."""
 
 
-def _slot_requirements(sc: Scenario, dt_s: float = _CHECK_STEP_S) -> _Requirements:
-    """The slots' airspeed and yaw-rate needs, and the corners' jumps, over the run."""
+def _slot_requirements(
+    sc: Scenario, course_rate_rad_s: float, dt_s: float = _CHECK_STEP_S
+) -> _Requirements:
+    """The slots' airspeed and yaw-rate needs, and the corners' jumps, over the run, for a
+    reference course turning at most at course_rate_rad_s."""
     t = np.arange(0.0, sc.duration_s + dt_s, dt_s)
     formation = Formation(sc.formation)
-    reference = TrueReference(reference_course_rate(sc.controller, sc.formation))
+    reference = TrueReference(course_rate_rad_s)
     states = [sc.target.state_at(ti) for ti in t]
     target = np.array([p for p, _ in states])
     target_vel = np.array([v for _, v in states])
@@ -140,7 +143,8 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         float(np.hypot(*sc.target.state_at(t)[1])) for t in np.linspace(0, sc.duration_s, 200)
     )
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
-    needs = _slot_requirements(sc)
+    course_rate = reference_course_rate(sc.controller, sc.formation)
+    needs = _slot_requirements(sc, course_rate)
     speeds, rates = needs.speeds_m_s, needs.yaw_rates_rad_s
     for v, sp, wr in zip(sc.vehicles, speeds, rates, strict=True):
         lines.append(
@@ -176,12 +180,13 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"corner at t = {t_c:.1f} s: a slot's velocity turns {math.degrees(angle):.0f} deg "
             f"at once; its vehicle needs about {turn_s:.1f} s to turn, falls up to about "
             f"{behind_m:.1f} m behind, {back} (the formation itself sweeps round at "
-            f"{reference_course_rate(sc.controller, sc.formation):.3f} rad/s)"
+            f"{course_rate:.3f} rad/s)"
         )
     reach = c.horizon * c.period_s * c.speed_max_m_s
     formation = Formation(sc.formation)
     p0, v0 = sc.target.state_at(0.0)
-    slots0 = formation.slots(p0[None, :], [TrueReference(1.0).follow(v0.tolist(), 0.0)])[0]
+    course0 = ReferenceCourse.course_of(v0.tolist())  # (None: the target starts still)
+    slots0 = formation.slots(p0[None, :], [0.0 if course0 is None else course0])[0]
     gaps = [
         math.hypot(v.initial[0] - s[0], v.initial[1] - s[1])
         for v, s in zip(sc.vehicles, slots0, strict=True)

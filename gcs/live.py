@@ -49,10 +49,12 @@ def formation_reference(
     The reference course is stateful (rate-limited, held while the target is nearly still), so
     the periods go through `course` in order, continuing where its previous call stopped.
     """
-    courses = [course.follow(v, period_s) for v in np.asarray(target_velocity_m_s).tolist()]
-    slots = formation.slots(np.asarray(target_m, dtype=float).reshape(-1, 2), courses)
-    trail = np.array([formation.placement(c)[:2] for c in courses]).reshape(-1, 2)
+    velocities = np.asarray(target_velocity_m_s).tolist()
+    placements = [formation.placement(course.follow(v, period_s)) for v in velocities]
+    trail = np.array([(x, y) for x, y, _ in placements]).reshape(-1, 2)
+    offsets = np.array([o for _, _, o in placements]).reshape(len(placements), formation.size, 2)
     centre = np.asarray(target_m, dtype=float).reshape(-1, 2) - trail
+    slots = centre[:, None, :] + offsets
     return slots, slots - centre[:, None, :]
 
 
