@@ -1,12 +1,2 @@
-"""Ground side: the fleet launcher, the ground station, the lockstep simulation and reports.
-
-Every `fleetmpc` process (agents, SITLs, target, ground station, benchmarks) enters through this
-package, so it caps OpenBLAS at one thread here, before numpy loads, unless the environment says
-otherwise. The fleet's linear algebra is on matrices of a few dozen rows: OpenBLAS's worker
-threads cannot speed it up, only synchronise and spin, and with a dozen fleet processes on a few
-cores the spinning takes CPU from the other processes.
-"""
-
-import os
-
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+"""The ground station: telemetry, plans and metrics into Rerun, the feasibility check, the
+recording's reader, and the reports and figures made from a record."""

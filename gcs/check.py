@@ -21,13 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gcs.metrics import corner_indices
-from onboard.core.agent import reference_course_rate
-from onboard.core.errors import InfeasibleError
-from onboard.core.formation import Formation, ReferenceCourse, TrueReference
-from onboard.core.lbmpc import TubeLbmpc
-from onboard.core.unicycle import wrap
-from protocol.scenario import Scenario, load_scenario
+from fleetmpc.errors import InfeasibleError
+from fleetmpc.gcs.metrics import corner_indices
+from fleetmpc.onboard.core.agent import reference_course_rate
+from fleetmpc.onboard.core.formation import Formation, ReferenceCourse, TrueReference
+from fleetmpc.onboard.core.lbmpc import TubeLbmpc
+from fleetmpc.onboard.core.unicycle import wrap
+from fleetmpc.scenario import Scenario, load_scenario
 
 __all__ = ["FeasibilityReport", "add_arguments", "check_scenario", "run"]
 

@@ -8,8 +8,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gcs.metrics import pair_indices  # noqa: E402
-from gcs.record import FlightRecord  # noqa: E402
+from fleetmpc.gcs.metrics import pair_indices  # noqa: E402
+from fleetmpc.gcs.record import FlightRecord  # noqa: E402
 
 __all__ = ["FIGURE_FILES", "write_figures"]
 

@@ -60,11 +60,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from gcs.check import check_scenario
-from gcs.fleet import flight_time
-from gcs.live import LiveRecord
-from gcs.metrics import compute_metrics
-from gcs.recording import (
+from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.gcs.check import check_scenario
+from fleetmpc.gcs.live import LiveRecord
+from fleetmpc.gcs.metrics import compute_metrics, format_summary
+from fleetmpc.gcs.recording import (
     log_events,
     log_flight_record,
     log_meta,
@@ -72,11 +72,9 @@ from gcs.recording import (
     open_recording,
     rerun_threads_cpu_ms,
 )
-from gcs.sim import format_summary
-from onboard.core.errors import ConfigError, FleetMpcError
-from onboard.planbus import open_fleet_bus
-from onboard.runner import ClockSync, FleetClock
-from protocol.mavlink_map import (
+from fleetmpc.onboard.planbus import open_fleet_bus
+from fleetmpc.onboard.runner import ClockSync, FleetClock
+from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
     ModeFlag,
@@ -84,13 +82,13 @@ from protocol.mavlink_map import (
     mode_from_custom,
     ned_from_geodetic,
 )
-from protocol.messages import (
+from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
     PlanMessage,
     StatusMessage,
     TargetObservation,
 )
-from protocol.scenario import Scenario, load_scenario
+from fleetmpc.scenario import Scenario, flight_time, load_scenario
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -98,7 +96,7 @@ from pymavlink import mavutil  # noqa: E402
 __all__ = ["FLUSH_S", "SERIES_FLUSH_S", "GroundStation", "add_arguments", "run", "series_every"]
 
 EXIT_WITHOUT_TEARDOWN = True
-"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+"""A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
 
 GCS_SYSTEM_ID = 255
 """MAVLink system id of the ground station (the conventional GCS id)."""

@@ -25,13 +25,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gcs.metrics import pair_indices
-from gcs.record import FlightRecord, LiveRows, RunConstants
-from onboard.core.agent import reference_course_rate
-from onboard.core.formation import Formation, TrueReference
-from onboard.core.target_estimator import TargetEstimator
-from protocol.messages import PlanMessage, StatusMessage, TargetObservation
-from protocol.scenario import Scenario
+from fleetmpc.gcs.metrics import pair_indices
+from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
+from fleetmpc.onboard.core.agent import reference_course_rate
+from fleetmpc.onboard.core.formation import Formation, TrueReference
+from fleetmpc.onboard.core.target_estimator import TargetEstimator
+from fleetmpc.protocol.messages import PlanMessage, StatusMessage, TargetObservation
+from fleetmpc.scenario import Scenario
 
 __all__ = ["LiveRecord", "formation_reference"]
 

@@ -4,9 +4,10 @@ import math
 
 import numpy as np
 
-from gcs.record import FlightRecord
+from fleetmpc.gcs.record import FlightRecord
 
 __all__ = [
+    "format_summary",
     "CORNER_MIN_SPEED_M_S",
     "CORNER_RECOVERED_M",
     "CORNER_TURN_RAD",
@@ -169,3 +170,72 @@ def corner_recovery_s(rec: FlightRecord) -> float | None:
         first = start if out.size == 0 else start + int(out[-1]) + 1
         recovery.append(math.inf if first >= end else float(rec.t_s[first]) - float(rec.t_s[start]))
     return max(recovery)
+
+
+def _fraction(x: float | None) -> str:
+    return "unknown" if x is None else f"{x:.4f}"
+
+
+def format_summary(metrics: dict) -> str:
+    """A human-readable table of the metrics."""
+    rows = [
+        ("scenario", metrics["scenario"]),
+        ("learning", "on" if metrics["learning"] else "off"),
+        ("feasible", "yes" if metrics["feasible"] else "NO (the target outruns the team)"),
+        ("duration", f"{metrics['duration_s']:.1f} s"),
+    ]
+    for (a, b), e in zip(metrics["separation_pairs"], metrics["separation_error_m"], strict=True):
+        rows.append((f"separation error {a}-{b}", f"{e:.4f} m"))
+    rows += [
+        ("centre distance error", f"{metrics['centre_distance_error_m']:.4f} m"),
+        ("formation RMS", f"{metrics['formation_rms_m']:.4f} m"),
+        ("||c|| final", f"{metrics['c_norm_final']:.4f}"),
+        ("min separation", f"{metrics['min_separation_m']:.3f} m"),
+        ("inputs within U", _fraction(metrics["inputs_within_bounds"])),
+        ("QP fallbacks", str(metrics["qp_fallbacks"])),
+    ]
+    rows += _manoeuvre_rows(metrics)
+    st = metrics["step_time_ms"]
+    if st["median"] is not None:
+        rows.append(("agent step", f"median {st['median']:.3f} ms, p99 {st['p99']:.3f} ms"))
+    share = metrics.get("gcs_logging_share_of_agent_step")
+    if share is not None:  # a live run's ground station with a recording
+        logging = metrics["gcs_logging_ms_per_vehicle_period"]
+        text = f"median {logging['median']:.3f} ms per vehicle-period"
+        if logging.get("rerun_threads") is not None:
+            text += f" + {logging['rerun_threads']:.3f} in Rerun's threads"
+        text += f": {100 * share:.1f} % of the agent step median"
+        rows.append(("ground station logging", text))
+    for b in metrics["beta_error"]:
+        rows.append(
+            (
+                f"beta error UAV {b['vehicle']}",
+                f"a_V {100 * b['speed_effectiveness']:.1f} %, "
+                f"a_w {100 * b['yaw_rate_effectiveness']:.1f} %, "
+                f"drift {b['drift_m_s']:.3f} m/s",
+            )
+        )
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def _manoeuvre_rows(metrics: dict) -> list[tuple[str, str]]:
+    """Rows of the worst vehicle, yaw-rate reversals, target prediction and corners (absent from
+    a metrics file written before they existed)."""
+    rows = []
+    if "slot_rms_max_vehicle_m" in metrics:
+        rows.append(("worst vehicle slot RMS", f"{metrics['slot_rms_max_vehicle_m']:.4f} m"))
+    reversals = metrics.get("yaw_rate_reversals_per_vehicle_min")
+    if reversals is not None:
+        rows.append(("yaw-rate reversals", f"{reversals:.2f} per vehicle-minute"))
+    if "target_prediction_rms_m" in metrics:
+        rms = metrics["target_prediction_rms_m"]
+        rows.append(("target prediction RMS", "unknown" if rms is None else f"{rms:.3f} m"))
+    corners = metrics.get("corners")
+    if corners is not None:
+        rows.append(("target corners", str(corners)))
+    recovery = metrics.get("corner_recovery_s")
+    if recovery is not None:
+        text = "never" if recovery == math.inf else f"{recovery:.1f} s"
+        rows.append(("corner recovery (worst)", text))
+    return rows

@@ -46,9 +46,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from gcs.metrics import pair_indices
-from gcs.record import FlightRecord, LiveRows, RunConstants
-from gcs.rerun_batch import ColumnBatch, send_batches
+from fleetmpc.gcs.metrics import pair_indices
+from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
+from fleetmpc.gcs.rerun_batch import ColumnBatch, send_batches
 
 __all__ = [
     "APPLICATION_ID",

@@ -8,9 +8,9 @@ import argparse
 import json
 from pathlib import Path
 
-from gcs.figures import write_figures
-from gcs.metrics import compute_metrics
-from gcs.rrd_reader import read_recording
+from fleetmpc.gcs.figures import write_figures
+from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.gcs.rrd_reader import read_recording
 
 __all__ = ["METRICS_FILE", "add_arguments", "run"]
 

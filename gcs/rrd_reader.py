@@ -14,9 +14,9 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
-from gcs.record import FlightRecord
-from gcs.recording import MIN_SEPARATION_COLUMN, RECORD_COLUMN, TIMELINE, record_layout
-from onboard.core.errors import FleetMpcError
+from fleetmpc.errors import FleetMpcError
+from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.gcs.recording import MIN_SEPARATION_COLUMN, RECORD_COLUMN, TIMELINE, record_layout
 
 __all__ = ["RecordingError", "RecordingRun", "read_recording"]
 

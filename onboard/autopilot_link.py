@@ -30,9 +30,9 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
-from onboard.core.errors import ConfigError, FleetMpcError
-from onboard.core.unicycle import NOMINAL_BETA_FLOATS, advance, wrap
-from protocol.mavlink_map import (
+from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.onboard.core.unicycle import NOMINAL_BETA_FLOATS, advance, wrap
+from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
     Frame,

@@ -23,17 +23,23 @@ import sys
 import threading
 from pathlib import Path
 
-from onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
-from onboard.core.agent import Agent
-from onboard.core.errors import ConfigError
-from onboard.planbus import open_fleet_bus
-from onboard.runner import FleetClock, FleetRunner, RunnerSettings, SetpointStreamer, wind_down
-from protocol.scenario import load_scenario, mavlink_url
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
+from fleetmpc.onboard.core.agent import Agent
+from fleetmpc.onboard.planbus import open_fleet_bus
+from fleetmpc.onboard.runner import (
+    FleetClock,
+    FleetRunner,
+    RunnerSettings,
+    SetpointStreamer,
+    wind_down,
+)
+from fleetmpc.scenario import load_scenario, mavlink_url
 
 __all__ = ["add_arguments", "run"]
 
 EXIT_WITHOUT_TEARDOWN = True
-"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+"""A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

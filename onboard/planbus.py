@@ -27,9 +27,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Self
 
-from onboard.core.errors import ConfigError, FleetMpcError
-from onboard.core.plan import Plan
-from protocol.keys import (
+from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.protocol.keys import (
     KeyFormatError,
     all_plans_key,
     all_statuses_key,
@@ -40,7 +39,7 @@ from protocol.keys import (
     target_observation_key,
     validate_fleet,
 )
-from protocol.messages import (
+from fleetmpc.protocol.messages import (
     MAX_SENDER_ID,
     MIN_SENDER_ID,
     DecodeError,
@@ -56,12 +55,13 @@ from protocol.messages import (
     decode,
     encode,
 )
+from fleetmpc.protocol.plan import Plan
 
 if TYPE_CHECKING:
     import argparse
 
-    from protocol.scenario import Scenario
-    from protocol.zenoh_config import ZenohOptions
+    from fleetmpc.protocol.zenoh_config import ZenohOptions
+    from fleetmpc.scenario import Scenario
 
 __all__ = [
     "BusCounters",
@@ -539,8 +539,8 @@ def open_plan_bus(
         return InMemoryPlanBus(
             hubs.hub(name), fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept
         )
-    from onboard.zenoh_planbus import ZenohPlanBus
-    from protocol.zenoh_config import ZenohOptions
+    from fleetmpc.onboard.zenoh_planbus import ZenohPlanBus
+    from fleetmpc.protocol.zenoh_config import ZenohOptions
 
     if isinstance(url_or_options, ZenohOptions):
         options = url_or_options
@@ -570,7 +570,7 @@ def open_fleet_bus(
     defaults to the scenario's, and `sender_id` is both the bus identity and the peer-mesh member
     (`protocol.zenoh_config.peer_mesh_index`).
     """
-    from protocol.zenoh_config import options_from_args, peer_mesh_index
+    from fleetmpc.protocol.zenoh_config import options_from_args, peer_mesh_index
 
     options = options_from_args(
         args.zenoh_config,

@@ -37,12 +37,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.autopilot_link import AutopilotLink, LinkState
-from onboard.core.agent import Agent, AgentInput, AgentOutput
-from onboard.core.errors import ConfigError
-from onboard.planbus import PlanBus
-from protocol.mavlink_map import FlightMode
-from protocol.messages import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.autopilot_link import AutopilotLink, LinkState
+from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
+from fleetmpc.onboard.planbus import PlanBus
+from fleetmpc.protocol.mavlink_map import FlightMode
+from fleetmpc.protocol.messages import (
     MAX_SETPOINT_RATE_HZ,
     LearnedParams,
     NeighbourPlanAge,

@@ -12,9 +12,9 @@ from collections.abc import Callable
 
 import zenoh
 
-from onboard.planbus import PlanBus, PlanBusError
-from protocol.messages import Message
-from protocol.zenoh_config import ZenohOptions
+from fleetmpc.onboard.planbus import PlanBus, PlanBusError
+from fleetmpc.protocol.messages import Message
+from fleetmpc.protocol.zenoh_config import ZenohOptions
 
 __all__ = ["ZenohPlanBus"]
 

@@ -14,8 +14,8 @@ Every key lives under ``fleetmpc/<fleet>/``:
 import re
 from dataclasses import dataclass
 
-from onboard.core.errors import ConfigError, FleetMpcError
-from protocol.messages import MAX_SENDER_ID, MIN_SENDER_ID, MessageKind
+from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.protocol.messages import MAX_SENDER_ID, MIN_SENDER_ID, MessageKind
 
 __all__ = [
     "KeyFormatError",

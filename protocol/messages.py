@@ -67,8 +67,8 @@ from enum import IntEnum, StrEnum
 
 import numpy as np
 
-from onboard.core.errors import ConfigError, FleetMpcError
-from onboard.core.plan import Plan
+from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.protocol.plan import Plan
 
 __all__ = [
     "MAGIC",

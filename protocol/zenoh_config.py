@@ -33,11 +33,11 @@ from urllib.parse import parse_qsl, urlsplit
 
 import zenoh
 
-from onboard.core.errors import ConfigError
-from protocol.messages import GROUND_STATION_ID, TARGET_ID
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 
 if TYPE_CHECKING:
-    from protocol.scenario import Scenario
+    from fleetmpc.scenario import Scenario
 
 __all__ = [
     "DEFAULT_HOST",

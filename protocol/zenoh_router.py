@@ -3,7 +3,7 @@
 Clients connect with ``zenoh://HOST:PORT?mode=client``. The router listens only on the endpoint
 it is given (loopback by default) and never scouts.
 
-    python -m protocol.zenoh_router --port 7447
+    python -m fleetmpc.protocol.zenoh_router --port 7447
 """
 
 import argparse
@@ -12,13 +12,13 @@ import threading
 
 import zenoh
 
-from onboard.core.errors import ConfigError
-from protocol.zenoh_config import DEFAULT_HOST, DEFAULT_PORT, disable_scouting, endpoint
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.zenoh_config import DEFAULT_HOST, DEFAULT_PORT, disable_scouting, endpoint
 
 __all__ = ["main", "open_router", "router_config", "serve"]
 
 EXIT_WITHOUT_TEARDOWN = True
-"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+"""A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
 
 
 def router_config(*, port: int, host: str = DEFAULT_HOST) -> zenoh.Config:

@@ -29,9 +29,8 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-from onboard.core.errors import ConfigError
-from onboard.core.validate import positive
-from protocol.mavlink_map import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.mavlink_map import (
     FlightMode,
     LandedState,
     MavResult,
@@ -44,6 +43,7 @@ from protocol.mavlink_map import (
     check_setpoint,
     decode_setpoint,
 )
+from fleetmpc.validate import positive
 
 __all__ = ["PROFILE_MODES", "Autopilot", "AutopilotConfig", "Notice", "Profile"]
 

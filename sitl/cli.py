@@ -18,17 +18,17 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from onboard.core.errors import ConfigError
-from protocol.scenario import Network, Scenario, load_scenario
-from sitl.autopilot import AutopilotConfig, Profile
-from sitl.clock import RealTimeClock
-from sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
-from sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
+from fleetmpc.errors import ConfigError
+from fleetmpc.scenario import Network, Scenario, load_scenario
+from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
+from fleetmpc.sitl.clock import RealTimeClock
+from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
+from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 
 __all__ = ["add_arguments", "build_config", "run"]
 
 EXIT_WITHOUT_TEARDOWN = True
-"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+"""A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
 
 PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
 """PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""

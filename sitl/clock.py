@@ -8,7 +8,7 @@ import time
 from fractions import Fraction
 from typing import Protocol
 
-from onboard.core.errors import ConfigError
+from fleetmpc.errors import ConfigError
 
 __all__ = ["Clock", "ManualClock", "RealTimeClock"]
 

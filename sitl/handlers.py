@@ -10,7 +10,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from protocol.mavlink_map import (
+from fleetmpc.protocol.mavlink_map import (
     DISARM_FORCE_MAGIC,
     Autopilot,
     FlightMode,
@@ -20,9 +20,9 @@ from protocol.mavlink_map import (
     mode_from_custom,
     px4_custom_mode,
 )
-from sitl.autopilot import Autopilot as AutopilotLogic
-from sitl.mavlink_io import Incoming, mavlink
-from sitl.telemetry import (
+from fleetmpc.sitl.autopilot import Autopilot as AutopilotLogic
+from fleetmpc.sitl.mavlink_io import Incoming, mavlink
+from fleetmpc.sitl.telemetry import (
     ARDUPILOT_DATA_STREAMS,
     ON_REQUEST,
     STREAMABLE,

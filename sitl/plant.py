@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.core.validate import finite, in_range, positive, vector
+from fleetmpc.validate import finite, in_range, positive, vector
 
 __all__ = ["TruthParams", "TruthPlant", "Wind"]
 

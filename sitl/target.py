@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.core.errors import ConfigError
-from onboard.core.validate import finite, positive, vector
+from fleetmpc.errors import ConfigError
+from fleetmpc.validate import finite, positive, vector
 
 __all__ = ["TargetScript"]
 

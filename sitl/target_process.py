@@ -23,16 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.core.errors import ConfigError
-from onboard.planbus import PlanBus, open_fleet_bus
-from protocol.keys import epoch_key
-from protocol.messages import TARGET_ID
-from protocol.scenario import load_scenario
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.planbus import PlanBus, open_fleet_bus
+from fleetmpc.protocol.keys import epoch_key
+from fleetmpc.protocol.messages import TARGET_ID
+from fleetmpc.scenario import load_scenario
 
 __all__ = ["add_arguments", "run", "wait_for_epoch"]
 
 EXIT_WITHOUT_TEARDOWN = True
-"""A fleet process: `gcs.cli.entry` skips the interpreter's teardown once `run` returns."""
+"""A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
 
 _SPEED_RTOL = 1e-6
 

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
-from protocol.mavlink_map import (
+from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
     LandedState,
@@ -20,8 +20,8 @@ from protocol.mavlink_map import (
     custom_mode_of,
     geodetic_from_ned,
 )
-from protocol.scenario import Site
-from sitl.mavlink_io import mavlink
+from fleetmpc.scenario import Site
+from fleetmpc.sitl.mavlink_io import mavlink
 
 __all__ = [
     "ARDUPILOT_DATA_STREAMS",

@@ -15,13 +15,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.core.errors import ConfigError
-from protocol.mavlink_map import Autopilot as AutopilotType
-from protocol.scenario import Site, VehicleSpec
-from sitl.autopilot import Autopilot, AutopilotConfig, Profile
-from sitl.clock import Clock
-from sitl.handlers import MessageHandler
-from sitl.mavlink_io import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.mavlink_map import Autopilot as AutopilotType
+from fleetmpc.scenario import Site, VehicleSpec
+from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
+from fleetmpc.sitl.clock import Clock
+from fleetmpc.sitl.handlers import MessageHandler
+from fleetmpc.sitl.mavlink_io import (
     DecodeStats,
     FrameDecoder,
     Incoming,
@@ -31,8 +31,8 @@ from sitl.mavlink_io import (
     UdpLink,
     mavlink,
 )
-from sitl.plant import TruthPlant
-from sitl.telemetry import Identity, Snapshot, StreamSchedule, build, heartbeat, statustext
+from fleetmpc.sitl.plant import TruthPlant
+from fleetmpc.sitl.telemetry import Identity, Snapshot, StreamSchedule, build, heartbeat, statustext
 
 __all__ = ["ServerConfig", "UdpEndpoint", "VehicleServer"]
 

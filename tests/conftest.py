@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from helpers import ProcessGroup
 
-from protocol.scenario import Scenario, load_scenario
+from fleetmpc.scenario import Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,8 +17,8 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.scenario import Network
-from sitl.cli import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT
+from fleetmpc.scenario import Network
+from fleetmpc.sitl.cli import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT
 
 __all__ = [
     "ROOT",
@@ -236,8 +236,8 @@ class ProcessGroup:
         return child
 
     def fleetmpc(self, name: str, *args: str, env: dict[str, str] | None = None) -> Child:
-        """Start ``fleetmpc ARGS...`` (this interpreter's ``-m gcs.cli``) as child `name`."""
-        return self.start(name, [sys.executable, "-m", "gcs.cli", *args], env=env)
+        """Start ``fleetmpc ARGS...`` (this interpreter's ``-m fleetmpc.cli``) as child `name`."""
+        return self.start(name, [sys.executable, "-m", "fleetmpc.cli", *args], env=env)
 
     def __getitem__(self, name: str) -> Child:
         return self.children[name]

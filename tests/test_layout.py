@@ -25,5 +25,5 @@ def test_core_imports_are_banned(module, path):
 
 
 def test_runners_may_do_io():
-    out = _ban_check("gcs/lockstep.py", "import time\n")
+    out = _ban_check("sim/lockstep.py", "import time\n")
     assert out.returncode == 0, out.stdout

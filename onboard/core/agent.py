@@ -20,20 +20,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
-from onboard.core.dekf import DualEkf
-from onboard.core.formation import Formation, ReferenceCourse, course_rate_limit
-from onboard.core.lbmpc import QpData, TubeLbmpc
-from onboard.core.plan import Plan
-from onboard.core.separation import (
+from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
+from fleetmpc.onboard.core.dekf import DualEkf
+from fleetmpc.onboard.core.formation import Formation, ReferenceCourse, course_rate_limit
+from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.separation import (
     NO_PLANE,
     Plane,
     intersample_allowance,
     plane_slack,
     separation_planes,
 )
-from onboard.core.target_estimator import TargetEstimator
-from onboard.core.unicycle import advance, rollout, wrap
+from fleetmpc.onboard.core.target_estimator import TargetEstimator
+from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
+from fleetmpc.protocol.plan import Plan
 
 __all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_rate"]
 

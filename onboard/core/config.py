@@ -2,8 +2,8 @@
 
 from dataclasses import dataclass
 
-from onboard.core.errors import ConfigError
-from onboard.core.validate import finite, in_range, positive, vector
+from fleetmpc.errors import ConfigError
+from fleetmpc.validate import finite, in_range, positive, vector
 
 __all__ = ["ControllerSettings", "FormationSettings", "LearningSettings"]
 

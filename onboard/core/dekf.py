@@ -31,8 +31,14 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from onboard.core.config import LearningSettings
-from onboard.core.unicycle import step, step_jacobians, step_with_jacobians, wrap, wrap_angle
+from fleetmpc.onboard.core.config import LearningSettings
+from fleetmpc.onboard.core.unicycle import (
+    step,
+    step_jacobians,
+    step_with_jacobians,
+    wrap,
+    wrap_angle,
+)
 
 __all__ = ["DekfState", "DualEkf", "dekf_step", "initial_dekf_state"]
 

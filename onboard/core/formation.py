@@ -27,8 +27,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from onboard.core.config import FormationSettings
-from onboard.core.unicycle import wrap, wrap_angle
+from fleetmpc.onboard.core.config import FormationSettings
+from fleetmpc.onboard.core.unicycle import wrap, wrap_angle
 
 __all__ = [
     "Formation",

@@ -39,16 +39,16 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import blas
 
-from onboard.core.config import ControllerSettings
-from onboard.core.errors import InfeasibleError
-from onboard.core.sparse_qp import INFINITY, FixedPatternQp
-from onboard.core.tube import (
+from fleetmpc.errors import InfeasibleError
+from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.sparse_qp import INFINITY, FixedPatternQp
+from fleetmpc.onboard.core.tube import (
     cruise_linearization,
     dare_gain,
     position_tube_radius,
     robust_input_tightening,
 )
-from onboard.core.unicycle import wrap
+from fleetmpc.onboard.core.unicycle import wrap
 
 __all__ = ["QpData", "QpSolution", "TubeLbmpc"]
 

@@ -15,7 +15,7 @@ online is the maximum over headings.
 import numpy as np
 import scipy.linalg
 
-from onboard.core.unicycle import NOMINAL_BETA, step_jacobians
+from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, step_jacobians
 
 __all__ = [
     "cruise_linearization",

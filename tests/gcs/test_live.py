@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from gcs.bench_logging import period_messages
-from gcs.ground_station import GroundStation
-from gcs.live import LiveRecord
-from gcs.lockstep import run_lockstep
-from gcs.metrics import compute_metrics
-from gcs.recording import log_flight_record, open_recording
-from gcs.rrd_reader import read_recording
-from protocol.messages import NeighbourPlanAge, PlanMessage
+from fleetmpc.bench.telemetry import period_messages
+from fleetmpc.gcs.ground_station import GroundStation
+from fleetmpc.gcs.live import LiveRecord
+from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.gcs.recording import log_flight_record, open_recording
+from fleetmpc.gcs.rrd_reader import read_recording
+from fleetmpc.protocol.messages import NeighbourPlanAge, PlanMessage
+from fleetmpc.sim.lockstep import run_lockstep
 
 DURATION_S = 6.0
 

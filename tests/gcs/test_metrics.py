@@ -7,9 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from gcs.metrics import compute_metrics, corner_indices
-from gcs.record import FlightRecord
-from gcs.sim import format_summary
+from fleetmpc.gcs.metrics import compute_metrics, corner_indices, format_summary
+from fleetmpc.gcs.record import FlightRecord
 
 PERIOD_S = 0.5
 

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from gcs.cli import main
-from gcs.figures import FIGURE_FILES
-from gcs.lockstep import run_lockstep
-from gcs.metrics import compute_metrics, pair_indices
-from gcs.record import FlightRecord
-from gcs.recording import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, write_recording
-from gcs.report import METRICS_FILE
-from gcs.rrd_reader import RecordingError, read_recording
+from fleetmpc.cli import main
+from fleetmpc.gcs.figures import FIGURE_FILES
+from fleetmpc.gcs.metrics import compute_metrics, pair_indices
+from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.gcs.recording import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, write_recording
+from fleetmpc.gcs.report import METRICS_FILE
+from fleetmpc.gcs.rrd_reader import RecordingError, read_recording
+from fleetmpc.sim.lockstep import run_lockstep
 
 DURATION_S = 5.0
 

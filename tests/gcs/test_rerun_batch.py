@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from gcs.record import LiveRows
-from gcs.recording import _live_map
-from gcs.rerun_batch import ColumnBatch, send_batches
+from fleetmpc.gcs.record import LiveRows
+from fleetmpc.gcs.recording import _live_map
+from fleetmpc.gcs.rerun_batch import ColumnBatch, send_batches
 
 TIMELINE = "t"
 

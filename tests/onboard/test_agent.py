@@ -3,9 +3,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from onboard.core.agent import Agent, AgentInput
-from onboard.core.plan import Plan
-from protocol.scenario import Scenario
+from fleetmpc.onboard.core.agent import Agent, AgentInput
+from fleetmpc.protocol.plan import Plan
+from fleetmpc.scenario import Scenario
 
 PERIOD_NS = 200_000_000
 

@@ -6,9 +6,9 @@ import time
 
 from helpers import free_port_block
 
-from onboard.planbus import open_plan_bus
-from protocol.messages import GROUND_STATION_ID
-from protocol.zenoh_router import open_router
+from fleetmpc.onboard.planbus import open_plan_bus
+from fleetmpc.protocol.messages import GROUND_STATION_ID
+from fleetmpc.protocol.zenoh_router import open_router
 
 IDEAL = "tests/sitl/data/ideal.toml"
 

@@ -13,14 +13,14 @@ import pytest
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-from onboard.autopilot_link import (  # noqa: E402
+from fleetmpc.errors import ConfigError  # noqa: E402
+from fleetmpc.onboard.autopilot_link import (  # noqa: E402
     AutopilotLinkError,
     FakeAutopilotLink,
     MavlinkAutopilotLink,
     open_autopilot_link,
 )
-from onboard.core.errors import ConfigError  # noqa: E402
-from protocol.mavlink_map import (  # noqa: E402
+from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     Autopilot,
     FlightMode,
     base_mode,

@@ -3,9 +3,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from onboard.core.config import LearningSettings
-from onboard.core.dekf import DualEkf, dekf_step, initial_dekf_state
-from sitl.plant import TruthParams, TruthPlant, Wind
+from fleetmpc.onboard.core.config import LearningSettings
+from fleetmpc.onboard.core.dekf import DualEkf, dekf_step, initial_dekf_state
+from fleetmpc.sitl.plant import TruthParams, TruthPlant, Wind
 
 TAU = 0.2
 TRUTH = TruthParams(

@@ -3,7 +3,7 @@
 One flight of ``scenarios/mixed-autopilots.toml`` at x4 (vehicles 1 and 3 on the PX4 profile over
 UDP, vehicle 2 on the ArduPilot profile over TCP), from a copy whose ``[network]`` ports are free
 ones, so it never meets another fleet on this machine. The processes are the argument lists of
-`gcs.fleet.fleet_processes`: Zenoh router, target, three SITLs, three agents and the ground
+`fleetmpc.launch.fleet.fleet_processes`: Zenoh router, target, three SITLs, three agents and the ground
 station ``fleetmpc gcs`` (with ``--metrics``), every Zenoh member a client of the router. No
 process is given an epoch: the ground station announces it once every vehicle is armed and
 engaged, and the others wait for it. Two arguments are added:
@@ -47,19 +47,17 @@ from helpers import ROOT, ProcessGroup, live_processes_naming, scenario_on_free_
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
-from gcs.fleet import FleetOptions, fleet_processes  # noqa: E402
-from gcs.lockstep import run_lockstep  # noqa: E402
-from gcs.metrics import compute_metrics  # noqa: E402
-from onboard.core.plan import Plan  # noqa: E402
-from protocol.keys import epoch_key, plan_key  # noqa: E402
-from protocol.mavlink_map import (  # noqa: E402
+from fleetmpc.gcs.metrics import compute_metrics  # noqa: E402
+from fleetmpc.launch.fleet import FleetOptions, fleet_processes  # noqa: E402
+from fleetmpc.protocol.keys import epoch_key, plan_key  # noqa: E402
+from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     Autopilot,
     FlightMode,
     ModeFlag,
     mode_from_custom,
     ned_from_geodetic,
 )
-from protocol.messages import (  # noqa: E402
+from fleetmpc.protocol.messages import (  # noqa: E402
     SCHEMA_VERSION,
     DecodeError,
     FleetEpoch,
@@ -69,8 +67,10 @@ from protocol.messages import (  # noqa: E402
     decode,
     encode,
 )
-from protocol.scenario import Scenario, load_scenario  # noqa: E402
-from protocol.zenoh_config import ZenohOptions, endpoint  # noqa: E402
+from fleetmpc.protocol.plan import Plan  # noqa: E402
+from fleetmpc.protocol.zenoh_config import ZenohOptions, endpoint  # noqa: E402
+from fleetmpc.scenario import Scenario, load_scenario  # noqa: E402
+from fleetmpc.sim.lockstep import run_lockstep  # noqa: E402
 
 M = mavutil.mavlink
 SOURCE = ROOT / "scenarios" / "mixed-autopilots.toml"

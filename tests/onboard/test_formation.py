@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from onboard.core.config import FormationSettings
-from onboard.core.formation import (
+from fleetmpc.onboard.core.config import FormationSettings
+from fleetmpc.onboard.core.formation import (
     COURSE_GAIN_PER_S,
     SPEED_RESERVE,
     Formation,

@@ -2,9 +2,9 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
-from onboard.core.config import ControllerSettings
-from onboard.core.lbmpc import QpData, TubeLbmpc
-from onboard.core.unicycle import NOMINAL_BETA, linearize, rollout
+from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, linearize, rollout
 
 SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)
 

@@ -14,9 +14,8 @@ import pytest
 import zenoh
 from helpers import wait_until
 
-from onboard.core.errors import ConfigError
-from onboard.core.plan import Plan
-from onboard.planbus import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.planbus import (
     InMemoryPlanBus,
     MemoryHub,
     MemoryHubs,
@@ -25,8 +24,8 @@ from onboard.planbus import (
     PlanBusError,
     open_plan_bus,
 )
-from protocol.keys import plan_key, status_key, target_observation_key
-from protocol.messages import (
+from fleetmpc.protocol.keys import plan_key, status_key, target_observation_key
+from fleetmpc.protocol.messages import (
     LearnedParams,
     PlanMessage,
     PlanStatus,
@@ -36,7 +35,8 @@ from protocol.messages import (
     VehicleStatus,
     encode,
 )
-from protocol.zenoh_config import ZenohOptions
+from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.zenoh_config import ZenohOptions
 
 FLEET = "test"
 PERIOD_NS = 200_000_000
@@ -399,8 +399,8 @@ def test_zenoh_client_without_router_fails_with_plan_bus_error() -> None:
 EXIT_SCRIPT = """
 import sys, time
 import numpy as np
-from onboard.core.plan import Plan
-from onboard.planbus import open_plan_bus
+from fleetmpc.protocol.plan import Plan
+from fleetmpc.onboard.planbus import open_plan_bus
 base = int(sys.argv[1])
 plan = Plan(vehicle_id=1, stamp_ns=0, period_ns=1, states=np.zeros((2, 3)), inputs=np.zeros((1, 2)))
 a = open_plan_bus(f"zenoh://?listen=127.0.0.1:{base}", fleet="x", vehicle_id=1)

@@ -8,11 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from gcs.lockstep import build_agents
-from onboard.autopilot_link import FakeAutopilotLink
-from onboard.core.errors import ConfigError
-from onboard.planbus import InMemoryPlanBus, MemoryHubs
-from onboard.runner import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.autopilot_link import FakeAutopilotLink
+from fleetmpc.onboard.planbus import InMemoryPlanBus, MemoryHubs
+from fleetmpc.onboard.runner import (
     ClockSync,
     EpochMismatchError,
     FleetClock,
@@ -22,8 +21,9 @@ from onboard.runner import (
     gap_stats_ms,
     wind_down,
 )
-from protocol.mavlink_map import FlightMode
-from protocol.messages import GROUND_STATION_ID
+from fleetmpc.protocol.mavlink_map import FlightMode
+from fleetmpc.protocol.messages import GROUND_STATION_ID
+from fleetmpc.sim.lockstep import build_agents
 
 FLEET = "test"
 TARGET_ID = 250

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from onboard.core.separation import intersample_allowance, plane_slack, separation_planes
+from fleetmpc.onboard.core.separation import intersample_allowance, plane_slack, separation_planes
 
 coord = st.floats(-50.0, 50.0)
 NO_DRIFT = [(0.0, 0.0)] * 3

@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from onboard.core.target_estimator import TargetEstimator, turn_motion
-from sitl.target import TargetScript
+from fleetmpc.onboard.core.target_estimator import TargetEstimator, turn_motion
+from fleetmpc.sitl.target import TargetScript
 
 PERIOD_NS = 200_000_000
 

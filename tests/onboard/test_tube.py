@@ -3,10 +3,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.core.config import ControllerSettings
-from onboard.core.errors import InfeasibleError
-from onboard.core.lbmpc import TubeLbmpc
-from onboard.core.tube import (
+from fleetmpc.errors import InfeasibleError
+from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.lbmpc import TubeLbmpc
+from fleetmpc.onboard.core.tube import (
     cruise_linearization,
     dare_gain,
     heading_rotation,

@@ -2,7 +2,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.core.unicycle import (
+from fleetmpc.onboard.core.unicycle import (
     NOMINAL_BETA,
     continuous_jacobians,
     linearize,

@@ -5,8 +5,8 @@ import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
-from onboard.core.errors import ConfigError
-from protocol.keys import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.keys import (
     KeyFormatError,
     ParsedKey,
     all_plans_key,
@@ -19,7 +19,7 @@ from protocol.keys import (
     target_observation_key,
     validate_fleet,
 )
-from protocol.messages import MessageKind
+from fleetmpc.protocol.messages import MessageKind
 
 fleets = st.text(
     alphabet="abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-",

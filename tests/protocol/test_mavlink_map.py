@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
-from protocol.mavlink_map import (  # noqa: E402
+from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     COPTER_MODE_OF,
     EARTH_RADIUS_M,
     PX4_CUSTOM_MODE_OF,

@@ -9,9 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from onboard.core.errors import ConfigError
-from onboard.core.plan import Plan
-from protocol.messages import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.messages import (
     DecodeError,
     FleetEpoch,
     LearnedParams,
@@ -28,6 +27,7 @@ from protocol.messages import (
     decode_or_none,
     encode,
 )
+from fleetmpc.protocol.plan import Plan
 
 U32 = st.integers(0, 2**32 - 1)
 STAMP = st.integers(0, 2**63 - 1)

@@ -5,10 +5,15 @@ from pathlib import Path
 
 import pytest
 
-from onboard.core.errors import ConfigError
-from protocol.messages import GROUND_STATION_ID, TARGET_ID
-from protocol.scenario import parse_scenario
-from protocol.zenoh_config import ZenohOptions, endpoint, options_from_args, peer_mesh_index
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
+from fleetmpc.protocol.zenoh_config import (
+    ZenohOptions,
+    endpoint,
+    options_from_args,
+    peer_mesh_index,
+)
+from fleetmpc.scenario import parse_scenario
 
 
 def conf_json(options: ZenohOptions, key: str) -> object:

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from helpers import free_port, wait_until
 
-from onboard.core.errors import ConfigError
-from onboard.core.plan import Plan
-from onboard.planbus import open_plan_bus
-from protocol.zenoh_router import open_router, router_config
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.planbus import open_plan_bus
+from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.zenoh_router import open_router, router_config
 
 PERIOD_NS = 200_000_000
 
@@ -75,7 +75,7 @@ def test_two_clients_exchange_plans_and_targets_through_the_router() -> None:
 def test_router_command_line_serves_until_sigterm() -> None:
     port = free_port(socket.SOCK_STREAM)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "protocol.zenoh_router", "--port", str(port)],
+        [sys.executable, "-m", "fleetmpc.protocol.zenoh_router", "--port", str(port)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -113,7 +113,7 @@ def start_sitl(spawn) -> Iterator:
     """Start `fleetmpc sitl` on the ideal test scenario and wait until it is ready."""
 
     def _start(*args: str, scenario: Path = IDEAL_SCENARIO) -> tuple[Child, re.Match]:
-        argv = [sys.executable, "-m", "gcs.cli", "sitl", "--scenario", str(scenario), *args]
+        argv = [sys.executable, "-m", "fleetmpc.cli", "sitl", "--scenario", str(scenario), *args]
         child = spawn(argv)
         return child, child.wait_line(r"fleetmpc sitl: .* ready: (?P<endpoints>.*)")
 

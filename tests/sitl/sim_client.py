@@ -15,7 +15,7 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink import mavutil  # noqa: E402
 
-from protocol.mavlink_map import (  # noqa: E402
+from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     PX4_CUSTOM_MODE_OF,
     FlightMode,
     MavResult,

@@ -8,7 +8,7 @@ import re
 import pytest
 from sim_client import M, SimClient, horizontal_speed
 
-from protocol.mavlink_map import (
+from fleetmpc.protocol.mavlink_map import (
     CopterMode,
     FlightMode,
     Frame,

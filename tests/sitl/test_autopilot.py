@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.core.errors import ConfigError
-from protocol.mavlink_map import (
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.mavlink_map import (
     FlightMode,
     Frame,
     LandedState,
@@ -18,8 +18,8 @@ from protocol.mavlink_map import (
     encode_position_setpoint,
     encode_setpoint,
 )
-from sitl.autopilot import Autopilot, AutopilotConfig, Profile
-from sitl.clock import ManualClock
+from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
+from fleetmpc.sitl.clock import ManualClock
 
 TICK_NS = 20_000_000
 MS = 1_000_000

@@ -2,8 +2,8 @@
 
 import pytest
 
-from onboard.core.errors import ConfigError
-from sitl.clock import Clock, ManualClock, RealTimeClock
+from fleetmpc.errors import ConfigError
+from fleetmpc.sitl.clock import Clock, ManualClock, RealTimeClock
 
 
 def test_manual_clock_moves_only_when_told():

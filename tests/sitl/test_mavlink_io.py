@@ -6,15 +6,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.mavlink_map import (
+from fleetmpc.protocol.mavlink_map import (
     Frame,
     UnicycleDemand,
     decode_setpoint,
     encode_setpoint,
     setpoint_message_args,
 )
-from sitl.handlers import setpoint_fields
-from sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
+from fleetmpc.sitl.handlers import setpoint_fields
+from fleetmpc.sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
 
 
 def client_frame(message_of) -> bytes:

@@ -8,8 +8,8 @@ import sys
 import pytest
 from sim_client import IDEAL_SCENARIO, M, SimClient, free_port
 
-from onboard.core.errors import ConfigError
-from sitl.cli import add_arguments, build_config
+from fleetmpc.errors import ConfigError
+from fleetmpc.sitl.cli import add_arguments, build_config
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -158,7 +158,8 @@ def test_errors_exit_with_code_2_and_a_message(spawn, argv, message):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
         busy.bind(("127.0.0.1", 0))
         argv = [a.replace("{busy}", str(busy.getsockname()[1])) for a in argv]
-        child = spawn([sys.executable, "-m", "gcs.cli", "sitl", "--scenario", str(IDEAL_SCENARIO),
+        child = spawn([sys.executable, "-m", "fleetmpc.cli", "sitl",
+                       "--scenario", str(IDEAL_SCENARIO),
                        "--gcs-port", "0", "--offboard-port", str(free_port()), *argv])  # fmt: skip
         assert child.proc.wait(timeout=20) == 2
     child.stop()

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from onboard.core.errors import ConfigError
-from protocol.scenario import parse_scenario
-from sitl.target import TargetScript
+from fleetmpc.errors import ConfigError
+from fleetmpc.scenario import parse_scenario
+from fleetmpc.sitl.target import TargetScript
 
 EIGHT = TargetScript(
     kind="figure_eight", center_m=(10.0, -20.0), radius_m=60.0, period_s=410.0, start_angle_rad=0.3

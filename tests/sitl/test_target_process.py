@@ -6,11 +6,11 @@ import threading
 import pytest
 from helpers import free_port_block
 
-from onboard.core.errors import ConfigError
-from onboard.planbus import InMemoryPlanBus, MemoryHubs
-from protocol.messages import GROUND_STATION_ID, TARGET_ID
-from protocol.zenoh_router import open_router
-from sitl.target_process import wait_for_epoch
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.planbus import InMemoryPlanBus, MemoryHubs
+from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
+from fleetmpc.protocol.zenoh_router import open_router
+from fleetmpc.sitl.target_process import wait_for_epoch
 
 EPOCH_NS = 1_700_000_000_000_000_000
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.mavlink_map import (
+from fleetmpc.protocol.mavlink_map import (
     PX4_CUSTOM_MODE_OF,
     FlightMode,
     MavResult,
@@ -20,12 +20,12 @@ from protocol.mavlink_map import (
     px4_split_custom_mode,
     setpoint_message_args,
 )
-from protocol.scenario import load_scenario
-from sitl.autopilot import AutopilotConfig, Profile
-from sitl.clock import ManualClock
-from sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
-from sitl.telemetry import PX4_ONBOARD_RATES_HZ
-from sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
+from fleetmpc.scenario import load_scenario
+from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
+from fleetmpc.sitl.clock import ManualClock
+from fleetmpc.sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
+from fleetmpc.sitl.telemetry import PX4_ONBOARD_RATES_HZ
+from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 
 M = mavlink
 DATA = Path(__file__).parent / "data"

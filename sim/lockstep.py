@@ -12,11 +12,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from gcs.record import FlightRecord
-from onboard.core.agent import Agent, AgentInput, reference_course_rate
-from onboard.core.formation import Formation, TrueReference
-from protocol.scenario import Scenario
-from sitl.plant import TruthPlant
+from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.onboard.core.agent import Agent, AgentInput, reference_course_rate
+from fleetmpc.onboard.core.formation import Formation, TrueReference
+from fleetmpc.scenario import Scenario
+from fleetmpc.sitl.plant import TruthPlant
 
 __all__ = ["build_agents", "run_lockstep"]
 

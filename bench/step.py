@@ -21,7 +21,7 @@ Figures are wall-clock times on this machine, whose load is reported with them; 
 asserted (speed targets belong to the benchmark, not to unit tests).
 
 With `--baseline DIR`, instead: this tree's agent step and lockstep real-time factor against those
-of another checkout, side by side in one run (`gcs.bench_baseline`).
+of another checkout, side by side in one run (`fleetmpc.bench.baseline`).
 """
 
 import argparse
@@ -34,13 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs.ground_station import SERIES_FLUSH_S
-from gcs.lockstep import run_lockstep
-from onboard.core.dekf import DualEkf
-from onboard.core.errors import FleetMpcError
-from onboard.core.lbmpc import QpData, TubeLbmpc
-from onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
-from protocol.scenario import load_scenario
+from fleetmpc.errors import FleetMpcError
+from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
+from fleetmpc.onboard.core.dekf import DualEkf
+from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
+from fleetmpc.scenario import load_scenario
+from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["add_arguments", "load_average", "run"]
 
@@ -193,12 +193,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--baseline",
         metavar="DIR",
         help="instead: this tree's agent step and lockstep speed against those of another"
-        " checkout DIR, side by side, --repeats rounds of one run each (gcs.bench_baseline)",
+        " checkout DIR, side by side, --repeats rounds of one run each (fleetmpc.bench.baseline)",
     )
     parser.add_argument(
         "--gcs-logging",
         action="store_true",
-        help="instead: the ground station logging cost per vehicle-period (gcs.bench_logging)",
+        help="instead: the ground station logging cost per vehicle-period (fleetmpc.bench.telemetry)",
     )
     parser.add_argument(
         "--flush-s",
@@ -231,11 +231,11 @@ def run(args: argparse.Namespace) -> int:
     if args.baseline and args.gcs_logging:
         raise FleetMpcError("--baseline and --gcs-logging: one at a time")
     if args.baseline:
-        from gcs import bench_baseline
+        from fleetmpc.bench import baseline as bench_baseline
 
         return bench_baseline.run(args)
     if args.gcs_logging:
-        from gcs import bench_logging
+        from fleetmpc.bench import telemetry as bench_logging
 
         return bench_logging.run(args)
     sc = load_scenario(args.scenario)
@@ -245,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     # each vehicle's QPs in flight order.
     from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 
-    from onboard.core.agent import Agent
+    from fleetmpc.onboard.core.agent import Agent
 
     factors, step_ms = [], []
     step_calls: list[tuple[int, int]] = []

@@ -12,13 +12,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
-from onboard.core.errors import ConfigError
-from onboard.core.validate import finite, in_range, positive, vector
-from sitl.plant import TruthParams, Wind
-from sitl.target import TargetScript
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
+from fleetmpc.sitl.plant import TruthParams, Wind
+from fleetmpc.sitl.target import TargetScript
+from fleetmpc.validate import finite, in_range, positive, vector
 
 __all__ = [
+    "flight_time",
     "AUTOPILOTS",
     "Network",
     "Scenario",
@@ -336,3 +337,14 @@ def load_scenario(path: str | Path) -> Scenario:
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("scenario", f"{p} is not valid TOML: {e}") from None
     return parse_scenario(doc, source=str(p))
+
+
+def flight_time(scenario: Scenario, *, speed: float, duration_s: float | None) -> float:
+    """The flight time [s] of a launch (the scenario's without `duration_s`), after checking the
+    command line's ``--speed`` and ``--duration``."""
+    if not 0.01 <= speed <= 1000.0:
+        raise ConfigError("--speed", f"must be in [0.01, 1000], got {speed}")
+    duration = scenario.duration_s if duration_s is None else duration_s
+    if not duration > 0:
+        raise ConfigError("--duration", f"must be > 0, got {duration}")
+    return duration

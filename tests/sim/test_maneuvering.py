@@ -10,10 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from gcs.check import check_scenario
-from gcs.lockstep import run_lockstep
-from gcs.metrics import compute_metrics
-from gcs.suite import (
+from fleetmpc.gcs.check import check_scenario
+from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.scenario import load_scenario
+from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.sim.suite import (
     PAPER_SLOT_RMS_MAX_M,
     QP_FALLBACK_MAX_FRACTION,
     REVERSALS_MAX_PER_VEHICLE_MIN,
@@ -22,7 +23,6 @@ from gcs.suite import (
     fly,
     suite_tasks,
 )
-from protocol.scenario import load_scenario
 
 SCENARIOS = sorted(Path("scenarios").glob("*.toml"))
 

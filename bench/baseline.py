@@ -3,9 +3,10 @@
 Speed is quoted as a ratio measured in one run on one machine. DIR is another checkout of this
 repository (e.g. `git worktree add /tmp/base <commit>`). For each of `--repeats` rounds, each tree
 flies the scenario in a process of its own (`sys.executable` with PYTHONPATH and the working
-directory at the tree: both trees have the same package names), the two in turn and in
-alternating order, so that both see the same machine. A process flies a short warm-up, then the
-scenario with `gcs.lockstep.run_lockstep`, which both trees have, and reports the agent step
+directory at the tree), the two in turn and in alternating order, so that both see the same
+machine. A process flies a short warm-up, then the scenario with the tree's `run_lockstep`
+(`fleetmpc.sim.lockstep`, or `gcs.lockstep` in a checkout from before the `fleetmpc` package),
+and reports the agent step
 times its FlightRecord holds (`step_time_ms`, one per agent and period) and the wall time of the
 run. Per tree: the median and p99 of the agent steps of every round pooled, and the median of
 the rounds' real-time factors (simulated seconds per wall second); then this tree over the
@@ -21,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs.bench import load_average
-from onboard.core.errors import FleetMpcError
+from fleetmpc.bench.step import load_average
+from fleetmpc.errors import FleetMpcError
 
 __all__ = ["TARGETS", "THIS_TREE", "compare", "run"]
 
@@ -34,16 +35,22 @@ TARGETS = {"step_median_over_baseline": 1.5, "lockstep_realtime_factor": 100.0}
 lockstep at least 100x real time."""
 
 _CHILD = """
-import json, sys, time
-from gcs.lockstep import run_lockstep
-from protocol.scenario import load_scenario
+import json, os, sys, time
+if os.path.exists("fleetmpc/__init__.py"):  # one package whose parts are top-level folders
+    import fleetmpc
+    fleetmpc.__path__.append(os.getcwd())  # as pyproject's package-dir maps them
+    from fleetmpc.sim.lockstep import run_lockstep
+    from fleetmpc.scenario import load_scenario
+else:  # the layout before: one top-level package per part
+    from gcs.lockstep import run_lockstep
+    from protocol.scenario import load_scenario
 
 scenario = load_scenario(sys.argv[1])
 run_lockstep(scenario, duration_s=2.0)  # warm-up: a process's first steps pay for first calls
 t0 = time.perf_counter()
 record = run_lockstep(scenario)
 wall_s = time.perf_counter() - t0
-packages = ("gcs", "onboard", "protocol", "sitl")
+packages = ("fleetmpc", "gcs", "onboard", "protocol", "sitl")
 ours = [m for name, m in sys.modules.items() if name.split(".")[0] in packages]
 result = {
     "duration_s": scenario.duration_s,
@@ -90,10 +97,14 @@ def _describe(tree: Path) -> str:
 
 def _tree(path: str | Path, *, role: str) -> Path:
     tree = Path(path).resolve()
-    for name in ("gcs/lockstep.py", "protocol/scenario.py"):
-        if not (tree / name).is_file():
-            raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no {name})")
-    return tree
+    layouts = (
+        ("sim/lockstep.py", "fleetmpc/scenario.py"),
+        ("gcs/lockstep.py", "protocol/scenario.py"),
+    )
+    for names in layouts:
+        if all((tree / name).is_file() for name in names):
+            return tree
+    raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no sim/lockstep.py)")
 
 
 def _summary(reports: list[dict]) -> dict:
@@ -153,7 +164,7 @@ def compare(
 
 
 def run(args: argparse.Namespace) -> int:
-    from protocol.scenario import load_scenario
+    from fleetmpc.scenario import load_scenario
 
     sc = load_scenario(args.scenario)
     load_before = load_average()

@@ -1,7 +1,7 @@
 import pytest
 
-from onboard.core.errors import ConfigError
-from protocol.scenario import Network, load_scenario, mavlink_url, parse_scenario
+from fleetmpc.errors import ConfigError
+from fleetmpc.scenario import Network, load_scenario, mavlink_url, parse_scenario
 
 BASE = {
     "name": "t",

@@ -3,7 +3,7 @@
     fleetmpc compose scenarios/paper.toml -o docker/compose.yaml
     docker compose -f docker/compose.yaml up --abort-on-container-exit --exit-code-from gcs
 
-One service per process of `gcs.fleet.fleet_processes`, the list `fleetmpc up` starts, in the
+One service per process of `fleetmpc.launch.fleet.fleet_processes`, the list `fleetmpc up` starts, in the
 same order and with the same arguments: the Zenoh router, the target, ``sitl-<id>`` and
 ``agent-<id>`` for every vehicle, and the ground station ``gcs`` last. Every service runs the
 image's ``fleetmpc`` entry point with host networking (the scenario's loopback ports, see the
@@ -35,9 +35,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-from gcs.fleet import FleetOptions, ProcessSpec, fleet_processes
-from onboard.core.errors import ConfigError
-from protocol.scenario import Scenario, load_scenario, mavlink_url
+from fleetmpc.errors import ConfigError
+from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
+from fleetmpc.scenario import Scenario, load_scenario, mavlink_url
 
 __all__ = [
     "ComposeOptions",

@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcs.check import check_scenario
-from gcs.metrics import corner_indices
-from protocol.scenario import Scenario, load_scenario
+from fleetmpc.gcs.check import check_scenario
+from fleetmpc.gcs.metrics import corner_indices
+from fleetmpc.scenario import Scenario, load_scenario
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 FILES = sorted((ROOT / "scenarios").glob("*.toml"))
 
 SUITE = {  # name: (vehicles, horizon)

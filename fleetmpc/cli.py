@@ -11,24 +11,48 @@ import os
 import sys
 from types import ModuleType
 
-from onboard.core.errors import FleetMpcError
+from fleetmpc.errors import FleetMpcError
 
 __all__ = ["entry", "main"]
 
 # subcommand -> (module, one-line help)
 _COMMANDS: dict[str, tuple[str, str]] = {
-    "check": ("gcs.check", "feasibility report of a scenario, before anything flies"),
-    "sim": ("gcs.sim", "in-process lockstep simulation of a whole fleet"),
-    "bench": ("gcs.bench", "per-agent step timing against a cvxpy rebuild, and lockstep speed"),
-    "suite": ("gcs.suite", "fly every scenario of a folder over seeds, learning on and off; gates"),
-    "sitl": ("sitl.cli", "one simulated vehicle behind a PX4 or ArduPilot MAVLink interface"),
-    "agent": ("onboard.cli", "the onboard agent of one vehicle: MAVLink autopilot + Zenoh plans"),
-    "target": ("sitl.target_process", "fly the scripted target and publish its observations"),
-    "zenoh-router": ("protocol.zenoh_router", "a Zenoh router for a fleet (compose, multi-host)"),
-    "report": ("gcs.report", "figures and metrics from a Rerun recording (.rrd)"),
-    "gcs": ("gcs.ground_station", "ground station: telemetry, plans and metrics into Rerun"),
-    "up": ("gcs.up", "start a whole fleet on this machine, watch it, bring it down"),
-    "compose": ("gcs.compose", "the fleet as a docker compose file (one service per process)"),
+    "check": ("fleetmpc.gcs.check", "feasibility report of a scenario, before anything flies"),
+    "sim": ("fleetmpc.sim.simulate", "in-process lockstep simulation of a whole fleet"),
+    "bench": (
+        "fleetmpc.bench.step",
+        "per-agent step timing against a cvxpy rebuild, and lockstep speed",
+    ),
+    "suite": (
+        "fleetmpc.sim.suite",
+        "fly every scenario of a folder over seeds, learning on and off; gates",
+    ),
+    "sitl": (
+        "fleetmpc.sitl.cli",
+        "one simulated vehicle behind a PX4 or ArduPilot MAVLink interface",
+    ),
+    "agent": (
+        "fleetmpc.onboard.cli",
+        "the onboard agent of one vehicle: MAVLink autopilot + Zenoh plans",
+    ),
+    "target": (
+        "fleetmpc.sitl.target_process",
+        "fly the scripted target and publish its observations",
+    ),
+    "zenoh-router": (
+        "fleetmpc.protocol.zenoh_router",
+        "a Zenoh router for a fleet (compose, multi-host)",
+    ),
+    "report": ("fleetmpc.gcs.report", "figures and metrics from a Rerun recording (.rrd)"),
+    "gcs": (
+        "fleetmpc.gcs.ground_station",
+        "ground station: telemetry, plans and metrics into Rerun",
+    ),
+    "up": ("fleetmpc.launch.up", "start a whole fleet on this machine, watch it, bring it down"),
+    "compose": (
+        "fleetmpc.launch.compose",
+        "the fleet as a docker compose file (one service per process)",
+    ),
 }
 
 
@@ -38,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """The console script (and ``python -m gcs.cli``): `main`, then exit with its status.
+    """The console script (and ``python -m fleetmpc.cli``): `main`, then exit with its status.
 
     A fleet process (its module sets ``EXIT_WITHOUT_TEARDOWN``: agent, gcs, target, sitl,
     zenoh-router, and `up`, which stops them) has closed and flushed everything it wrote when

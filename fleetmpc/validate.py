@@ -3,7 +3,7 @@
 import math
 from collections.abc import Sequence
 
-from onboard.core.errors import ConfigError
+from fleetmpc.errors import ConfigError
 
 __all__ = ["finite", "in_range", "positive", "vector"]
 

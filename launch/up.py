@@ -2,7 +2,7 @@
 
     fleetmpc up scenarios/paper.toml --speed 4 --viewer spawn
 
-Starts the processes of `gcs.fleet.fleet_processes` (Zenoh router, target, one SITL and one
+Starts the processes of `fleetmpc.launch.fleet.fleet_processes` (Zenoh router, target, one SITL and one
 agent per vehicle, the ground station) as separate OS processes on loopback, each in its own
 session so a Ctrl-C reaches only this launcher, which then stops them in order. Every process
 writes ``<run-dir>/logs/<name>.log``. While the fleet flies, a status table shows each vehicle's
@@ -34,16 +34,16 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-from gcs.fleet import FleetOptions, ProcessSpec, fleet_processes, flight_time
-from gcs.ground_station import FLUSH_S, SERIES_FLUSH_S
-from gcs.sim import format_summary
-from onboard.core.errors import ConfigError
-from protocol.scenario import load_scenario
+from fleetmpc.errors import ConfigError
+from fleetmpc.gcs.ground_station import FLUSH_S, SERIES_FLUSH_S
+from fleetmpc.gcs.metrics import format_summary
+from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
+from fleetmpc.scenario import flight_time, load_scenario
 
 __all__ = ["add_arguments", "run"]
 
 EXIT_WITHOUT_TEARDOWN = True
-"""Its children are stopped and its files closed when `run` returns (see `gcs.cli.entry`)."""
+"""Its children are stopped and its files closed when `run` returns (see `fleetmpc.cli.entry`)."""
 
 _STOP_ORDER = (("gcs",), ("agent", "target"), ("sitl", "router"))
 """Shutdown stages: the ground station (it closes the recording), then the agents (they command
@@ -119,7 +119,7 @@ class Fleet:
         log = self.logs / f"{spec.name}.log"
         with open(log, "w") as out:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "gcs.cli", *spec.argv],
+                [sys.executable, "-m", "fleetmpc.cli", *spec.argv],
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import pytest
 
-from gcs.cli import main
-from gcs.compose import ComposeOptions, compose_document, compose_yaml
-from gcs.fleet import FleetOptions, fleet_processes
-from onboard.core.errors import ConfigError
-from protocol.scenario import load_scenario
+from fleetmpc.cli import main
+from fleetmpc.errors import ConfigError
+from fleetmpc.launch.compose import ComposeOptions, compose_document, compose_yaml
+from fleetmpc.launch.fleet import FleetOptions, fleet_processes
+from fleetmpc.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -46,7 +46,7 @@ class Up:
         self.out_path = run_dir.parent / f"{run_dir.name}.out"
         self.err_path = run_dir.parent / f"{run_dir.name}.err"
         argv = [
-            sys.executable, "-m", "gcs.cli", "up", str(scenario),
+            sys.executable, "-m", "fleetmpc.cli", "up", str(scenario),
             "--speed", f"{SPEED:g}", "--viewer", "none", "--quiet", "--run-dir", str(run_dir),
             *extra,
         ]  # fmt: skip
@@ -136,7 +136,7 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     # `report` regenerates the figures and the metrics from the recording alone.
     out = tmp_path / "report"
     done = subprocess.run(
-        [sys.executable, "-m", "gcs.cli", "report", str(rrd), "--out", str(out)],
+        [sys.executable, "-m", "fleetmpc.cli", "report", str(rrd), "--out", str(out)],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from gcs.check import check_scenario
-from gcs.lockstep import run_lockstep
-from gcs.metrics import compute_metrics
+from fleetmpc.gcs.check import check_scenario
+from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.sim.lockstep import run_lockstep
 
 
 @pytest.fixture(scope="module")

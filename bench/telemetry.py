@@ -43,13 +43,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gcs.ground_station import GroundStation, series_every
-from gcs.lockstep import run_lockstep
-from gcs.record import FlightRecord
-from gcs.recording import open_recording
-from onboard.core.errors import FleetMpcError
-from onboard.core.plan import Plan
-from protocol.messages import (
+from fleetmpc.errors import FleetMpcError
+from fleetmpc.gcs.ground_station import GroundStation, series_every
+from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.gcs.recording import open_recording
+from fleetmpc.protocol.messages import (
     TARGET_ID,
     LearnedParams,
     PlanMessage,
@@ -58,7 +56,9 @@ from protocol.messages import (
     TargetObservation,
     VehicleStatus,
 )
-from protocol.scenario import load_scenario
+from fleetmpc.protocol.plan import Plan
+from fleetmpc.scenario import load_scenario
+from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["TARGET_FRACTION", "PeriodMessages", "period_messages", "run"]
 

@@ -36,11 +36,11 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
-from gcs.check import check_scenario
-from gcs.lockstep import run_lockstep
-from gcs.metrics import compute_metrics
-from onboard.core.errors import ConfigError
-from protocol.scenario import Scenario, load_scenario
+from fleetmpc.errors import ConfigError
+from fleetmpc.gcs.check import check_scenario
+from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = [
     "CORNER_RECOVERY_MAX_S",

@@ -5,11 +5,12 @@ from pathlib import Path
 
 import pytest
 
-from gcs import ground_station, up
-from gcs.fleet import FleetOptions, fleet_processes
-from gcs.ground_station import FLUSH_S, SERIES_FLUSH_S, series_every
-from onboard.core.errors import ConfigError
-from protocol.scenario import load_scenario
+from fleetmpc.errors import ConfigError
+from fleetmpc.gcs import ground_station
+from fleetmpc.gcs.ground_station import FLUSH_S, SERIES_FLUSH_S, series_every
+from fleetmpc.launch import up
+from fleetmpc.launch.fleet import FleetOptions, fleet_processes
+from fleetmpc.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 

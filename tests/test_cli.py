@@ -3,10 +3,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from gcs.cli import main
-from gcs.figures import FIGURE_FILES
+from fleetmpc.cli import main
+from fleetmpc.gcs.figures import FIGURE_FILES
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 
 KEYS = {
     "scenario",
@@ -94,7 +94,7 @@ def test_a_fleet_process_exits_without_teardown_and_loses_no_output(tmp_path):
     code = (
         "import atexit, sys; atexit.register(lambda: print('atexit ran'))\n"
         f"sys.argv[1:] = ['target', '--scenario', {missing!r}]\n"
-        "from gcs.cli import entry; entry()"
+        "from fleetmpc.cli import entry; entry()"
     )
     done = subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60

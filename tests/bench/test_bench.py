@@ -5,13 +5,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcs.bench import _cvxpy_rebuild, _input_bounds
-from gcs.bench_baseline import THIS_TREE, compare
-from gcs.cli import main
-from onboard.core.config import ControllerSettings
-from onboard.core.errors import FleetMpcError
-from onboard.core.lbmpc import QpData, TubeLbmpc
-from onboard.core.unicycle import rollout
+from fleetmpc.bench.baseline import THIS_TREE, compare
+from fleetmpc.bench.step import _cvxpy_rebuild, _input_bounds
+from fleetmpc.cli import main
+from fleetmpc.errors import FleetMpcError
+from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.unicycle import rollout
 
 SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)
 

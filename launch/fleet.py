@@ -14,10 +14,9 @@ engaged, and the target and the agents wait for it (`--wait-epoch`).
 from dataclasses import dataclass
 from pathlib import PurePath
 
-from onboard.core.errors import ConfigError
-from protocol.scenario import Scenario
+from fleetmpc.scenario import Scenario
 
-__all__ = ["FleetOptions", "ProcessSpec", "fleet_processes", "flight_time"]
+__all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
 
 
 @dataclass(frozen=True)
@@ -99,14 +98,3 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
             gcs += [flag, value]
     procs.append(ProcessSpec("gcs", tuple(gcs), "gcs"))
     return procs
-
-
-def flight_time(scenario: Scenario, *, speed: float, duration_s: float | None) -> float:
-    """The flight time [s] of a launch (the scenario's without `duration_s`), after checking the
-    command line's ``--speed`` and ``--duration``."""
-    if not 0.01 <= speed <= 1000.0:
-        raise ConfigError("--speed", f"must be in [0.01, 1000], got {speed}")
-    duration = scenario.duration_s if duration_s is None else duration_s
-    if not duration > 0:
-        raise ConfigError("--duration", f"must be > 0, got {duration}")
-    return duration

@@ -1,0 +1,77 @@
+"""`fleetmpc sim SCENARIO`: the whole fleet in one process, in lockstep.
+
+Deterministic for a seed."""
+
+import argparse
+import json
+from pathlib import Path
+
+from fleetmpc.errors import ConfigError
+from fleetmpc.gcs.check import check_scenario
+from fleetmpc.gcs.figures import write_figures
+from fleetmpc.gcs.metrics import compute_metrics, format_summary
+from fleetmpc.gcs.progress import ProgressBar
+from fleetmpc.gcs.recording import write_recording
+from fleetmpc.scenario import load_scenario
+from fleetmpc.sim.lockstep import run_lockstep
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", help="scenario TOML file")
+    parser.add_argument(
+        "--no-learning", action="store_true", help="freeze beta at nominal (plain tube MPC)"
+    )
+    parser.add_argument(
+        "--duration", type=float, metavar="S", help="simulated seconds (default: the scenario's)"
+    )
+    parser.add_argument(
+        "--seed", type=int, metavar="N", help="random seed (default: the scenario's)"
+    )
+    parser.add_argument("--metrics", metavar="FILE", help="write the metrics as JSON")
+    parser.add_argument("--plots", metavar="DIR", help="write the paper's figures as PNG")
+    parser.add_argument(
+        "--rrd",
+        metavar="FILE",
+        help="write the run as a Rerun recording (`fleetmpc report` reads it)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    sc = load_scenario(args.scenario)
+    if args.duration is not None and not args.duration > 0:
+        raise ConfigError("--duration", f"must be > 0, got {args.duration}")
+    report = check_scenario(sc)
+    if not report.feasible:
+        print("WARNING: this scenario is infeasible; the run will show it:")
+        for p in report.problems:
+            print(f"  - {p}")
+    duration = sc.duration_s if args.duration is None else args.duration
+    bar = None if args.quiet else ProgressBar(f"sim {sc.name}")
+    rec = run_lockstep(
+        sc, learning=not args.no_learning, duration_s=duration, seed=args.seed, progress=bar
+    )
+    metrics = {
+        "scenario": sc.name,
+        "learning": not args.no_learning and sc.learning.enabled,
+        "feasible": report.feasible,
+        "duration_s": float(rec.t_s[-1]),
+        "seed": sc.seed if args.seed is None else args.seed,
+        **compute_metrics(rec),
+    }
+    print(format_summary(metrics))
+    if args.metrics:
+        path = Path(args.metrics)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(metrics, indent=2) + "\n")
+        print(f"metrics: {path}")
+    if args.plots:
+        for p in write_figures(rec, args.plots):
+            print(f"figure: {p}")
+    if args.rrd:
+        run_info = {k: metrics[k] for k in ("learning", "feasible", "seed")}
+        rid = write_recording(rec, args.rrd, run_info=run_info)
+        print(f"recording: {args.rrd} (id {rid})")
+    return 0
