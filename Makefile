@@ -22,9 +22,13 @@ demo: $(STAMP)
 	$(BIN)/fleetmpc up scenarios/paper.toml --run-dir runs/demo
 	$(BIN)/fleetmpc report runs/demo/run.rrd --out runs/demo/report
 
+# The layer contracts (pyproject.toml's [tool.importlinter]) read fleetmpc as one folder: a view
+# of links made from its package-dir mapping.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/python tools/import_view.py build/import-view
+	cd build/import-view && $(abspath $(BIN))/lint-imports --no-cache $(CURDIR)/pyproject.toml
 
 test: lint
 	$(BIN)/python -m pytest -q
@@ -33,6 +37,7 @@ test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
 bench: $(STAMP)
+	$(BIN)/pip install --quiet -e '.[bench]'
 	$(BIN)/fleetmpc bench scenarios/paper.toml
 
 # docker/compose.yaml is `fleetmpc compose scenarios/paper.toml`; compose-file regenerates it.

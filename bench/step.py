@@ -198,7 +198,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--gcs-logging",
         action="store_true",
-        help="instead: the ground station logging cost per vehicle-period (fleetmpc.bench.telemetry)",
+        help="instead: the ground station logging cost per vehicle-period"
+        " (fleetmpc.bench.telemetry)",
     )
     parser.add_argument(
         "--flush-s",

@@ -4,8 +4,8 @@ Checks, each reported with its numbers:
 - the tube-tightened input sets U ⊖ K R_j are non-empty (else the controller cannot start);
 - speed: every slot's required airspeed over the run (target motion, the outer vehicle's extra
   speed in turns, and the wind and effectiveness the scenario's truth states) fits inside the
-  tightened speed bound — otherwise the target outruns the team. The slots are the ones the
-  agents fly: the formation at its rate-limited reference course (`onboard.core.formation`);
+  tightened speed bound — otherwise the target outruns the team. The slots are the ones the agents
+  fly: the formation at its rate-limited reference course (`fleetmpc.onboard.core.formation`);
 - turn rate: every slot's required yaw rate (its turn over YAW_RATE_WINDOW_S) fits inside the
   tightened yaw-rate bound, except at
   the target's sharp corners (a waypoint), where the slots' velocities turn at once and no

@@ -8,36 +8,34 @@ What it does, in order:
 1. listens for every vehicle's MAVLink telemetry on the ground-station port (default
    ``udpin:HOST:network.gcs_port``) and joins the fleet's Zenoh bus (a client of a router with
    ``--zenoh-connect``, else the ground station's member of the fleet's peer mesh,
-   `protocol.zenoh_config.options_from_args`);
+   `fleetmpc.protocol.zenoh_config.options_from_args`);
 2. waits until every vehicle's HEARTBEAT shows it armed and engaged (PX4 OFFBOARD, ArduPilot
    GUIDED), then announces the fleet epoch (``now + --lead`` on the wall clock) on
    ``fleetmpc/<fleet>/epoch`` every half second, so the target and the agents start together
    (with ``--epoch-ns`` the fleet already has an epoch: it is used and not announced);
 3. records positions (GLOBAL_POSITION_INT, stamped in fleet time through each vehicle's
-   ``time_boot_ms``), plans, statuses and target observations into a `gcs.live.LiveRecord` and
-   logs them to Rerun in batches (the entity layout of `gcs.recording`), teed to an ``.rrd`` file
-   and/or a viewer; mode changes and STATUSTEXT become events;
-   every ``--flush-s`` seconds of flight (default 4: every 4 / ``--speed`` wall seconds),
-   logging the map of the periods completed since the previous flush, and every
-   ``--series-flush-s`` seconds of flight (default 4: with every flush) the time series and
-   the flight_record rows of the periods since their previous logging, all of them in the last
-   flush. A logging call costs per column and entity, not per row, so the intervals are
-   counted in flight, not wall, time: what logging costs per vehicle and control period is
-   then the same at every speed, and bigger batches of what need not be seen at once cost
-   less. The bus is drained with every status snapshot too, so the status table is as fresh
-   whatever the interval. In the metrics, per vehicle-period: the Rerun calls as
+   ``time_boot_ms``), plans, statuses and target observations into a `fleetmpc.gcs.live.LiveRecord`
+   and logs them to Rerun in batches (the entity layout of `fleetmpc.gcs.recording`), teed to an
+   ``.rrd`` file and/or a viewer; mode changes and STATUSTEXT become events; every ``--flush-s``
+   seconds of flight (default 4: every 4 / ``--speed`` wall seconds), logging the map of the periods
+   completed since the previous flush, and every ``--series-flush-s`` seconds of flight (default 4:
+   with every flush) the time series and the flight_record rows of the periods since their previous
+   logging, all of them in the last flush. A logging call costs per column and entity, not per row,
+   so the intervals are counted in flight, not wall, time: what logging costs per vehicle and
+   control period is then the same at every speed, and bigger batches of what need not be seen at
+   once cost less. The bus is drained with every status snapshot too, so the status table is as
+   fresh whatever the interval. In the metrics, per vehicle-period: the Rerun calls as
    ``gcs_log_ms_per_vehicle_period``, building the record's new periods for them as
-   ``gcs_record_ms_per_vehicle_period`` (without logging the record is built once, for the
-   metrics, at the end; ``fleetmpc bench --gcs-logging`` measures what the flushes' builds
-   cost beyond that build), the whole flush, the bus drained too, as
-   ``gcs_flush_ms_per_vehicle_period``; the first two together as
-   ``gcs_logging_ms_per_vehicle_period``: the median of its logging cycles (the flushes up to
-   one that logs the time series; a median, as the agents' step is, so that a flush the host
-   happened to preempt does not stand for the run), the whole run's, and the CPU time the
-   Rerun SDK's own threads spent batching, encoding and writing it (Linux; from the first
-   logged period to the end of the recording); and the median and those threads' time
-   together over the agents' step median (the live run's, from their plans) as
-   ``gcs_logging_share_of_agent_step``, which the summary shows;
+   ``gcs_record_ms_per_vehicle_period`` (without logging the record is built once, for the metrics,
+   at the end; ``fleetmpc bench --gcs-logging`` measures what the flushes' builds cost beyond that
+   build), the whole flush, the bus drained too, as ``gcs_flush_ms_per_vehicle_period``; the first
+   two together as ``gcs_logging_ms_per_vehicle_period``: the median of its logging cycles (the
+   flushes up to one that logs the time series; a median, as the agents' step is, so that a flush
+   the host happened to preempt does not stand for the run), the whole run's, and the CPU time the
+   Rerun SDK's own threads spent batching, encoding and writing it (Linux; from the first logged
+   period to the end of the recording); and the median and those threads' time together over the
+   agents' step median (the live run's, from their plans) as ``gcs_logging_share_of_agent_step``,
+   which the summary shows;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time; then up to 2 s of wall time more, until the telemetry of the
    last periods is in) or on SIGINT/SIGTERM: finishes the recording, prints the same summary as

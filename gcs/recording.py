@@ -1,15 +1,14 @@
 """A flight record as a Rerun recording (`.rrd`): a map, time series, events and a blueprint.
 
-Everything is logged column-wise on the `sim_time` timeline, a duration in integer nanoseconds:
-the component columns of every entity that shares a time index are built straight as Arrow arrays
-(`gcs.rerun_batch.ColumnBatch`) into one record batch, which Rerun splits into one chunk per
-entity, and all the chunks of a call go out in one `rr.send_chunks` (no `send_columns` per
-entity, no archetype conversions). A call costs per column (some 25 us for Rerun to make it, and
-as much to build its Arrow array) and per entity (some 15 us to send its chunk), hardly per row,
-so the vehicles of a fleet share entities, one instance or one line each, and a growing record
-is logged in slices: its map (`start`) every slice, its time series and flight_record rows
-(`series_start`) in bigger ones if the caller likes. Entity layout (a live ground station logs
-the same paths):
+Everything is logged column-wise on the `sim_time` timeline, a duration in integer nanoseconds: the
+component columns of every entity that shares a time index are built straight as Arrow arrays
+(`fleetmpc.gcs.rerun_batch.ColumnBatch`) into one record batch, which Rerun splits into one chunk
+per entity, and all the chunks of a call go out in one `rr.send_chunks` (no `send_columns` per
+entity, no archetype conversions). A call costs per column (some 25 us for Rerun to make it, and as
+much to build its Arrow array) and per entity (some 15 us to send its chunk), hardly per row, so the
+vehicles of a fleet share entities, one instance or one line each, and a growing record is logged in
+slices: its map (`start`) every slice, its time series and flight_record rows (`series_start`) in
+bigger ones if the caller likes. Entity layout (a live ground station logs the same paths):
 
 - `map/vehicles`: every vehicle's position (Points2D) and heading (Arrows2D), one instance
   per vehicle in fleet order, coloured and labelled by a static logged once;
@@ -30,7 +29,7 @@ the same paths):
   `series/plan_age` [s] (one line per vehicle and neighbour) and `series/setpoint_rate` [Hz];
 - `meta` (static AnyValues) and `flight_record` (AnyValues: one `periods` column, a float64
   list per period that packs every per-period FlightRecord field in `record_layout`'s order):
-  what `gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
+  what `fleetmpc.gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
 
 Map frame: the viewer's 2-D x is East and its y is South (the viewer's y points down), so North
 is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that conversion lives.

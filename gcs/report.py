@@ -1,6 +1,6 @@
 """`fleetmpc report RUN.rrd --out DIR`: the paper's figures and the metrics from a recording.
 
-The recording is read back into a FlightRecord (`gcs.rrd_reader`), then the same
+The recording is read back into a FlightRecord (`fleetmpc.gcs.rrd_reader`), then the same
 `write_figures` and `compute_metrics` as `fleetmpc sim` run on it.
 """
 

@@ -1,10 +1,10 @@
-"""Rebuild a FlightRecord from a Rerun recording written by `gcs.recording`.
+"""Rebuild a FlightRecord from a Rerun recording written by `fleetmpc.gcs.recording`.
 
 Reads the `meta` and `flight_record` entities with rerun-sdk's chunk reader
 (`rr.chunk.RrdReader(path).stream()`); each `flight_record` row is unpacked by
-`gcs.recording.record_layout`, the float64 arrays come back bit for bit, and the sample times as
-`sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`). The run's minimum separation is
-the newest row's `min_separation_known_m` (a live recording grows in slices).
+`fleetmpc.gcs.recording.record_layout`, the float64 arrays come back bit for bit, and the sample
+times as `sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`). The run's minimum separation
+is the newest row's `min_separation_known_m` (a live recording grows in slices).
 """
 
 import json
@@ -51,7 +51,8 @@ def _rows(column: pa.Array) -> list[np.ndarray]:
 
 
 def read_recording(path: str | Path) -> RecordingRun:
-    """Read a `.rrd` written by `gcs.recording.write_recording` back into a FlightRecord."""
+    """Read a `.rrd` written by `fleetmpc.gcs.recording.write_recording` back into a
+    FlightRecord."""
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"{p}: no such recording")

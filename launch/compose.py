@@ -3,15 +3,15 @@
     fleetmpc compose scenarios/paper.toml -o docker/compose.yaml
     docker compose -f docker/compose.yaml up --abort-on-container-exit --exit-code-from gcs
 
-One service per process of `fleetmpc.launch.fleet.fleet_processes`, the list `fleetmpc up` starts, in the
-same order and with the same arguments: the Zenoh router, the target, ``sitl-<id>`` and
+One service per process of `fleetmpc.launch.fleet.fleet_processes`, the list `fleetmpc up` starts,
+in the same order and with the same arguments: the Zenoh router, the target, ``sitl-<id>`` and
 ``agent-<id>`` for every vehicle, and the ground station ``gcs`` last. Every service runs the
 image's ``fleetmpc`` entry point with host networking (the scenario's loopback ports, see the
-``fleetmpc.*`` labels), ``init: true`` (signals reach the process; no zombie is left), and the
-one locally built image with ``pull_policy: never``: the router's service carries the ``build``
-section (context: the repository root, for a file in ``docker/``), so the first ``up`` builds
-the image and nothing is ever pulled. The router is healthy once its TCP port accepts;
-everything else starts after that, each agent after its SITL, the ground station last.
+``fleetmpc.*`` labels), ``init: true`` (signals reach the process; no zombie is left), and the one
+locally built image with ``pull_policy: never``: the router's service carries the ``build`` section
+(context: the repository root, for a file in ``docker/``), so the first ``up`` builds the image and
+nothing is ever pulled. The router is healthy once its TCP port accepts; everything else starts
+after that, each agent after its SITL, the ground station last.
 
 Differences from `fleetmpc up`, all forced by compose:
 

@@ -4,14 +4,14 @@
         --zenoh-connect 127.0.0.1:7447 --wait-epoch --speed 4
 
 MAVLink: ``--mavlink URL`` (any pymavlink URL), by default the vehicle's SITL as the scenario
-describes it (`protocol.scenario.mavlink_url`: PX4 ``udpin:HOST:14540 + I - 1``, ArduPilot
+describes it (`fleetmpc.scenario.mavlink_url`: PX4 ``udpin:HOST:14540 + I - 1``, ArduPilot
 ``tcp:HOST:5760 + 10 (I - 1)``). Zenoh: by default a member of the fleet's full peer mesh on
-explicit endpoints (`protocol.zenoh_config.options_from_args`), scouting off;
-``--zenoh-connect`` makes a client of a router, ``--zenoh-config FILE`` loads a Zenoh config
-file. Fleet time (`onboard.runner`): ``--epoch-ns`` gives the epoch, ``--wait-epoch`` takes the
-first one the ground station announces on the bus; the agent connects, streams and engages
-either way, and steps once the epoch is known. An announced speed other than ``--speed`` is an
-error (exit 2). SIGINT/SIGTERM: hold the vehicle where it is (`onboard.runner.wind_down`: position
+explicit endpoints (`fleetmpc.protocol.zenoh_config.options_from_args`), scouting off;
+``--zenoh-connect`` makes a client of a router, ``--zenoh-config FILE`` loads a Zenoh config file.
+Fleet time (`fleetmpc.onboard.runner`): ``--epoch-ns`` gives the epoch, ``--wait-epoch`` takes the
+first one the ground station announces on the bus; the agent connects, streams and engages either
+way, and steps once the epoch is known. An announced speed other than ``--speed`` is an error (exit
+2). SIGINT/SIGTERM: hold the vehicle where it is (`fleetmpc.onboard.runner.wind_down`: position
 setpoints for 50 ms, then HOLD), close the Zenoh session and the link, print a JSON summary on
 stdout, exit 0.
 """

@@ -5,7 +5,7 @@ One small interface, chosen by URL with `open_plan_bus`:
 - ``mem://NAME``: `InMemoryPlanBus` on the `MemoryHub` called NAME of a `MemoryHubs` registry the
   runner owns; synchronous and deterministic (lockstep simulation, tests);
 - ``zenoh`` / ``zenoh://HOST:PORT?...`` (or a `ZenohOptions`): `ZenohPlanBus`, see
-  `protocol.zenoh_config` for the URL form.
+  `fleetmpc.protocol.zenoh_config` for the URL form.
 
 Receive-side rules, the same for every implementation: a payload on an unknown key, or that does
 not decode, or whose sender differs from the id in its key, is rejected and counted by reason; a
@@ -528,8 +528,8 @@ def open_plan_bus(
 ) -> PlanBus:
     """Open the PlanBus a URL names: ``mem://NAME`` (needs `hubs`), ``zenoh[://...]``.
 
-    A `protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL. `on_accept`: see
-    the module docstring.
+    A `fleetmpc.protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL.
+    `on_accept`: see the module docstring.
     """
     if isinstance(url_or_options, str) and url_or_options.startswith("mem://"):
         if hubs is None:
@@ -565,18 +565,20 @@ def open_fleet_bus(
 ) -> PlanBus:
     """The Zenoh plan bus of a fleet process, as its command line asks for it.
 
-    `args` holds ``zenoh_config``, ``zenoh_connect`` and ``fleet`` (the options every fleet
-    process takes; `protocol.zenoh_config.options_from_args` says what they mean); the fleet name
+    `args` holds ``zenoh_config``, ``zenoh_connect`` and ``fleet`` (the options every fleet process
+    takes; `fleetmpc.protocol.zenoh_config.options_from_args` says what they mean); the fleet name
     defaults to the scenario's, and `sender_id` is both the bus identity and the peer-mesh member
-    (`protocol.zenoh_config.peer_mesh_index`).
+    (`fleetmpc.protocol.zenoh_config.peer_mesh_index`).
     """
     from fleetmpc.protocol.zenoh_config import options_from_args, peer_mesh_index
 
     options = options_from_args(
         args.zenoh_config,
         args.zenoh_connect,
-        scenario=scenario,
-        member_index=peer_mesh_index(scenario, sender_id),
+        host=scenario.network.host,
+        base_port=scenario.network.zenoh_port,
+        size=len(scenario.vehicles) + 2,
+        member_index=peer_mesh_index(scenario.vehicle_ids, sender_id),
     )
     return open_plan_bus(
         options, fleet=args.fleet or scenario.name, vehicle_id=sender_id, on_accept=on_accept

@@ -1,10 +1,10 @@
 """ZenohPlanBus: the PlanBus on eclipse-zenoh 1.x.
 
-One session per bus, configured by `protocol.zenoh_config.ZenohOptions` (explicit endpoints,
-scouting off). The bus subscribes to the fleet's plan, status, target and epoch keys with a callback
-(run on zenoh threads; the receive rules in `onboard.planbus` hold a lock) and ignores its own
-session's publications. `close` undeclares everything and closes the session: an open session
-can hang interpreter exit.
+One session per bus, configured by `fleetmpc.protocol.zenoh_config.ZenohOptions` (explicit
+endpoints, scouting off). The bus subscribes to the fleet's plan, status, target and epoch keys with
+a callback (run on zenoh threads; the receive rules in `fleetmpc.onboard.planbus` hold a lock) and
+ignores its own session's publications. `close` undeclares everything and closes the session: an
+open session can hang interpreter exit.
 """
 
 import contextlib

@@ -1,11 +1,11 @@
 """How fleetmpc processes join a Zenoh network: explicit endpoints, never scouting.
 
 Every configuration built here turns multicast scouting and gossip off, also on top of a user's
-config file: a session talks only to the endpoints it is given. The default is a peer that
-connects to ``tcp/127.0.0.1:7447`` (a router, or the first peer, on the scenario's
-``network.zenoh_port``). Peers do not relay for each other without gossip, so either every
-process connects to one router (`protocol.zenoh_router`, `mode="client"`), or the peers form an
-explicit full mesh (`ZenohOptions.peer_mesh`).
+config file: a session talks only to the endpoints it is given. The default is a peer that connects
+to ``tcp/127.0.0.1:7447`` (a router, or the first peer, on the scenario's ``network.zenoh_port``).
+Peers do not relay for each other without gossip, so either every process connects to one router
+(`fleetmpc.protocol.zenoh_router`, `mode="client"`), or the peers form an explicit full mesh
+(`ZenohOptions.peer_mesh`).
 
 URL form, parsed by `ZenohOptions.from_url`::
 
@@ -26,18 +26,15 @@ member of the fleet's full peer mesh on the scenario's ``network.host`` and ``ne
 """
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 from urllib.parse import parse_qsl, urlsplit
 
 import zenoh
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-
-if TYPE_CHECKING:
-    from fleetmpc.scenario import Scenario
 
 __all__ = [
     "DEFAULT_HOST",
@@ -193,25 +190,31 @@ def _host_port(field: str, text: str, *, proto_optional: bool = True) -> str:
     return _check_endpoint(field, f"tcp/{text}")
 
 
-def peer_mesh_index(scenario: "Scenario", sender_id: int) -> int:
-    """Member index of `sender_id` in the fleet's peer mesh.
+def peer_mesh_index(vehicle_ids: Sequence[int], sender_id: int) -> int:
+    """Member index of `sender_id` in the peer mesh of a fleet of `vehicle_ids`.
 
-    Vehicles take 0..N-1 in scenario order, the target (`TARGET_ID`) N and the ground station
-    (`GROUND_STATION_ID`) N + 1.
+    Vehicles take 0..N-1 in the order given (the scenario's), the target (`TARGET_ID`) N and the
+    ground station (`GROUND_STATION_ID`) N + 1.
     """
-    n = len(scenario.vehicles)
+    n = len(vehicle_ids)
     if sender_id == TARGET_ID:
         return n
     if sender_id == GROUND_STATION_ID:
         return n + 1
-    return scenario.index_of(sender_id)
+    if sender_id not in vehicle_ids:
+        raise ConfigError(
+            "vehicle", f"no vehicle with id {sender_id} in the fleet (ids: {tuple(vehicle_ids)})"
+        )
+    return list(vehicle_ids).index(sender_id)
 
 
 def options_from_args(
     config_file: str | Path | None,
     connect: str | None,
     *,
-    scenario: "Scenario",
+    host: str,
+    base_port: int,
+    size: int,
     member_index: int,
 ) -> ZenohOptions:
     """The Zenoh options of a fleet process's command line.
@@ -219,7 +222,8 @@ def options_from_args(
     `config_file` (``--zenoh-config``) loads a Zenoh config file; else `connect`
     (``--zenoh-connect``, comma-separated ``HOST:PORT`` or ``PROTO/HOST:PORT``) makes a client of
     those routers; else the process is member `member_index` (see `peer_mesh_index`) of the
-    fleet's full peer mesh on the scenario's network host and ports.
+    fleet's full peer mesh of `size` members on `host`, ports `base_port` onwards (the scenario's
+    network).
     """
     if config_file is not None:
         return ZenohOptions(config_file=str(config_file))
@@ -228,10 +232,4 @@ def options_from_args(
         return ZenohOptions(
             mode="client", connect=tuple(_host_port("--zenoh-connect", e) for e in items)
         )
-    net = scenario.network
-    return ZenohOptions.peer_mesh(
-        index=member_index,
-        size=len(scenario.vehicles) + 2,
-        base_port=net.zenoh_port,
-        host=net.host,
-    )
+    return ZenohOptions.peer_mesh(index=member_index, size=size, base_port=base_port, host=host)

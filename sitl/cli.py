@@ -6,7 +6,7 @@ server on 5760 + 10 (I - 1), plus the same ground-station UDP stream (as ArduPil
 ``--out udp:HOST:14550``; ``--gcs-port 0`` turns it off). The profile is the vehicle's
 ``autopilot`` in the scenario unless --autopilot says otherwise. Base ports come from the
 scenario's [network] table (the agent's default URL uses the same arithmetic,
-`protocol.scenario.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
+`fleetmpc.scenario.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
 to, so a [network] table that moves the offboard or ground-station port moves them too and two
 fleets with different tables share no port. --port-offset shifts all of them, and each can be
 set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).

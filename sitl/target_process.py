@@ -1,14 +1,14 @@
 """`fleetmpc target`: fly the scenario's scripted target and publish noisy observations on Zenoh.
 
-Time base: fleet time (see `onboard.runner`), ``(time.time_ns() - epoch_ns) * speed``; the
-target is at ``state_at(fleet_s)`` and every observation is stamped with the fleet time it was
-taken at, on the scenario's observation rate (simulated Hz) and noise. The epoch is
-``--epoch-ns``, or with ``--wait-epoch`` the first one announced on the bus (the ground station's
-`FleetEpoch` on ``fleetmpc/<fleet>/epoch``; waiting ends after ``--epoch-timeout`` wall seconds
-with exit code 2, and an announced speed other than ``--speed`` is an error, exit 2); without
-either, the epoch is this process's start (printed, so the rest of the fleet can be given it).
-Before the epoch nothing is published. Observations are sent under sender id `TARGET_ID`.
-Zenoh: `protocol.zenoh_config.options_from_args` (by default the target's member of the fleet's
+Time base: fleet time (see `fleetmpc.onboard.runner`), ``(time.time_ns() - epoch_ns) * speed``; the
+target is at ``state_at(fleet_s)`` and every observation is stamped with the fleet time it was taken
+at, on the scenario's observation rate (simulated Hz) and noise. The epoch is ``--epoch-ns``, or
+with ``--wait-epoch`` the first one announced on the bus (the ground station's `FleetEpoch` on
+``fleetmpc/<fleet>/epoch``; waiting ends after ``--epoch-timeout`` wall seconds with exit code 2,
+and an announced speed other than ``--speed`` is an error, exit 2); without either, the epoch is
+this process's start (printed, so the rest of the fleet can be given it). Before the epoch nothing
+is published. Observations are sent under sender id `TARGET_ID`. Zenoh:
+`fleetmpc.protocol.zenoh_config.options_from_args` (by default the target's member of the fleet's
 peer mesh; ``--zenoh-connect`` a client of a router; ``--zenoh-config FILE`` a config file).
 SIGINT/SIGTERM: close the session and exit 0.
 """

@@ -125,9 +125,9 @@ def scenario_on_free_ports(source: Path, dest: Path) -> Path:
     """Write `source` (a scenario without a [network] table) to `dest` with free loopback ports.
 
     Every port the fleet's processes use is free when this returns: the router's (or the N + 2
-    of the default peer mesh, `protocol.zenoh_config.peer_mesh_index`), the ground-station
+    of the default peer mesh, `fleetmpc.protocol.zenoh_config.peer_mesh_index`), the ground-station
     port, each vehicle's offboard port and ArduPilot TCP port, and the ports the PX4-profile
-    SITLs bind (they move with the network's, see `sitl.cli`), for vehicle ids 1..N.
+    SITLs bind (they move with the network's, see `fleetmpc.sitl.cli`), for vehicle ids 1..N.
     Returns `dest`.
     """
     text = Path(source).read_text()

@@ -155,7 +155,7 @@ class Agent:
         tube_m = float(self.mpc.tube_radius_m[-1])
         self._margin_m = 0.5 * (controller.d_safe_m + between) + tube_m
         """Distance kept from a shared separation line before the plan-age inflation
-        (`onboard.core.separation`) [m]."""
+        (`fleetmpc.onboard.core.separation`) [m]."""
         self._alone_margin_m = controller.d_safe_m + between + tube_m
         """Distance kept from a stale neighbour's position before the plan-age inflation [m]."""
         self._position_weights = [
@@ -209,11 +209,11 @@ class Agent:
     ) -> tuple[list[tuple[float, float]], list[float]]:
         """u_s (M pairs) and steady headings (M + 1) keeping the learned model on slots (M + 2).
 
-        The ground velocity between consecutive slots, less the learned drift, gives the speed
-        and the course of each chord (a (nearly) still slot keeps the vehicle's heading). The
-        model flies a step along its midpoint heading (`onboard.core.unicycle`), so the heading
-        at a slot is the mean of the courses of the chords either side of it, and a step along
-        a chord then keeps to it (exactly, when the slots turn steadily). Headings are unwrapped.
+        The ground velocity between consecutive slots, less the learned drift, gives the speed and
+        the course of each chord (a (nearly) still slot keeps the vehicle's heading). The model
+        flies a step along its midpoint heading (`fleetmpc.onboard.core.unicycle`), so the heading
+        at a slot is the mean of the courses of the chords either side of it, and a step along a
+        chord then keeps to it (exactly, when the slots turn steadily). Headings are unwrapped.
         """
         tau = self.settings.period_s
         a_v, a_w, d_x, d_y = beta

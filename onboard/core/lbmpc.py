@@ -10,13 +10,12 @@ the linearization point. Both predictions are affine in c (condensed form):
 The model is linearized along a trajectory chosen by the caller (never at V = 0).
 Cost: sum_{j=1}^{M-1} ||ztil_j - r_j||^2_{Q_j} + ||ztil_M - r_M||^2_{P} + sum_j ||u_j - u_s,j||^2_R
       + rho sum_j (w_j - w_{j-1})^2 (rho = r_yaw_rate_change; w_{-1} the yaw rate flown now).
-Constraints: u_j in U ⊖ K R_j (box), speed changes |V_j - V_{j-1}| <= a_max tau from the speed
-now (the vehicle cannot stop at once: a plan that could would be overtaken by the actuators),
-and, for the linearization to stay valid, a yaw rate within a
-trust region about the linearization's (the heading enters the model through sin and cos, so a
-plan that turned the other way would be predicted wrongly), and n_kj' ptil_j >= b_kj for every
-neighbour k and step j whose half-plane the caller set (`onboard.core.separation` places them;
-docs/design.md, "Safety").
+Constraints: u_j in U ⊖ K R_j (box), speed changes |V_j - V_{j-1}| <= a_max tau from the speed now
+(the vehicle cannot stop at once: a plan that could would be overtaken by the actuators), and, for
+the linearization to stay valid, a yaw rate within a trust region about the linearization's (the
+heading enters the model through sin and cos, so a plan that turned the other way would be predicted
+wrongly), and n_kj' ptil_j >= b_kj for every neighbour k and step j whose half-plane the caller set
+(`fleetmpc.onboard.core.separation` places them; docs/design.md, "Safety").
 
 OSQP is set up once with a fixed sparsity pattern (structural zeros kept) and updated every period
 with warm start; every solve is checked (status, finiteness, bounds).

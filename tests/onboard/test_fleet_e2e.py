@@ -3,10 +3,10 @@
 One flight of ``scenarios/mixed-autopilots.toml`` at x4 (vehicles 1 and 3 on the PX4 profile over
 UDP, vehicle 2 on the ArduPilot profile over TCP), from a copy whose ``[network]`` ports are free
 ones, so it never meets another fleet on this machine. The processes are the argument lists of
-`fleetmpc.launch.fleet.fleet_processes`: Zenoh router, target, three SITLs, three agents and the ground
-station ``fleetmpc gcs`` (with ``--metrics``), every Zenoh member a client of the router. No
-process is given an epoch: the ground station announces it once every vehicle is armed and
-engaged, and the others wait for it. Two arguments are added:
+`fleetmpc.launch.fleet.fleet_processes`: Zenoh router, target, three SITLs, three agents and the
+ground station ``fleetmpc gcs`` (with ``--metrics``), every Zenoh member a client of the router. No
+process is given an epoch: the ground station announces it once every vehicle is armed and engaged,
+and the others wait for it. Two arguments are added:
 
 - the PX4 SITLs run with ``--com-of-loss-t 0.5``: a gap of 0.5 s of fleet time in the setpoint
   stream, as the autopilot sees it, drops the vehicle to HOLD (and the agent does not re-engage),

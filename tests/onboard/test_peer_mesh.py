@@ -2,8 +2,8 @@
 
 Two SITLs, their agents and the target are started without ``--zenoh-connect``, so each is its
 member of the fleet's peer mesh on the scenario's ``network.zenoh_port`` (vehicles in scenario
-order, then the target, then the ground station: `protocol.zenoh_config.peer_mesh_index`). The
-test is the ground station's member: it announces the epoch and listens. Plans, statuses and
+order, then the target, then the ground station: `fleetmpc.protocol.zenoh_config.peer_mesh_index`).
+The test is the ground station's member: it announces the epoch and listens. Plans, statuses and
 target observations must cross between every pair of processes.
 """
 
@@ -36,7 +36,12 @@ def test_agents_and_target_exchange_plans_as_peers_of_the_mesh(processes, tmp_pa
         )  # fmt: skip
     target = processes.fleetmpc("target", "target", *common, "--wait-epoch")
     options = options_from_args(
-        None, None, scenario=scenario, member_index=peer_mesh_index(scenario, GROUND_STATION_ID)
+        None,
+        None,
+        host=scenario.network.host,
+        base_port=scenario.network.zenoh_port,
+        size=len(scenario.vehicles) + 2,
+        member_index=peer_mesh_index(scenario.vehicle_ids, GROUND_STATION_ID),
     )
     assert options.listen == (f"tcp/127.0.0.1:{scenario.network.zenoh_port + 3}",)
     fresh_ns = 400_000_000

@@ -130,19 +130,25 @@ def _fleet(*ids: int, **network):
     return parse_scenario({"name": "mesh", "vehicles": vehicles, "network": network})
 
 
+def _mesh(sc) -> dict:
+    """`options_from_args`'s peer-mesh arguments for a scenario's fleet."""
+    net = sc.network
+    return {"host": net.host, "base_port": net.zenoh_port, "size": len(sc.vehicles) + 2}
+
+
 def test_peer_mesh_index_is_vehicles_in_scenario_order_then_target_then_ground_station() -> None:
     sc = _fleet(7, 3, 5)
-    assert [peer_mesh_index(sc, vid) for vid in (7, 3, 5)] == [0, 1, 2]
-    assert peer_mesh_index(sc, TARGET_ID) == 3
-    assert peer_mesh_index(sc, GROUND_STATION_ID) == 4
+    assert [peer_mesh_index(sc.vehicle_ids, vid) for vid in (7, 3, 5)] == [0, 1, 2]
+    assert peer_mesh_index(sc.vehicle_ids, TARGET_ID) == 3
+    assert peer_mesh_index(sc.vehicle_ids, GROUND_STATION_ID) == 4
     with pytest.raises(ConfigError) as info:
-        peer_mesh_index(sc, 4)
+        peer_mesh_index(sc.vehicle_ids, 4)
     assert info.value.field == "vehicle"
 
 
 def test_options_from_args_default_to_the_fleets_peer_mesh() -> None:
     sc = _fleet(1, 2, 3, host="127.0.0.3", zenoh_port=17447)
-    members = [options_from_args(None, None, scenario=sc, member_index=k) for k in range(5)]
+    members = [options_from_args(None, None, member_index=k, **_mesh(sc)) for k in range(5)]
     assert members == [
         ZenohOptions.peer_mesh(index=k, size=5, base_port=17447, host="127.0.0.3") for k in range(5)
     ]
@@ -154,19 +160,19 @@ def test_options_from_args_default_to_the_fleets_peer_mesh() -> None:
 def test_options_from_args_connect_makes_a_client_and_a_file_is_a_base() -> None:
     sc = _fleet(1, 2)
     client = options_from_args(
-        None, "127.0.0.1:7000, tcp/127.0.0.2:7001", scenario=sc, member_index=0
+        None, "127.0.0.1:7000, tcp/127.0.0.2:7001", member_index=0, **_mesh(sc)
     )
     assert client == ZenohOptions(
         mode="client", connect=("tcp/127.0.0.1:7000", "tcp/127.0.0.2:7001")
     )
     with pytest.raises(ConfigError) as info:
-        options_from_args(None, "nowhere", scenario=sc, member_index=0)
+        options_from_args(None, "nowhere", member_index=0, **_mesh(sc))
     assert info.value.field == "--zenoh-connect"
 
 
 def test_options_from_args_takes_a_config_file_first(tmp_path: Path) -> None:
     path = tmp_path / "zenoh.json5"
     path.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] } }')
-    options = options_from_args(path, "127.0.0.1:7000", scenario=_fleet(1), member_index=0)
+    options = options_from_args(path, "127.0.0.1:7000", member_index=0, **_mesh(_fleet(1)))
     assert options == ZenohOptions(config_file=str(path))
     assert conf_json(options, "connect/endpoints") == ["tcp/127.0.0.1:7999"]
