@@ -58,6 +58,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from fleetmpc.clock import ClockSync, FleetClock
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
@@ -71,7 +72,6 @@ from fleetmpc.gcs.recording import (
     rerun_threads_cpu_ms,
 )
 from fleetmpc.onboard.planbus import open_fleet_bus
-from fleetmpc.onboard.runner import ClockSync, FleetClock
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,

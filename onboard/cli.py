@@ -23,12 +23,12 @@ import sys
 import threading
 from pathlib import Path
 
+from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.core.agent import Agent
 from fleetmpc.onboard.planbus import open_fleet_bus
 from fleetmpc.onboard.runner import (
-    FleetClock,
     FleetRunner,
     RunnerSettings,
     SetpointStreamer,

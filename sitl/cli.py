@@ -18,10 +18,10 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.scenario import Network, Scenario, load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
-from fleetmpc.sitl.clock import RealTimeClock
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 

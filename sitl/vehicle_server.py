@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fleetmpc.clock import Clock
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_map import Autopilot as AutopilotType
 from fleetmpc.scenario import Site, VehicleSpec
 from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
-from fleetmpc.sitl.clock import Clock
 from fleetmpc.sitl.handlers import MessageHandler
 from fleetmpc.sitl.mavlink_io import (
     DecodeStats,

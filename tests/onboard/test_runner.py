@@ -8,13 +8,11 @@ import time
 import numpy as np
 import pytest
 
+from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import FakeAutopilotLink
 from fleetmpc.onboard.planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.onboard.runner import (
-    ClockSync,
-    EpochMismatchError,
-    FleetClock,
     FleetRunner,
     RunnerSettings,
     SetpointStreamer,

@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fleetmpc.clock import ManualClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_map import (
     FlightMode,
@@ -19,7 +20,6 @@ from fleetmpc.protocol.mavlink_map import (
     encode_setpoint,
 )
 from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
-from fleetmpc.sitl.clock import ManualClock
 
 TICK_NS = 20_000_000
 MS = 1_000_000

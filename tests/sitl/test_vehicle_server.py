@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fleetmpc.clock import ManualClock
 from fleetmpc.protocol.mavlink_map import (
     PX4_CUSTOM_MODE_OF,
     FlightMode,
@@ -22,7 +23,6 @@ from fleetmpc.protocol.mavlink_map import (
 )
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
-from fleetmpc.sitl.clock import ManualClock
 from fleetmpc.sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
 from fleetmpc.sitl.telemetry import PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer

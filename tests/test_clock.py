@@ -2,8 +2,8 @@
 
 import pytest
 
+from fleetmpc.clock import Clock, ManualClock, RealTimeClock
 from fleetmpc.errors import ConfigError
-from fleetmpc.sitl.clock import Clock, ManualClock, RealTimeClock
 
 
 def test_manual_clock_moves_only_when_told():
