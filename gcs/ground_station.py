@@ -71,14 +71,14 @@ from fleetmpc.gcs.recording import (
     open_recording,
     rerun_threads_cpu_ms,
 )
-from fleetmpc.onboard.planbus import open_fleet_bus
+from fleetmpc.onboard.open_bus import open_fleet_bus
+from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
     ModeFlag,
     Severity,
     mode_from_custom,
-    ned_from_geodetic,
 )
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,

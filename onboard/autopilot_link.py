@@ -1,29 +1,18 @@
 """AutopilotLink: how the agent flies a MAVLink autopilot, chosen by URL.
 
 - any pymavlink URL (``udpin:HOST:PORT``, ``udpout:``, ``tcp:HOST:PORT``, ``serial:DEV:BAUD``,
-  or a bare device path): `MavlinkAutopilotLink`;
-- ``fake://`` or ``fake://px4`` / ``fake://ardupilot``: `FakeAutopilotLink`, an in-package
-  kinematic autopilot for tests.
+  or a bare device path): `fleetmpc.onboard.mavlink_autopilot_link.MavlinkAutopilotLink`;
+- ``fake://`` or ``fake://px4`` / ``fake://ardupilot``:
+  `fleetmpc.onboard.fake_autopilot_link.FakeAutopilotLink`, an in-package kinematic autopilot
+  for tests.
 
-The link detects the autopilot from its HEARTBEAT and uses its semantics (`engage`):
-PX4 — setpoints must already stream (> 2 Hz for >= 1 s: the runner's streamer does it), then
-arm and DO_SET_MODE OFFBOARD (COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6);
-ArduPilot — SET_MESSAGE_INTERVAL for the streams, GUIDED, arm with retries until accepted,
-takeoff. Setpoints are SET_POSITION_TARGET_LOCAL_NED with type_mask 1479 (velocity + yaw rate),
-frame BODY_NED (8) for PX4 and BODY_OFFSET_NED (9) for ArduPilot, vx = forward speed; a hold is
-type_mask 3576 (position only) in LOCAL_NED, which both autopilots fly with their own position
-controller (`send_position_setpoint`).
-
-A reader thread decodes everything that arrives; every field acted on is validated (random
-payloads often decode as valid messages). `state()` returns the latest validated snapshot;
-`wait_state(newer_than_ns=...)` blocks until telemetry newer than a boot time arrives.
+Every link publishes its validated telemetry as `LinkState` snapshots: `state()` returns the
+latest; `wait_state(newer_than_ns=...)` blocks until telemetry newer than a boot time arrives.
 Losing the engaged mode (the autopilot failing safe to HOLD) is detected and reported in the
 snapshot (`mode_lost`), never fought.
 """
 
-import contextlib
 import math
-import os
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -31,33 +20,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.onboard.core.unicycle import NOMINAL_BETA_FLOATS, advance, wrap
-from fleetmpc.protocol.mavlink_map import (
-    Autopilot,
-    FlightMode,
-    Frame,
-    MavResult,
-    ModeFlag,
-    Px4MainMode,
-    SetpointFields,
-    custom_mode_of,
-    encode_position_setpoint,
-    encode_setpoint,
-    mode_from_custom,
-    setpoint_message_args,
-)
+from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode
 
 __all__ = [
     "AutopilotLink",
     "AutopilotLinkError",
-    "FakeAutopilotLink",
     "LinkState",
-    "MavlinkAutopilotLink",
     "open_autopilot_link",
 ]
-
-_MAX_POSITION_M = 1e6
-_MAX_BOOT_MS = 2**32 - 1
 
 
 class AutopilotLinkError(FleetMpcError):
@@ -165,393 +135,14 @@ class AutopilotLink(ABC):
         """Stop the reader and release the connection; idempotent."""
 
 
-# ----------------------------------------------------------------------------------------------
-# pymavlink implementation
-# ----------------------------------------------------------------------------------------------
-
-
-def _finite(*values: float, bound: float) -> bool:
-    return all(isinstance(v, float | int) and math.isfinite(v) and abs(v) <= bound for v in values)
-
-
-class MavlinkAutopilotLink(AutopilotLink):
-    """An AutopilotLink over pymavlink (any `mavutil.mavlink_connection` URL)."""
-
-    def __init__(
-        self,
-        url: str,
-        *,
-        system_id: int | None = None,
-        source_system: int = 255,
-        source_component: int = 190,
-        log: Callable[[str], None] | None = None,
-        now_ns: Callable[[], int] = time.time_ns,
-    ) -> None:
-        super().__init__()
-        self._now_ns = now_ns
-        os.environ["MAVLINK20"] = "1"
-        from pymavlink import mavutil
-
-        self._mavutil = mavutil
-        self.url = url
-        self._want_system = system_id
-        self._log = log or (lambda _text: None)
-        try:
-            self._conn = mavutil.mavlink_connection(
-                url,
-                source_system=source_system,
-                source_component=source_component,
-                autoreconnect=True,
-            )
-        except Exception as e:
-            raise AutopilotLinkError(f"cannot open MAVLink connection {url!r}: {e}") from None
-        self._send_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._acks: dict[int, int] = {}
-        self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
-        self._reader.start()
-
-    # -- receive --------------------------------------------------------------------------------
-    def _read_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                msg = self._conn.recv_match(blocking=True, timeout=0.05)
-            except Exception:  # a closed socket or a decoder error: keep reading until stopped
-                if self._stop.wait(0.01):
-                    return
-                continue
-            if msg is not None:
-                try:
-                    self._handle(msg)
-                except Exception:
-                    self._update(rejected=self.state().rejected + 1)
-
-    def _handle(self, msg) -> None:
-        kind = msg.get_type()
-        src = msg.get_srcSystem()
-        st = self.state()
-        if kind == "HEARTBEAT":
-            self._on_heartbeat(msg, src)
-            return
-        if st.system_id == 0 or src != st.system_id or msg.get_srcComponent() != 1:
-            return
-        if kind == "LOCAL_POSITION_NED":
-            if not (
-                _finite(msg.x, msg.y, msg.z, bound=_MAX_POSITION_M)
-                and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
-            ):
-                self._update(rejected=st.rejected + 1)
-                return
-            t_ns = int(msg.time_boot_ms) * 1_000_000
-            self._update(
-                north_m=float(msg.x),
-                east_m=float(msg.y),
-                down_m=float(msg.z),
-                position_boot_ns=t_ns,
-                time_boot_ns=max(t_ns, st.time_boot_ns),
-                received_ns=self._now_ns(),
-            )
-        elif kind == "ATTITUDE":
-            if not (
-                _finite(msg.yaw, bound=2 * math.pi + 1e-3) and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
-            ):
-                self._update(rejected=st.rejected + 1)
-                return
-            t_ns = int(msg.time_boot_ms) * 1_000_000
-            self._update(
-                yaw_rad=float(msg.yaw),
-                time_boot_ns=max(t_ns, st.time_boot_ns),
-                received_ns=self._now_ns(),
-            )
-        elif kind == "COMMAND_ACK":
-            if msg.result in {int(r) for r in MavResult}:
-                with self._cond:
-                    self._acks[int(msg.command)] = int(msg.result)
-                    self._cond.notify_all()
-        elif kind == "STATUSTEXT":
-            text = str(getattr(msg, "text", ""))[:50]
-            self._update(last_text=text)
-            self._log(f"autopilot: {text}")
-
-    def _on_heartbeat(self, msg, src: int) -> None:
-        st = self.state()
-        if msg.get_srcComponent() != 1 or msg.type in (6, 18):  # GCS (6), onboard computer (18)
-            return
-        if self._want_system is not None and src != self._want_system:
-            return
-        if st.system_id not in (0, src):
-            return
-        try:
-            autopilot = Autopilot(msg.autopilot)
-        except ValueError:
-            self._update(rejected=st.rejected + 1)
-            return
-        custom = bool(msg.base_mode & ModeFlag.CUSTOM_MODE_ENABLED)
-        mode = mode_from_custom(int(msg.custom_mode), autopilot) if custom else None
-        armed = bool(msg.base_mode & ModeFlag.SAFETY_ARMED)
-        was_lost = st.mode_lost
-        self._update(
-            autopilot=autopilot,
-            system_id=src,
-            armed=armed,
-            mode=mode,
-            heartbeats=st.heartbeats + 1,
-        )
-        now = self.state()
-        if now.mode_lost and not was_lost:
-            name = mode.name if mode is not None else "an unknown mode"
-            self._log(f"mode lost: the autopilot switched to {name}; not re-engaging")
-
-    # -- send -----------------------------------------------------------------------------------
-    def _target(self) -> int:
-        return self.state().system_id or (self._want_system or 1)
-
-    def _send(self, fn: Callable[..., None], *args: object) -> bool:
-        with self._send_lock:
-            try:
-                fn(*args)
-            except Exception:
-                return False
-        return True
-
-    def send_setpoint(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
-        if not (math.isfinite(speed_m_s) and math.isfinite(yaw_rate_rad_s)):
-            speed_m_s, yaw_rate_rad_s = 0.0, 0.0
-        px4 = self.state().autopilot != Autopilot.ARDUPILOTMEGA
-        self._send_fields(
-            encode_setpoint(
-                speed_m_s, yaw_rate_rad_s, frame=Frame.BODY_NED if px4 else Frame.BODY_OFFSET_NED
-            )
-        )
-
-    def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
-        if not _finite(north_m, east_m, down_m, bound=_MAX_POSITION_M):
-            self.send_setpoint(speed_m_s=0.0, yaw_rate_rad_s=0.0)
-            return
-        self._send_fields(encode_position_setpoint(north_m, east_m, down_m))
-
-    def _send_fields(self, sp: SetpointFields) -> None:
-        target = self._target()
-        boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & _MAX_BOOT_MS
-        mav = self._conn.mav
-        sent = self._send(
-            lambda: mav.set_position_target_local_ned_send(
-                *setpoint_message_args(sp, time_boot_ms=boot_ms, target_system=target)
-            )
-        )
-        if sent:
-            self.setpoints_sent += 1
-
-    def _command(self, command: int, params: tuple[float, ...], *, timeout_s: float) -> int | None:
-        """COMMAND_LONG and wait for its ACK: the MAV_RESULT, or None on timeout."""
-        p = (*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)[:7]
-        with self._cond:
-            self._acks.pop(command, None)
-        target = self._target()
-        mav = self._conn.mav
-        self._send(lambda: mav.command_long_send(target, 1, command, 0, *p))
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while command not in self._acks:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
-            return self._acks.pop(command)
-
-    def _retry(self, command: int, params: tuple[float, ...], *, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and not self._stop.is_set():
-            result = self._command(command, params, timeout_s=min(1.0, timeout_s))
-            if result == MavResult.ACCEPTED:
-                return True
-            self._stop.wait(0.25)
-        return False
-
-    def _set_mode(self, mode: FlightMode, *, timeout_s: float) -> bool:
-        autopilot = self.state().autopilot or Autopilot.PX4
-        if autopilot == Autopilot.PX4:
-            params = (float(ModeFlag.CUSTOM_MODE_ENABLED), float(_px4_main(mode)))
-            custom = custom_mode_of(mode, autopilot)
-            sub = (custom >> 24) & 0xFF
-            params = (*params, float(sub))
-        else:
-            params = (float(ModeFlag.CUSTOM_MODE_ENABLED), float(custom_mode_of(mode, autopilot)))
-        return self._retry(176, params, timeout_s=timeout_s)
-
-    def connect(self, *, timeout_s: float) -> LinkState:
-        deadline = time.monotonic() + timeout_s
-        asked_streams = False
-        while time.monotonic() < deadline:
-            st = self.state()
-            if st.autopilot is not None and not asked_streams:
-                self._request_streams(st.autopilot)
-                asked_streams = True
-            if st.autopilot is not None and st.has_pose:
-                return st
-            # Some links (udpout, tcp) stay silent until the client speaks.
-            self._send(self._conn.mav.heartbeat_send, 6, 8, 0, 0, 4)
-            self.wait_state(newer_than_ns=st.time_boot_ns, timeout_s=0.25)
-        raise AutopilotLinkError(f"no HEARTBEAT and pose from {self.url} in {timeout_s} s")
-
-    def _request_streams(self, autopilot: Autopilot) -> None:
-        """ArduPilot streams nothing until asked: position and attitude at 50 Hz."""
-        if autopilot != Autopilot.ARDUPILOTMEGA:
-            return
-        for msg_id in (32, 30):  # LOCAL_POSITION_NED, ATTITUDE
-            interval_us = 20_000
-            self._command(511, (float(msg_id), float(interval_us)), timeout_s=1.0)
-
-    def engage(self, *, timeout_s: float) -> bool:
-        st = self.state()
-        if st.autopilot == Autopilot.ARDUPILOTMEGA:
-            ok = (
-                self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
-                and self._retry(400, (1.0,), timeout_s=timeout_s)
-                and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
-            )
-        else:
-            ok = self._retry(400, (1.0,), timeout_s=timeout_s) and self._set_mode(
-                FlightMode.OFFBOARD, timeout_s=timeout_s
-            )
-        if ok:
-            self._update(engaged=True, mode_lost=False)
-        return ok
-
-    def hold(self) -> bool:
-        self._update(engaged=False)
-        return self._set_mode(FlightMode.HOLD, timeout_s=1.0)
-
-    def close(self) -> None:
-        if self._stop.is_set():
-            return
-        self._stop.set()
-        self._reader.join(timeout=1.0)
-        with contextlib.suppress(Exception):
-            self._conn.close()
-
-
-_TAKEOFF_ALT_M = 10.0
-"""ArduPilot takeoff altitude [m] (the horizontal plant flies at any altitude)."""
-
-
-def _px4_main(mode: FlightMode) -> int:
-    return {
-        FlightMode.OFFBOARD: Px4MainMode.OFFBOARD,
-        FlightMode.HOLD: Px4MainMode.AUTO,
-        FlightMode.POSITION: Px4MainMode.POSCTL,
-        FlightMode.LAND: Px4MainMode.AUTO,
-        FlightMode.TAKEOFF: Px4MainMode.AUTO,
-    }[mode]
-
-
-# ----------------------------------------------------------------------------------------------
-# fake implementation for tests
-# ----------------------------------------------------------------------------------------------
-
-
-class FakeAutopilotLink(AutopilotLink):
-    """A kinematic unicycle behind the link interface, on a time the test drives.
-
-    `advance(duration_ns)` integrates the last setpoint (PX4-like: HOLD after
-    `loss_timeout_ns` without one while engaged) and publishes a new snapshot.
-    """
-
-    def __init__(
-        self,
-        *,
-        autopilot: Autopilot = Autopilot.PX4,
-        system_id: int = 1,
-        north_m: float = 0.0,
-        east_m: float = 0.0,
-        yaw_rad: float = 0.0,
-        loss_timeout_ns: int = 1_000_000_000,
-    ) -> None:
-        super().__init__()
-        if loss_timeout_ns <= 0:
-            raise ConfigError("loss_timeout_ns", f"must be > 0, got {loss_timeout_ns}")
-        self._autopilot = autopilot
-        self._system_id = system_id
-        self._pose = [float(north_m), float(east_m), float(yaw_rad)]
-        self._loss_timeout_ns = loss_timeout_ns
-        self._now_ns = 0
-        self._last_setpoint_ns: int | None = None
-        self.command = (0.0, 0.0)
-        self.hold_point: tuple[float, float, float] | None = None
-        """The last position setpoint (North, East, Down), until a velocity replaces it."""
-        self.setpoint_times_ns: list[int] = []
-        self.closed = False
-        self.hold_requests = 0
-
-    def connect(self, *, timeout_s: float) -> LinkState:
-        self._publish(mode=FlightMode.HOLD, armed=False)
-        return self.state()
-
-    def _publish(self, **extra: object) -> None:
-        self._update(
-            autopilot=self._autopilot,
-            system_id=self._system_id,
-            time_boot_ns=self._now_ns,
-            position_boot_ns=self._now_ns,
-            north_m=self._pose[0],
-            east_m=self._pose[1],
-            down_m=0.0,
-            yaw_rad=wrap(self._pose[2]),
-            **extra,
-        )
-
-    def send_setpoint(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
-        self._received((float(speed_m_s), float(yaw_rate_rad_s)), None)
-
-    def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
-        self._received((0.0, 0.0), (float(north_m), float(east_m), float(down_m)))
-
-    def _received(
-        self, command: tuple[float, float], hold_point: tuple[float, float, float] | None
-    ) -> None:
-        """The autopilot's side of one setpoint: what it flies, and when it came."""
-        with self._cond:
-            self.command, self.hold_point = command, hold_point
-            self._last_setpoint_ns = self._now_ns
-            self.setpoint_times_ns.append(self._now_ns)
-            self.setpoints_sent += 1
-
-    def engage(self, *, timeout_s: float) -> bool:
-        self._update(engaged=True, armed=True, mode=FlightMode.OFFBOARD, mode_lost=False)
-        return True
-
-    def hold(self) -> bool:
-        self.hold_requests += 1
-        self._update(engaged=False, mode=FlightMode.HOLD)
-        return True
-
-    def advance(self, duration_ns: int, *, steps: int = 10) -> None:
-        """Fly the current setpoint for `duration_ns` and publish the new pose."""
-        dt_ns = duration_ns // steps
-        for _ in range(steps):
-            st = self.state()
-            flying = st.mode == FlightMode.OFFBOARD and st.armed
-            with self._cond:
-                last = self._last_setpoint_ns
-            if flying and (last is None or self._now_ns - last >= self._loss_timeout_ns):
-                self._update(mode=FlightMode.HOLD)
-                flying = False
-            if flying and self.hold_point is not None:
-                self._pose[0], self._pose[1] = self.hold_point[:2]  # an ideal position hold
-            elif flying:
-                v, w = self.command
-                self._pose[:] = advance(*self._pose, v, w, NOMINAL_BETA_FLOATS, dt_ns * 1e-9)
-            self._now_ns += dt_ns
-        self._publish()
-
-    def close(self) -> None:
-        self.closed = True
-
-
 def open_autopilot_link(
     url: str, *, system_id: int | None = None, log: Callable[[str], None] | None = None
 ) -> AutopilotLink:
     """The AutopilotLink a URL names (see the module docstring)."""
+    # Both implementations build on this module's interface.
+    from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
+    from fleetmpc.onboard.mavlink_autopilot_link import MavlinkAutopilotLink
+
     if not isinstance(url, str) or not url:
         raise ConfigError("mavlink_url", f"must be a connection string, got {url!r}")
     if url.startswith("fake://"):

@@ -27,7 +27,7 @@ from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.core.agent import Agent
-from fleetmpc.onboard.planbus import open_fleet_bus
+from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.onboard.runner import (
     FleetRunner,
     RunnerSettings,

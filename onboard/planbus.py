@@ -1,11 +1,11 @@
 """PlanBus: how a vehicle exchanges assumed trajectories, status and target observations.
 
-One small interface, chosen by URL with `open_plan_bus`:
+One small interface with two transports, chosen by URL with
+`fleetmpc.onboard.open_bus.open_plan_bus`:
 
-- ``mem://NAME``: `InMemoryPlanBus` on the `MemoryHub` called NAME of a `MemoryHubs` registry the
-  runner owns; synchronous and deterministic (lockstep simulation, tests);
-- ``zenoh`` / ``zenoh://HOST:PORT?...`` (or a `ZenohOptions`): `ZenohPlanBus`, see
-  `fleetmpc.protocol.zenoh_config` for the URL form.
+- ``mem://NAME``: `fleetmpc.onboard.memory_planbus.InMemoryPlanBus` on a hub of the runner's
+  registry; synchronous and deterministic (lockstep simulation, tests);
+- ``zenoh`` / ``zenoh://HOST:PORT?...``: `fleetmpc.onboard.zenoh_planbus.ZenohPlanBus`.
 
 Receive-side rules, the same for every implementation: a payload on an unknown key, or that does
 not decode, or whose sender differs from the id in its key, is rejected and counted by reason; a
@@ -25,9 +25,10 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Self
+from typing import Self
 
 from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.protocol.codec import DecodeError, decode, encode
 from fleetmpc.protocol.keys import (
     KeyFormatError,
     all_plans_key,
@@ -42,7 +43,6 @@ from fleetmpc.protocol.keys import (
 from fleetmpc.protocol.messages import (
     MAX_SENDER_ID,
     MIN_SENDER_ID,
-    DecodeError,
     FleetEpoch,
     Message,
     MessageKind,
@@ -52,27 +52,14 @@ from fleetmpc.protocol.messages import (
     StatusMessage,
     TargetObservation,
     VehicleStatus,
-    decode,
-    encode,
 )
 from fleetmpc.protocol.plan import Plan
 
-if TYPE_CHECKING:
-    import argparse
-
-    from fleetmpc.protocol.zenoh_config import ZenohOptions
-    from fleetmpc.scenario import Scenario
-
 __all__ = [
     "BusCounters",
-    "InMemoryPlanBus",
-    "MemoryHub",
-    "MemoryHubs",
     "PlanBus",
     "PlanBusClosedError",
     "PlanBusError",
-    "open_fleet_bus",
-    "open_plan_bus",
 ]
 
 _U32 = 2**32
@@ -413,173 +400,3 @@ class PlanBus(ABC):
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
-
-
-def _matches(pattern: str, key: str) -> bool:
-    """Key-expression match for patterns whose only wildcard is a whole-chunk ``*``."""
-    p, k = pattern.split("/"), key.split("/")
-    return len(p) == len(k) and all(a == "*" and b or a == b for a, b in zip(p, k, strict=True))
-
-
-class MemoryHub:
-    """An in-process broadcast medium that several InMemoryPlanBus attach to.
-
-    `put` delivers synchronously to every other attached bus whose subscriptions match, in
-    attach order. With `deliver_immediately=False` payloads queue until `flush`, so a lockstep
-    runner can let every agent of a tick see the same neighbour plans whatever their order.
-    """
-
-    def __init__(self, name: str = "default", *, deliver_immediately: bool = True) -> None:
-        self.name = validate_fleet(name, field="hub name")
-        self.deliver_immediately = deliver_immediately
-        self._lock = threading.RLock()
-        self._subscribers: list[tuple[tuple[str, ...], object, Callable[[str, bytes], None]]] = []
-        self._queue: list[tuple[str, bytes, object]] = []
-
-    def attach(
-        self, patterns: tuple[str, ...], owner: object, callback: Callable[[str, bytes], None]
-    ) -> None:
-        """Deliver payloads on keys matching `patterns` to `callback`, except `owner`'s own."""
-        with self._lock:
-            self._subscribers.append((tuple(patterns), owner, callback))
-
-    def detach(self, owner: object) -> None:
-        with self._lock:
-            self._subscribers = [s for s in self._subscribers if s[1] is not owner]
-
-    def put(self, key: str, payload: bytes, *, origin: object = None) -> None:
-        """Publish raw bytes on `key`; origin None (an outside sender) reaches every bus."""
-        with self._lock:
-            if not self.deliver_immediately:
-                self._queue.append((key, bytes(payload), origin))
-                return
-        self._dispatch(key, bytes(payload), origin)
-
-    def flush(self) -> int:
-        """Deliver every queued payload in publication order; return how many."""
-        with self._lock:
-            queue, self._queue = self._queue, []
-        for key, payload, origin in queue:
-            self._dispatch(key, payload, origin)
-        return len(queue)
-
-    @property
-    def pending(self) -> int:
-        with self._lock:
-            return len(self._queue)
-
-    def _dispatch(self, key: str, payload: bytes, origin: object) -> None:
-        with self._lock:
-            targets = [
-                cb
-                for patterns, owner, cb in self._subscribers
-                if owner is not origin and any(_matches(p, key) for p in patterns)
-            ]
-        for callback in targets:
-            callback(key, payload)
-
-
-class MemoryHubs:
-    """The runner's registry of named hubs, resolved by ``mem://NAME`` URLs."""
-
-    def __init__(self, *, deliver_immediately: bool = True) -> None:
-        self._deliver_immediately = deliver_immediately
-        self._hubs: dict[str, MemoryHub] = {}
-        self._lock = threading.Lock()
-
-    def hub(self, name: str) -> MemoryHub:
-        """The hub called `name`, created on first use."""
-        with self._lock:
-            if name not in self._hubs:
-                self._hubs[name] = MemoryHub(name, deliver_immediately=self._deliver_immediately)
-            return self._hubs[name]
-
-
-class InMemoryPlanBus(PlanBus):
-    """A PlanBus on a MemoryHub: no threads, no sockets, deterministic."""
-
-    def __init__(
-        self,
-        hub: MemoryHub,
-        *,
-        fleet: str,
-        vehicle_id: int | None,
-        on_accept: Callable[[Message], None] | None = None,
-    ) -> None:
-        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
-        self._hub = hub
-        hub.attach(self._subscriptions(), self, self._deliver)
-
-    def _send(self, key: str, payload: bytes) -> bool:
-        self._hub.put(key, payload, origin=self)
-        return True
-
-    def _shutdown(self) -> None:
-        self._hub.detach(self)
-
-
-def open_plan_bus(
-    url_or_options: "str | ZenohOptions",
-    *,
-    fleet: str,
-    vehicle_id: int | None,
-    hubs: MemoryHubs | None = None,
-    on_accept: Callable[[Message], None] | None = None,
-) -> PlanBus:
-    """Open the PlanBus a URL names: ``mem://NAME`` (needs `hubs`), ``zenoh[://...]``.
-
-    A `fleetmpc.protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL.
-    `on_accept`: see the module docstring.
-    """
-    if isinstance(url_or_options, str) and url_or_options.startswith("mem://"):
-        if hubs is None:
-            raise ConfigError("hubs", "a mem:// plan bus needs the runner's MemoryHubs")
-        name = url_or_options.removeprefix("mem://")
-        validate_fleet(name, field="plan_bus_url")
-        return InMemoryPlanBus(
-            hubs.hub(name), fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept
-        )
-    from fleetmpc.onboard.zenoh_planbus import ZenohPlanBus
-    from fleetmpc.protocol.zenoh_config import ZenohOptions
-
-    if isinstance(url_or_options, ZenohOptions):
-        options = url_or_options
-    elif isinstance(url_or_options, str) and (
-        url_or_options == "zenoh" or url_or_options.startswith("zenoh://")
-    ):
-        options = ZenohOptions.from_url(url_or_options)
-    else:
-        raise ConfigError(
-            "plan_bus_url",
-            f"unknown plan bus {url_or_options!r} (known: mem://NAME, zenoh, zenoh://HOST:PORT)",
-        )
-    return ZenohPlanBus(options, fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
-
-
-def open_fleet_bus(
-    args: "argparse.Namespace",
-    scenario: "Scenario",
-    *,
-    sender_id: int,
-    on_accept: Callable[[Message], None] | None = None,
-) -> PlanBus:
-    """The Zenoh plan bus of a fleet process, as its command line asks for it.
-
-    `args` holds ``zenoh_config``, ``zenoh_connect`` and ``fleet`` (the options every fleet process
-    takes; `fleetmpc.protocol.zenoh_config.options_from_args` says what they mean); the fleet name
-    defaults to the scenario's, and `sender_id` is both the bus identity and the peer-mesh member
-    (`fleetmpc.protocol.zenoh_config.peer_mesh_index`).
-    """
-    from fleetmpc.protocol.zenoh_config import options_from_args, peer_mesh_index
-
-    options = options_from_args(
-        args.zenoh_config,
-        args.zenoh_connect,
-        host=scenario.network.host,
-        base_port=scenario.network.zenoh_port,
-        size=len(scenario.vehicles) + 2,
-        member_index=peer_mesh_index(scenario.vehicle_ids, sender_id),
-    )
-    return open_plan_bus(
-        options, fleet=args.fleet or scenario.name, vehicle_id=sender_id, on_accept=on_accept
-    )

@@ -30,15 +30,11 @@ from dataclasses import dataclass
 from enum import Enum
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.mavlink_map import (
-    FlightMode,
-    LandedState,
-    MavResult,
-    MavState,
+from fleetmpc.protocol.mavlink_map import FlightMode, LandedState, MavResult, MavState, Severity
+from fleetmpc.protocol.mavlink_setpoint import (
     PositionDemand,
     Rejection,
     SetpointFields,
-    Severity,
     UnicycleDemand,
     check_setpoint,
     decode_setpoint,

@@ -16,10 +16,10 @@ from fleetmpc.protocol.mavlink_map import (
     FlightMode,
     MavResult,
     ModeFlag,
-    SetpointFields,
     mode_from_custom,
     px4_custom_mode,
 )
+from fleetmpc.protocol.mavlink_setpoint import SetpointFields
 from fleetmpc.sitl.autopilot import Autopilot as AutopilotLogic
 from fleetmpc.sitl.mavlink_io import Incoming, mavlink
 from fleetmpc.sitl.telemetry import (

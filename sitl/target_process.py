@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.planbus import PlanBus, open_fleet_bus
+from fleetmpc.onboard.open_bus import open_fleet_bus
+from fleetmpc.onboard.planbus import PlanBus
 from fleetmpc.protocol.keys import epoch_key
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import load_scenario

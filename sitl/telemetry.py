@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
+from fleetmpc.protocol.local_frame import geodetic_from_ned
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
@@ -18,7 +19,6 @@ from fleetmpc.protocol.mavlink_map import (
     MavState,
     base_mode,
     custom_mode_of,
-    geodetic_from_ned,
 )
 from fleetmpc.scenario import Site
 from fleetmpc.sitl.mavlink_io import mavlink

@@ -14,12 +14,9 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from fleetmpc.errors import ConfigError  # noqa: E402
-from fleetmpc.onboard.autopilot_link import (  # noqa: E402
-    AutopilotLinkError,
-    FakeAutopilotLink,
-    MavlinkAutopilotLink,
-    open_autopilot_link,
-)
+from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link  # noqa: E402
+from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink  # noqa: E402
+from fleetmpc.onboard.mavlink_autopilot_link import MavlinkAutopilotLink  # noqa: E402
 from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     Autopilot,
     FlightMode,

@@ -49,24 +49,11 @@ from pymavlink import mavutil  # noqa: E402
 
 from fleetmpc.gcs.metrics import compute_metrics  # noqa: E402
 from fleetmpc.launch.fleet import FleetOptions, fleet_processes  # noqa: E402
+from fleetmpc.protocol.codec import SCHEMA_VERSION, DecodeError, decode, encode  # noqa: E402
 from fleetmpc.protocol.keys import epoch_key, plan_key  # noqa: E402
-from fleetmpc.protocol.mavlink_map import (  # noqa: E402
-    Autopilot,
-    FlightMode,
-    ModeFlag,
-    mode_from_custom,
-    ned_from_geodetic,
-)
-from fleetmpc.protocol.messages import (  # noqa: E402
-    SCHEMA_VERSION,
-    DecodeError,
-    FleetEpoch,
-    MessageKind,
-    PlanMessage,
-    RejectReason,
-    decode,
-    encode,
-)
+from fleetmpc.protocol.local_frame import ned_from_geodetic  # noqa: E402
+from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode, ModeFlag, mode_from_custom  # noqa: E402
+from fleetmpc.protocol.messages import FleetEpoch, MessageKind, PlanMessage, RejectReason  # noqa: E402
 from fleetmpc.protocol.plan import Plan  # noqa: E402
 from fleetmpc.protocol.zenoh_config import ZenohOptions, endpoint  # noqa: E402
 from fleetmpc.scenario import Scenario, load_scenario  # noqa: E402
@@ -177,7 +164,7 @@ def malformed_plan_payloads() -> list[tuple[RejectReason, bytes]]:
     wrong_version = bytearray(valid)
     wrong_version[2] = SCHEMA_VERSION + 1
     nan_state = bytearray(valid)
-    struct.pack_into("<d", nan_state, 42, math.nan)  # states[0].x (protocol.messages layout)
+    struct.pack_into("<d", nan_state, 42, math.nan)  # states[0].x (protocol.codec layout)
     garbage = b"\x00\xff" + np.random.default_rng(5).bytes(len(valid) - 2)
     from_vehicle_1 = encode(PlanMessage(seq=0, plan=dataclasses.replace(plan, vehicle_id=1)))
     return [

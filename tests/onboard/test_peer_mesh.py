@@ -12,7 +12,7 @@ import time
 
 from helpers import ROOT, scenario_on_free_ports, wait_until
 
-from fleetmpc.onboard.planbus import open_plan_bus
+from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 from fleetmpc.protocol.zenoh_config import options_from_args, peer_mesh_index
 from fleetmpc.scenario import load_scenario

@@ -10,8 +10,8 @@ import pytest
 
 from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.autopilot_link import FakeAutopilotLink
-from fleetmpc.onboard.planbus import InMemoryPlanBus, MemoryHubs
+from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
+from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.onboard.runner import (
     FleetRunner,
     RunnerSettings,

@@ -1,4 +1,5 @@
-"""protocol.mavlink_map against pymavlink's own tables, and its round trips."""
+"""protocol.mavlink_map, mavlink_setpoint and local_frame against pymavlink's own tables, and their
+round trips."""
 
 import math
 import os
@@ -10,36 +11,40 @@ from hypothesis import strategies as st
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
+from fleetmpc.protocol.local_frame import (  # noqa: E402
+    EARTH_RADIUS_M,
+    geodetic_from_ned,
+    ned_from_geodetic,
+    wrap_pi,
+)
 from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     COPTER_MODE_OF,
-    EARTH_RADIUS_M,
     PX4_CUSTOM_MODE_OF,
     Autopilot,
     CopterMode,
     FlightMode,
-    Frame,
     LandedState,
     MavResult,
     MavState,
     ModeFlag,
+    Severity,
+    base_mode,
+    custom_mode_of,
+    mode_from_custom,
+    px4_custom_mode,
+    px4_split_custom_mode,
+)
+from fleetmpc.protocol.mavlink_setpoint import (  # noqa: E402
+    Frame,
     PositionDemand,
     Rejection,
     SetpointFields,
-    Severity,
     TypeMask,
     UnicycleDemand,
-    base_mode,
-    custom_mode_of,
     decode_setpoint,
     encode_position_setpoint,
     encode_setpoint,
-    geodetic_from_ned,
-    mode_from_custom,
-    ned_from_geodetic,
-    px4_custom_mode,
-    px4_split_custom_mode,
     setpoint_message_args,
-    wrap_pi,
 )
 
 M = mavutil.mavlink

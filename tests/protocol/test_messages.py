@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.codec import DecodeError, decode, decode_or_none, encode
 from fleetmpc.protocol.messages import (
-    DecodeError,
     FleetEpoch,
     LearnedParams,
     MessageKind,
@@ -23,9 +23,6 @@ from fleetmpc.protocol.messages import (
     TargetObservation,
     VehicleMode,
     VehicleStatus,
-    decode,
-    decode_or_none,
-    encode,
 )
 from fleetmpc.protocol.plan import Plan
 

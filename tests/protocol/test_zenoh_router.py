@@ -11,7 +11,7 @@ import pytest
 from helpers import free_port, wait_until
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.planbus import open_plan_bus
+from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.plan import Plan
 from fleetmpc.protocol.zenoh_router import open_router, router_config
 

@@ -16,7 +16,7 @@ from mavsdk.asyncio.plugins.offboard import OffboardAsync, OffboardError, Veloci
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync
 from sim_client import SimClient
 
-from fleetmpc.protocol.mavlink_map import ned_from_geodetic
+from fleetmpc.protocol.local_frame import ned_from_geodetic
 
 HOME = dict(home_lat_deg=47.397742, home_lon_deg=8.545594)
 FORWARD_M_S = 1.5

@@ -19,11 +19,10 @@ from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     PX4_CUSTOM_MODE_OF,
     FlightMode,
     MavResult,
-    SetpointFields,
     mode_from_custom,
     px4_split_custom_mode,
-    setpoint_message_args,
 )
+from fleetmpc.protocol.mavlink_setpoint import SetpointFields, setpoint_message_args  # noqa: E402
 
 M = mavutil.mavlink
 IDEAL_SCENARIO = Path(__file__).parent / "data" / "ideal.toml"

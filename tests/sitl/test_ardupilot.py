@@ -8,14 +8,8 @@ import re
 import pytest
 from sim_client import M, SimClient, horizontal_speed
 
-from fleetmpc.protocol.mavlink_map import (
-    CopterMode,
-    FlightMode,
-    Frame,
-    LandedState,
-    MavResult,
-    encode_setpoint,
-)
+from fleetmpc.protocol.mavlink_map import CopterMode, FlightMode, LandedState, MavResult
+from fleetmpc.protocol.mavlink_setpoint import Frame, encode_setpoint
 
 POSITION_READY_S = 8.0
 ARDUPILOT = M.MAV_AUTOPILOT_ARDUPILOTMEGA

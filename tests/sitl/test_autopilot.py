@@ -8,11 +8,9 @@ from hypothesis import strategies as st
 
 from fleetmpc.clock import ManualClock
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.mavlink_map import (
-    FlightMode,
+from fleetmpc.protocol.mavlink_map import FlightMode, LandedState, MavResult
+from fleetmpc.protocol.mavlink_setpoint import (
     Frame,
-    LandedState,
-    MavResult,
     Rejection,
     SetpointFields,
     TypeMask,

@@ -22,7 +22,8 @@ import time
 import pytest
 from sim_client import M, SimClient, fly_offboard, horizontal_speed, px4_args
 
-from fleetmpc.protocol.mavlink_map import FlightMode, Frame, MavResult, encode_setpoint
+from fleetmpc.protocol.mavlink_map import FlightMode, MavResult
+from fleetmpc.protocol.mavlink_setpoint import Frame, encode_setpoint
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402

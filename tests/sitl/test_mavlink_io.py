@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fleetmpc.protocol.mavlink_map import (
+from fleetmpc.protocol.mavlink_setpoint import (
     Frame,
     UnicycleDemand,
     decode_setpoint,

@@ -11,7 +11,7 @@ from mavsdk.asyncio.plugins.telemetry import FlightMode
 from mavsdk_flow import FORWARD_M_S, YAWSPEED_DEG_S, mavsdk_flight
 from sim_client import SimClient, fly_offboard, free_port, horizontal_speed, wait_hold_after_stop
 
-from fleetmpc.protocol.mavlink_map import Frame, encode_setpoint
+from fleetmpc.protocol.mavlink_setpoint import Frame, encode_setpoint
 
 MAVPROXY = Path(sys.executable).parent / "mavproxy.py"
 

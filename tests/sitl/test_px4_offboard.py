@@ -8,13 +8,8 @@ import math
 import pytest
 from sim_client import SimClient, fly_offboard, horizontal_speed, px4_args, wait_hold_after_stop
 
-from fleetmpc.protocol.mavlink_map import (
-    FlightMode,
-    Frame,
-    SetpointFields,
-    TypeMask,
-    encode_setpoint,
-)
+from fleetmpc.protocol.mavlink_map import FlightMode
+from fleetmpc.protocol.mavlink_setpoint import Frame, SetpointFields, TypeMask, encode_setpoint
 
 
 @pytest.mark.parametrize("speed", [1.0, 4.0])

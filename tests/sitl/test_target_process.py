@@ -7,7 +7,7 @@ import pytest
 from helpers import free_port_block
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.planbus import InMemoryPlanBus, MemoryHubs
+from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 from fleetmpc.protocol.zenoh_router import open_router
 from fleetmpc.sitl.target_process import wait_for_epoch

@@ -8,17 +8,19 @@ import numpy as np
 import pytest
 
 from fleetmpc.clock import ManualClock
+from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     PX4_CUSTOM_MODE_OF,
     FlightMode,
     MavResult,
     MavState,
     ModeFlag,
+    px4_split_custom_mode,
+)
+from fleetmpc.protocol.mavlink_setpoint import (
     SetpointFields,
     encode_position_setpoint,
     encode_setpoint,
-    ned_from_geodetic,
-    px4_split_custom_mode,
     setpoint_message_args,
 )
 from fleetmpc.scenario import load_scenario

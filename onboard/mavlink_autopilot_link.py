@@ -1,0 +1,319 @@
+"""MavlinkAutopilotLink: the AutopilotLink over pymavlink, for PX4 and ArduPilot.
+
+The link detects the autopilot from its HEARTBEAT and uses its semantics (`engage`):
+PX4 — setpoints must already stream (> 2 Hz for >= 1 s: the runner's streamer does it), then
+arm and DO_SET_MODE OFFBOARD (COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6);
+ArduPilot — SET_MESSAGE_INTERVAL for the streams, GUIDED, arm with retries until accepted,
+takeoff. Setpoints are SET_POSITION_TARGET_LOCAL_NED with type_mask 1479 (velocity + yaw rate),
+frame BODY_NED (8) for PX4 and BODY_OFFSET_NED (9) for ArduPilot, vx = forward speed; a hold is
+type_mask 3576 (position only) in LOCAL_NED, which both autopilots fly with their own position
+controller (`send_position_setpoint`).
+
+A reader thread decodes everything that arrives; every field acted on is validated (random
+payloads often decode as valid messages).
+"""
+
+import contextlib
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+
+from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, LinkState
+from fleetmpc.protocol.mavlink_map import (
+    Autopilot,
+    FlightMode,
+    MavResult,
+    ModeFlag,
+    Px4MainMode,
+    custom_mode_of,
+    mode_from_custom,
+)
+from fleetmpc.protocol.mavlink_setpoint import (
+    Frame,
+    SetpointFields,
+    encode_position_setpoint,
+    encode_setpoint,
+    setpoint_message_args,
+)
+
+__all__ = ["MavlinkAutopilotLink"]
+
+_MAX_POSITION_M = 1e6
+_MAX_BOOT_MS = 2**32 - 1
+
+
+def _finite(*values: float, bound: float) -> bool:
+    return all(isinstance(v, float | int) and math.isfinite(v) and abs(v) <= bound for v in values)
+
+
+class MavlinkAutopilotLink(AutopilotLink):
+    """An AutopilotLink over pymavlink (any `mavutil.mavlink_connection` URL)."""
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        system_id: int | None = None,
+        source_system: int = 255,
+        source_component: int = 190,
+        log: Callable[[str], None] | None = None,
+        now_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        super().__init__()
+        self._now_ns = now_ns
+        os.environ["MAVLINK20"] = "1"
+        from pymavlink import mavutil
+
+        self._mavutil = mavutil
+        self.url = url
+        self._want_system = system_id
+        self._log = log or (lambda _text: None)
+        try:
+            self._conn = mavutil.mavlink_connection(
+                url,
+                source_system=source_system,
+                source_component=source_component,
+                autoreconnect=True,
+            )
+        except Exception as e:
+            raise AutopilotLinkError(f"cannot open MAVLink connection {url!r}: {e}") from None
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._acks: dict[int, int] = {}
+        self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
+        self._reader.start()
+
+    # -- receive --------------------------------------------------------------------------------
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                msg = self._conn.recv_match(blocking=True, timeout=0.05)
+            except Exception:  # a closed socket or a decoder error: keep reading until stopped
+                if self._stop.wait(0.01):
+                    return
+                continue
+            if msg is not None:
+                try:
+                    self._handle(msg)
+                except Exception:
+                    self._update(rejected=self.state().rejected + 1)
+
+    def _handle(self, msg) -> None:
+        kind = msg.get_type()
+        src = msg.get_srcSystem()
+        st = self.state()
+        if kind == "HEARTBEAT":
+            self._on_heartbeat(msg, src)
+            return
+        if st.system_id == 0 or src != st.system_id or msg.get_srcComponent() != 1:
+            return
+        if kind == "LOCAL_POSITION_NED":
+            if not (
+                _finite(msg.x, msg.y, msg.z, bound=_MAX_POSITION_M)
+                and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
+            ):
+                self._update(rejected=st.rejected + 1)
+                return
+            t_ns = int(msg.time_boot_ms) * 1_000_000
+            self._update(
+                north_m=float(msg.x),
+                east_m=float(msg.y),
+                down_m=float(msg.z),
+                position_boot_ns=t_ns,
+                time_boot_ns=max(t_ns, st.time_boot_ns),
+                received_ns=self._now_ns(),
+            )
+        elif kind == "ATTITUDE":
+            if not (
+                _finite(msg.yaw, bound=2 * math.pi + 1e-3) and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
+            ):
+                self._update(rejected=st.rejected + 1)
+                return
+            t_ns = int(msg.time_boot_ms) * 1_000_000
+            self._update(
+                yaw_rad=float(msg.yaw),
+                time_boot_ns=max(t_ns, st.time_boot_ns),
+                received_ns=self._now_ns(),
+            )
+        elif kind == "COMMAND_ACK":
+            if msg.result in {int(r) for r in MavResult}:
+                with self._cond:
+                    self._acks[int(msg.command)] = int(msg.result)
+                    self._cond.notify_all()
+        elif kind == "STATUSTEXT":
+            text = str(getattr(msg, "text", ""))[:50]
+            self._update(last_text=text)
+            self._log(f"autopilot: {text}")
+
+    def _on_heartbeat(self, msg, src: int) -> None:
+        st = self.state()
+        if msg.get_srcComponent() != 1 or msg.type in (6, 18):  # GCS (6), onboard computer (18)
+            return
+        if self._want_system is not None and src != self._want_system:
+            return
+        if st.system_id not in (0, src):
+            return
+        try:
+            autopilot = Autopilot(msg.autopilot)
+        except ValueError:
+            self._update(rejected=st.rejected + 1)
+            return
+        custom = bool(msg.base_mode & ModeFlag.CUSTOM_MODE_ENABLED)
+        mode = mode_from_custom(int(msg.custom_mode), autopilot) if custom else None
+        armed = bool(msg.base_mode & ModeFlag.SAFETY_ARMED)
+        was_lost = st.mode_lost
+        self._update(
+            autopilot=autopilot,
+            system_id=src,
+            armed=armed,
+            mode=mode,
+            heartbeats=st.heartbeats + 1,
+        )
+        now = self.state()
+        if now.mode_lost and not was_lost:
+            name = mode.name if mode is not None else "an unknown mode"
+            self._log(f"mode lost: the autopilot switched to {name}; not re-engaging")
+
+    # -- send -----------------------------------------------------------------------------------
+    def _target(self) -> int:
+        return self.state().system_id or (self._want_system or 1)
+
+    def _send(self, fn: Callable[..., None], *args: object) -> bool:
+        with self._send_lock:
+            try:
+                fn(*args)
+            except Exception:
+                return False
+        return True
+
+    def send_setpoint(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
+        if not (math.isfinite(speed_m_s) and math.isfinite(yaw_rate_rad_s)):
+            speed_m_s, yaw_rate_rad_s = 0.0, 0.0
+        px4 = self.state().autopilot != Autopilot.ARDUPILOTMEGA
+        self._send_fields(
+            encode_setpoint(
+                speed_m_s, yaw_rate_rad_s, frame=Frame.BODY_NED if px4 else Frame.BODY_OFFSET_NED
+            )
+        )
+
+    def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
+        if not _finite(north_m, east_m, down_m, bound=_MAX_POSITION_M):
+            self.send_setpoint(speed_m_s=0.0, yaw_rate_rad_s=0.0)
+            return
+        self._send_fields(encode_position_setpoint(north_m, east_m, down_m))
+
+    def _send_fields(self, sp: SetpointFields) -> None:
+        target = self._target()
+        boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & _MAX_BOOT_MS
+        mav = self._conn.mav
+        sent = self._send(
+            lambda: mav.set_position_target_local_ned_send(
+                *setpoint_message_args(sp, time_boot_ms=boot_ms, target_system=target)
+            )
+        )
+        if sent:
+            self.setpoints_sent += 1
+
+    def _command(self, command: int, params: tuple[float, ...], *, timeout_s: float) -> int | None:
+        """COMMAND_LONG and wait for its ACK: the MAV_RESULT, or None on timeout."""
+        p = (*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)[:7]
+        with self._cond:
+            self._acks.pop(command, None)
+        target = self._target()
+        mav = self._conn.mav
+        self._send(lambda: mav.command_long_send(target, 1, command, 0, *p))
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while command not in self._acks:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+            return self._acks.pop(command)
+
+    def _retry(self, command: int, params: tuple[float, ...], *, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not self._stop.is_set():
+            result = self._command(command, params, timeout_s=min(1.0, timeout_s))
+            if result == MavResult.ACCEPTED:
+                return True
+            self._stop.wait(0.25)
+        return False
+
+    def _set_mode(self, mode: FlightMode, *, timeout_s: float) -> bool:
+        autopilot = self.state().autopilot or Autopilot.PX4
+        if autopilot == Autopilot.PX4:
+            params = (float(ModeFlag.CUSTOM_MODE_ENABLED), float(_px4_main(mode)))
+            custom = custom_mode_of(mode, autopilot)
+            sub = (custom >> 24) & 0xFF
+            params = (*params, float(sub))
+        else:
+            params = (float(ModeFlag.CUSTOM_MODE_ENABLED), float(custom_mode_of(mode, autopilot)))
+        return self._retry(176, params, timeout_s=timeout_s)
+
+    def connect(self, *, timeout_s: float) -> LinkState:
+        deadline = time.monotonic() + timeout_s
+        asked_streams = False
+        while time.monotonic() < deadline:
+            st = self.state()
+            if st.autopilot is not None and not asked_streams:
+                self._request_streams(st.autopilot)
+                asked_streams = True
+            if st.autopilot is not None and st.has_pose:
+                return st
+            # Some links (udpout, tcp) stay silent until the client speaks.
+            self._send(self._conn.mav.heartbeat_send, 6, 8, 0, 0, 4)
+            self.wait_state(newer_than_ns=st.time_boot_ns, timeout_s=0.25)
+        raise AutopilotLinkError(f"no HEARTBEAT and pose from {self.url} in {timeout_s} s")
+
+    def _request_streams(self, autopilot: Autopilot) -> None:
+        """ArduPilot streams nothing until asked: position and attitude at 50 Hz."""
+        if autopilot != Autopilot.ARDUPILOTMEGA:
+            return
+        for msg_id in (32, 30):  # LOCAL_POSITION_NED, ATTITUDE
+            interval_us = 20_000
+            self._command(511, (float(msg_id), float(interval_us)), timeout_s=1.0)
+
+    def engage(self, *, timeout_s: float) -> bool:
+        st = self.state()
+        if st.autopilot == Autopilot.ARDUPILOTMEGA:
+            ok = (
+                self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
+                and self._retry(400, (1.0,), timeout_s=timeout_s)
+                and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
+            )
+        else:
+            ok = self._retry(400, (1.0,), timeout_s=timeout_s) and self._set_mode(
+                FlightMode.OFFBOARD, timeout_s=timeout_s
+            )
+        if ok:
+            self._update(engaged=True, mode_lost=False)
+        return ok
+
+    def hold(self) -> bool:
+        self._update(engaged=False)
+        return self._set_mode(FlightMode.HOLD, timeout_s=1.0)
+
+    def close(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._reader.join(timeout=1.0)
+        with contextlib.suppress(Exception):
+            self._conn.close()
+
+
+_TAKEOFF_ALT_M = 10.0
+"""ArduPilot takeoff altitude [m] (the horizontal plant flies at any altitude)."""
+
+
+def _px4_main(mode: FlightMode) -> int:
+    return {
+        FlightMode.OFFBOARD: Px4MainMode.OFFBOARD,
+        FlightMode.HOLD: Px4MainMode.AUTO,
+        FlightMode.POSITION: Px4MainMode.POSCTL,
+        FlightMode.LAND: Px4MainMode.AUTO,
+        FlightMode.TAKEOFF: Px4MainMode.AUTO,
+    }[mode]
