@@ -2,9 +2,9 @@
 
     fleetmpc up scenarios/paper.toml --speed 4 --viewer spawn
 
-Starts the processes of `fleetmpc.launch.fleet.fleet_processes` (Zenoh router, target, one SITL and one
-agent per vehicle, the ground station) as separate OS processes on loopback, each in its own
-session so a Ctrl-C reaches only this launcher, which then stops them in order. Every process
+Starts the processes of `fleetmpc.launch.fleet.fleet_processes` (Zenoh router, target, one SITL
+and one agent per vehicle, the ground station) as separate OS processes on loopback, each in its
+own session so a Ctrl-C reaches only this launcher, which then stops them in order. Every process
 writes ``<run-dir>/logs/<name>.log``. While the fleet flies, a status table shows each vehicle's
 mode, arming, slot error, last solve time, oldest neighbour plan, setpoint rate and link age
 (from the ground station's status file).
@@ -33,6 +33,11 @@ import time
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+
+from rich import box
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.ground_station import FLUSH_S, SERIES_FLUSH_S
@@ -183,38 +188,80 @@ def _fmt(value, spec: str, unit: str = "") -> str:
     return "-" if value is None else f"{value:{spec}}{unit}"
 
 
-def status_table(status: dict) -> list[str]:
-    """The status table's lines for a ground-station status snapshot."""
+_COLUMNS = (
+    ("UAV", ">", 4),
+    ("mode", "<", 9),
+    ("armed", "<", 5),
+    ("slot err", ">", 9),
+    ("solve", ">", 8),
+    ("plan age", ">", 9),
+    ("setpoints", ">", 10),
+    ("link", ">", 7),
+    ("fallbk", ">", 6),
+)
+"""The status table's columns: heading, alignment and width of its plain-text form."""
+
+
+def _status_head(status: dict) -> str:
     t = status.get("fleet_s")
-    head = f"phase {status.get('phase', '?')}, fleet time " + ("-" if t is None else f"{t:6.1f} s")
-    rows = [
-        head,
-        f"{'UAV':>4} {'mode':<9} {'armed':<5} {'slot err':>9} {'solve':>8} "
-        f"{'plan age':>9} {'setpoints':>10} {'link':>7} {'fallbk':>6}",
-    ]
+    return f"phase {status.get('phase', '?')}, fleet time " + ("-" if t is None else f"{t:6.1f} s")
+
+
+def _status_cells(status: dict) -> list[list[str]]:
+    """One row of cells per vehicle, in the order of `_COLUMNS`."""
+    rows = []
     for vid, v in status.get("vehicles", {}).items():
         link = v.get("link_age_s")
         health = "-" if link is None else ("ok" if link < 1.0 else f"{link:4.1f}s!")
         rows.append(
-            f"{vid:>4} {v.get('mode') or '-':<9} {'yes' if v.get('armed') else 'no':<5} "
-            f"{_fmt(v.get('slot_error_m'), '7.3f', ' m'):>9} "
-            f"{_fmt(v.get('solve_ms'), '5.2f', ' ms'):>8} "
-            f"{_fmt(v.get('plan_age_s'), '6.2f', ' s'):>9} "
-            f"{_fmt(v.get('setpoint_rate_hz'), '6.1f', ' Hz'):>10} {health:>7} "
-            f"{v.get('qp_fallbacks', 0):>6}"
+            [
+                str(vid),
+                v.get("mode") or "-",
+                "yes" if v.get("armed") else "no",
+                _fmt(v.get("slot_error_m"), "7.3f", " m"),
+                _fmt(v.get("solve_ms"), "5.2f", " ms"),
+                _fmt(v.get("plan_age_s"), "6.2f", " s"),
+                _fmt(v.get("setpoint_rate_hz"), "6.1f", " Hz"),
+                health,
+                str(v.get("qp_fallbacks", 0)),
+            ]
         )
     return rows
 
 
-class _StatusView:
-    """Redraws the table in place on a terminal; a line every few seconds otherwise."""
+def status_table(status: dict) -> list[str]:
+    """The status table's plain lines for a ground-station status snapshot."""
 
-    def __init__(self, path: Path, *, quiet: bool) -> None:
+    def line(cells) -> str:
+        return " ".join(f"{c:{a}{w}}" for c, (_, a, w) in zip(cells, _COLUMNS, strict=True))
+
+    head = [_status_head(status), line(name for name, _, _ in _COLUMNS)]
+    return head + [line(cells) for cells in _status_cells(status)]
+
+
+def status_renderable(status: dict) -> Table:
+    """The status table as a `rich` table, for a terminal."""
+    table = Table(title=_status_head(status), title_justify="left", box=box.SIMPLE_HEAD)
+    for name, align, _ in _COLUMNS:
+        table.add_column(name, justify="right" if align == ">" else "left", no_wrap=True)
+    for cells in _status_cells(status):
+        table.add_row(*(c.strip() for c in cells))
+    return table
+
+
+class _StatusView:
+    """Redraws the table in place on a terminal; its plain lines every few seconds otherwise.
+
+    Output goes to `console` (stdout by default); `close` ends the drawing.
+    """
+
+    def __init__(self, path: Path, *, quiet: bool, console: Console | None = None) -> None:
         self.path = path
         self.quiet = quiet
-        self.tty = sys.stdout.isatty()
-        self._drawn = 0
-        self._last_plain = 0.0
+        self.console = console or Console(force_terminal=sys.stdout.isatty())
+        self.tty = self.console.is_terminal
+        self._live: Live | None = None
+        self._last_plain = -math.inf
 
     def update(self) -> None:
         if self.quiet:
@@ -223,16 +270,22 @@ class _StatusView:
             status = json.loads(self.path.read_text())
         except (OSError, ValueError):
             return
-        lines = status_table(status)
         if self.tty:
-            if self._drawn:
-                sys.stdout.write(f"\x1b[{self._drawn}F")
-            sys.stdout.write("".join(f"\x1b[2K{line}\n" for line in lines))
-            self._drawn = len(lines)
+            if self._live is None:
+                self._live = Live(console=self.console, auto_refresh=False)
+                self._live.start()
+            self._live.update(status_renderable(status), refresh=True)
         elif time.monotonic() - self._last_plain >= 5.0:
             self._last_plain = time.monotonic()
-            sys.stdout.write("\n".join(lines) + "\n")
-        sys.stdout.flush()
+            out = self.console.file
+            out.write("\n".join(status_table(status)) + "\n")
+            out.flush()
+
+    def close(self) -> None:
+        """Stop redrawing, leaving the last table on screen."""
+        if self._live is not None:
+            self._live.stop()
+            self._live = None
 
 
 def _default_viewer() -> str:
@@ -314,6 +367,7 @@ def run(args: argparse.Namespace) -> int:
     except _ProcessFailed as e:
         failure = e
     finally:
+        view.close()
         t_stop = time.monotonic()
         codes = fleet.stop()
         stop_s = time.monotonic() - t_stop

@@ -50,9 +50,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  - {p}")
     duration = sc.duration_s if args.duration is None else args.duration
     bar = None if args.quiet else ProgressBar(f"sim {sc.name}")
-    rec = run_lockstep(
-        sc, learning=not args.no_learning, duration_s=duration, seed=args.seed, progress=bar
-    )
+    try:
+        rec = run_lockstep(
+            sc, learning=not args.no_learning, duration_s=duration, seed=args.seed, progress=bar
+        )
+    finally:
+        if bar is not None:
+            bar.close()
     metrics = {
         "scenario": sc.name,
         "learning": not args.no_learning and sc.learning.enabled,
