@@ -5,33 +5,17 @@ One process, side by side on the same machine:
 1. a lockstep run of the scenario, after a warm-up run (its agent step times are the
    reference: the control step);
 2. a `GroundStation` fed what a live ground station would receive from that run (each vehicle's
-   position, plan and status every period, the target's observation), flushed to an `.rrd` file
-   every `P` periods, as `fleetmpc gcs --flush-s F` flushes every F / period periods at any
-   speed (`fleetmpc bench --gcs-logging --flush-s F [F ...] [--series-flush-s G]`, default 1, 2
-   and 4 s of flight), the time series and flight_record rows every `series_every` flushes as
-   `fleetmpc gcs --series-flush-s G` makes them; each flush is timed as the ground station
-   times it: the whole flush, its Rerun calls (events, the record's new periods, plans, rates,
-   ages and the target prediction) and building the record's new periods for them.
+   position, plan and status every period, the target's observation), flushed every `P`
+   periods, as `fleetmpc gcs --flush-s F` flushes every F / period periods at any speed
+   (`--flush-s F [F ...]`, default 1, 2 and 4 s of flight; the time series every
+   `series_every` flushes, as `--series-flush-s` makes them): once without a recording and once
+   into an `.rrd` file, in alternating pairs.
 
-What logging adds is the Rerun calls and the record built a flush at a time rather than once:
-without logging the ground station drains its inbox all the same, and builds the record once,
-for its metrics, at the end. So the logging time of a run is its Rerun calls, plus the time it
-spent building the record (the flushes' builds and the metrics', by then a copy), less the
-one-shot build of the run without logging paired with it.
-
-The figures, per vehicle-period (one vehicle's data of one control period), next to the agent
-step median (the target is at most 10 % of it):
-- all flushes: the run's logging time / (periods logged x vehicles), the first flush included
-  (the run's meta, colours and line names go out when the recording opens, as in
-  `fleetmpc gcs`); beside it, the part of it that is the record built a flush at a time;
-- steady: the median time of a cycle of flushes that logs the time series once (one flush when
-  they go out with every flush; the first cycles before the final flush), Rerun calls and
-  record builds, / (periods per cycle x vehicles), less the one-shot build per vehicle-period;
-- CPU: the process's CPU time over the run and its metrics, every thread included (Rerun encodes
-  and writes in threads of its own, after the flush returns), less the same without logging
-  (medians of three alternating pairs).
-The whole flush's median is printed beside them. A flush costs mostly per entity, not per row,
-so the figures fall as the flushes grow. Wall-clock and CPU times; nothing is asserted.
+Each flush is timed from outside, and the process's CPU time over the whole feed (every thread:
+the Rerun SDK encodes and writes in threads of its own after a call returns). Logging's cost is
+the difference between the two runs of a pair, per vehicle-period (one vehicle's data of one
+control period), next to the agent step median (the target is at most 10 % of it). Wall-clock
+and CPU times; nothing is asserted.
 """
 
 import argparse
@@ -121,31 +105,22 @@ def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
         gs.inbox.put(message)
 
 
-def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int, stream) -> None:
+def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int, stream) -> list[float]:
     """The ground station fed the run period by period, flushed every `periods_per_flush`, and
     its metrics computed, as a ground station ends; the stream (if any) flushed, so Rerun has
-    encoded and written everything, and left open."""
+    encoded and written everything, and left open. The wall time of each flush [ms]."""
+    flush_ms = []
     for k in range(len(rec.t_s)):
         _receive(gs, rec, k)
-        if (k + 1) % periods_per_flush == 0:
-            gs.flush(stream)
-    gs.flush(stream, final=True)
+        last = k == len(rec.t_s) - 1
+        if last or (k + 1) % periods_per_flush == 0:
+            t0 = time.perf_counter()
+            gs.flush(stream, final=last)
+            flush_ms.append((time.perf_counter() - t0) * 1e3)
     gs.metrics()
     if stream is not None:
         stream.flush()
-
-
-def _steady_ms(runs: list[list[float]], every: int) -> float:
-    """Median time [ms] of the cycles of `every` flushes before each run's final flush
-    (of the flushes before it if a run has no whole cycle)."""
-    cycles = [
-        sum(run[i : i + every]) / every
-        for run in runs
-        for i in range(0, len(run) - every, every)  # whole cycles, the final flush left out
-    ]
-    if not cycles:
-        cycles = [float(np.mean(run[:-1] or run)) for run in runs]
-    return float(np.median(cycles))
+    return flush_ms
 
 
 def _logging(
@@ -157,16 +132,12 @@ def _logging(
     rrd: Path,
     repeats: int = 3,
 ) -> dict:
-    """Flush times, the logging time (the Rerun calls, and the record's builds less the one-shot
-    build of the paired run without logging), and the CPU time of the whole process (every
-    thread, Rerun's encoder and file writer included) with logging less the same run without
-    it: `repeats` pairs run alternately, medians compared for the CPU time (a single pair's
-    difference is noisy, even negative). As in `fleetmpc gcs`, the ground station is made and
-    the recording opened, with its meta and statics, before the flight: that is not timed
-    (some 20 ms of CPU, 50 ms the first time, which a 30 s run would count as logging)."""
-    cpu_without, cpu_with, flush, rerun = [], [], [], []
-    record_once, record_extra = [], []
-    runs: list[list[float]] = []
+    """Flush times with and without a recording, and the CPU time of the whole process with
+    logging less without it: `repeats` pairs run alternately, medians compared (a single pair's
+    difference is noisy, even negative). As in `fleetmpc gcs`, the recording is opened, with its
+    meta and statics, before the flight: that is not timed."""
+    cpu_without, cpu_with, wall_without, wall_with = [], [], [], []
+    flush_without, flush_with = [], []
 
     def station() -> GroundStation:
         duration_s = float(rec.t_s[-1])
@@ -175,44 +146,32 @@ def _logging(
     for _ in range(repeats):
         gs = station()
         t0 = time.process_time()
-        _feed(gs, rec, periods_per_flush=periods_per_flush, stream=None)
+        flush_without += (ms := _feed(gs, rec, periods_per_flush=periods_per_flush, stream=None))
         cpu_without.append(time.process_time() - t0)
-        once_ms = gs.metrics_record_ms  # no flush built the record: the metrics built it once
-        record_once.append(once_ms)
+        wall_without.append(sum(ms))
         gs = station()
         stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
         gs.start_recording(stream)  # as the ground station, before the flight
         stream.flush()
         t0 = time.process_time()
-        _feed(gs, rec, periods_per_flush=periods_per_flush, stream=stream)
+        flush_with += (ms := _feed(gs, rec, periods_per_flush=periods_per_flush, stream=stream))
         cpu_with.append(time.process_time() - t0)
+        wall_with.append(sum(ms))
         stream.disconnect()
-        flush.extend(gs.flush_ms)
-        rerun.extend(gs.log_ms)
-        record_extra.append(sum(gs.record_ms) + gs.metrics_record_ms - once_ms)
-        runs.append([a + b for a, b in zip(gs.log_ms, gs.record_ms, strict=True)])
-    flush, rerun = np.asarray(flush), np.asarray(rerun)
-    vehicle_periods = gs.flushed_vehicle_periods
-    per_flush = periods_per_flush * len(scenario.vehicles)
-    cpu_s = float(np.median(cpu_with) - np.median(cpu_without))
-    extra_ms = float(np.mean(record_extra))
-    once_ms = float(np.median(record_once))
+    vehicle_periods = len(rec.t_s) * len(scenario.vehicles)
     return {
         "periods_per_flush": periods_per_flush,
         "series_every": series_every,
-        "flushes": len(flush) // repeats,
+        "flushes": len(flush_with) // repeats,
         "repeats": repeats,
-        "flush_median_ms": float(np.median(flush)),
-        "rerun_median_ms": float(np.median(rerun)),
-        "rerun_p99_ms": float(np.percentile(rerun, 99)),
-        "record_once_ms": once_ms,
-        "record_extra_ms": extra_ms,
-        "ms_per_vehicle_period": (float(rerun.sum()) / repeats + extra_ms) / vehicle_periods,
-        "record_ms_per_vehicle_period": extra_ms / vehicle_periods,
-        "steady_ms_per_vehicle_period": (
-            _steady_ms(runs, series_every) / per_flush - once_ms / vehicle_periods
-        ),
-        "cpu_ms_per_vehicle_period": cpu_s * 1e3 / vehicle_periods,
+        "flush_median_ms": float(np.median(flush_with)),
+        "flush_p99_ms": float(np.percentile(flush_with, 99)),
+        "flush_without_median_ms": float(np.median(flush_without)),
+        "ms_per_vehicle_period": float(np.median(wall_with) - np.median(wall_without))
+        / vehicle_periods,
+        "cpu_ms_per_vehicle_period": float(np.median(cpu_with) - np.median(cpu_without))
+        * 1e3
+        / vehicle_periods,
         "rrd_kib": rrd.stat().st_size / 1024,
     }
 
@@ -239,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
                 rrd=Path(tmp) / f"{periods}.rrd",
             )
             row |= {"flush_s": flush_s}
-            for key in ("", "record_", "steady_", "cpu_"):
+            for key in ("", "cpu_"):
                 fraction = row[f"{key}ms_per_vehicle_period"] / step_median_ms
                 row[f"{key}fraction_of_agent_step"] = fraction
             rows.append(row)
@@ -256,39 +215,24 @@ def run(args: argparse.Namespace) -> int:
         f"{len(rec.t_s)} periods; agent step median {step_median_ms:.3f} ms (same process)"
     )
     print(
-        f"  {'flush every (series every)':33s} {'flush':>8s} {'Rerun calls':>16s}   "
-        f"{'logging ms / vehicle-period (of agent step)':>59s}"
+        f"  {'flush every (series every)':33s} {'flush ms':>16s} {'without':>8s}   "
+        f"{'logging ms / vehicle-period (of agent step)':>45s}"
     )
-    print(
-        f"  {'':33s} {'median':>8s} {'median':>8s} {'p99':>7s}   "
-        f"{'all flushes':>14s} {'of it record':>14s} {'steady':>14s} {'CPU':>14s}"
-    )
+    print(f"  {'':33s} {'median':>8s} {'p99':>7s} {'median':>8s}   {'wall':>14s} {'CPU':>14s}")
     for r in rows:
         name = f"{r['flush_s']:g} s ({r['periods_per_flush']} periods) ({r['series_every']})"
         cells = [
             f"{r[key]:.3f} ({100 * r[key] / step_median_ms:.0f}%)"
-            for key in (
-                "ms_per_vehicle_period",
-                "record_ms_per_vehicle_period",
-                "steady_ms_per_vehicle_period",
-                "cpu_ms_per_vehicle_period",
-            )
+            for key in ("ms_per_vehicle_period", "cpu_ms_per_vehicle_period")
         ]
         print(
-            f"  {name:33s} {r['flush_median_ms']:>8.2f} {r['rerun_median_ms']:>8.2f} "
-            f"{r['rerun_p99_ms']:>7.2f}   " + " ".join(f"{c:>14s}" for c in cells)
+            f"  {name:33s} {r['flush_median_ms']:>8.2f} {r['flush_p99_ms']:>7.2f} "
+            f"{r['flush_without_median_ms']:>8.2f}   " + " ".join(f"{c:>14s}" for c in cells)
         )
-    once = " ".join(f"{r['record_once_ms']:.2f}" for r in rows)
-    extra = " ".join(f"{r['record_extra_ms']:.2f}" for r in rows)
     print(
-        "  (ms; logging: the flushes' Rerun calls, and the record built a flush at a time less"
-        " the record built once at the end, as the metrics do without logging, not draining the"
-        " bus; all flushes: the run's logging time over the vehicle-periods logged, the first"
-        " flush included, and of it the record's builds; steady: the median cycle's, a cycle"
-        " logging the time series once; CPU: every thread of the process, with logging less"
-        " without, metrics included in both)"
+        "  (wall: the flushes with a recording less without, over the run's vehicle-periods;"
+        " CPU: every thread of the process, Rerun's included, with less without)"
     )
-    print(f"  (record built once: {once} ms; a flush at a time, more by: {extra} ms)")
     print(f"  (target: logging per vehicle-period <= {100 * TARGET_FRACTION:.0f} % of the step)")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")

@@ -15,27 +15,16 @@ What it does, in order:
    (with ``--epoch-ns`` the fleet already has an epoch: it is used and not announced);
 3. records positions (GLOBAL_POSITION_INT, stamped in fleet time through each vehicle's
    ``time_boot_ms``), plans, statuses and target observations into a `fleetmpc.gcs.live.LiveRecord`
-   and logs them to Rerun in batches (the entity layout of `fleetmpc.gcs.recording`), teed to an
-   ``.rrd`` file and/or a viewer; mode changes and STATUSTEXT become events; every ``--flush-s``
-   seconds of flight (default 4: every 4 / ``--speed`` wall seconds), logging the map of the periods
-   completed since the previous flush, and every ``--series-flush-s`` seconds of flight (default 4:
-   with every flush) the time series and the flight_record rows of the periods since their previous
-   logging, all of them in the last flush. A logging call costs per column and entity, not per row,
-   so the intervals are counted in flight, not wall, time: what logging costs per vehicle and
-   control period is then the same at every speed, and bigger batches of what need not be seen at
-   once cost less. The bus is drained with every status snapshot too, so the status table is as
-   fresh whatever the interval. In the metrics, per vehicle-period: the Rerun calls as
-   ``gcs_log_ms_per_vehicle_period``, building the record's new periods for them as
-   ``gcs_record_ms_per_vehicle_period`` (without logging the record is built once, for the metrics,
-   at the end; ``fleetmpc bench --gcs-logging`` measures what the flushes' builds cost beyond that
-   build), the whole flush, the bus drained too, as ``gcs_flush_ms_per_vehicle_period``; the first
-   two together as ``gcs_logging_ms_per_vehicle_period``: the median of its logging cycles (the
-   flushes up to one that logs the time series; a median, as the agents' step is, so that a flush
-   the host happened to preempt does not stand for the run), the whole run's, and the CPU time the
-   Rerun SDK's own threads spent batching, encoding and writing it (Linux; from the first logged
-   period to the end of the recording); and the median and those threads' time together over the
-   agents' step median (the live run's, from their plans) as ``gcs_logging_share_of_agent_step``,
-   which the summary shows;
+   and logs them to Rerun (the entity layout of `fleetmpc.gcs.recording`), teed to an ``.rrd``
+   file and/or a viewer; mode changes and STATUSTEXT become events. Every ``--flush-s`` seconds
+   of flight (default 4: every 4 / ``--speed`` wall seconds) it logs the map of the periods
+   completed since the previous flush, and every ``--series-flush-s`` seconds of flight (default
+   4: with every flush) the time series and the flight_record rows of the periods since their
+   previous logging, all of them in the last flush. A logging call costs per entity, not per
+   row, so the intervals are counted in flight time: what logging costs per vehicle and control
+   period is then the same at every speed. The bus is drained with every status snapshot too,
+   so the status table is as fresh whatever the interval. What logging costs is a figure of
+   ``fleetmpc bench --gcs-logging``;
 4. rewrites ``--status-file`` (JSON) twice a second for a launcher's status table;
 5. at ``--duration`` (fleet time; then up to 2 s of wall time more, until the telemetry of the
    last periods is in) or on SIGINT/SIGTERM: finishes the recording, prints the same summary as
@@ -69,7 +58,6 @@ from fleetmpc.gcs.recording import (
     log_meta,
     log_statics,
     open_recording,
-    rerun_threads_cpu_ms,
 )
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.protocol.local_frame import ned_from_geodetic
@@ -235,32 +223,6 @@ class GroundStation:
         """Periods whose time series and flight_record rows have been logged."""
         self._flushes = 0
         """Flushes that had new periods."""
-        self.flush_ms: list[float] = []
-        """Wall time of each flush [ms]."""
-        self.log_ms: list[float] = []
-        """Of each flush, the time in Rerun logging [ms]: events, the record's new periods, the
-        live rows. The rest is draining the bus, which the ground station does anyway, and
-        building the record's new periods (`record_ms`)."""
-        self.record_ms: list[float] = []
-        """Of each flush, the time building the record's new periods for logging [ms] (0 if it
-        built none). Without logging, `metrics` builds the record once at the end instead;
-        building it a flush at a time costs more than that, and the difference is logging's
-        (`fleetmpc bench --gcs-logging` measures it)."""
-        self.metrics_record_ms: float | None = None
-        """The time `metrics` took to build the record [ms] (its periods already built by the
-        flushes when logging)."""
-        self.flushed_vehicle_periods = 0
-        """Vehicle-periods logged by the flushes timed in flush_ms."""
-        self.cycle_ms_per_vehicle_period: list[float] = []
-        """Per logging cycle (the flushes up to and including one that logs the time series),
-        its Rerun calls and record builds [ms] over the vehicle-periods it logged."""
-        self._cycle = [0.0, 0]
-        """The current cycle's Rerun calls and record builds [ms], and its vehicle-periods."""
-        self._rerun_cpu0: float | None = None
-        """CPU time of the Rerun SDK's threads [ms] when the first period was logged."""
-        self.rerun_threads_ms: float | None = None
-        """CPU time the Rerun SDK's threads spent on the flight's logging [ms]: from the first
-        flush with a period to the end of the recording (`finish_recording`); None if unknown."""
         self._events: list[tuple[int, str, str]] = []
         """(sim_time ns, level, text) events not logged yet."""
         self.run_info = {
@@ -362,61 +324,38 @@ class GroundStation:
         stream.flush(timeout_sec=0)  # out now, not at the batcher's next tick
 
     def finish_recording(self, stream) -> None:
-        """Wait until the Rerun SDK has written everything logged, and note what its threads
-        spent on the flight's logging."""
+        """Wait until the Rerun SDK has written everything logged."""
         stream.flush()
-        if self._rerun_cpu0 is not None:
-            end = rerun_threads_cpu_ms()
-            self.rerun_threads_ms = None if end is None else end - self._rerun_cpu0
 
     def flush(self, stream, *, final: bool = False) -> None:
         """Log what arrived since the last flush, in column batches: the map of the new periods,
         and every `series_every` flushes (and in the `final` one) the time series and the
         flight_record rows of the periods since they were last logged."""
-        t0 = time.perf_counter()
         self.drain_bus()
         events, self._events = self._events, []
         done = min(self.live.complete_periods(), self.periods)
         new = done > self.logged_periods
-        if stream is not None and new and not self.logged_periods:
-            self._rerun_cpu0 = rerun_threads_cpu_ms()
         self._flushes += new
         due = final or (new and self._flushes % self.series_every == 0)
         series = due and done > self.series_logged
         series_start = self.series_logged if series else done
         first = min(self.logged_periods, series_start)  # logged from here
         period0 = max(first - 1, 0)  # the record's tail from here (the trail's first step)
-        rec = None
-        t_record = time.perf_counter()
-        if stream is not None and (new or series_start < done):
-            rec = self.live.record(done, first=period0, copy=False)
-        t1 = time.perf_counter()
         if stream is not None:
             log_events(stream, events)
-        if rec is not None:
-            log_flight_record(
-                stream,
-                rec,
-                start=self.logged_periods,
-                series_start=series_start,
-                period0=period0,
-                live=self.live.live_rows(first, done, copy=False),
-                statics=False,
-            )
-            vehicle_periods = (done - self.logged_periods) * len(self.links)
-            self.flushed_vehicle_periods += vehicle_periods
-            self._cycle[1] += vehicle_periods
+            if new or series_start < done:
+                log_flight_record(
+                    stream,
+                    self.live.record(done, first=period0, copy=False),
+                    start=self.logged_periods,
+                    series_start=series_start,
+                    period0=period0,
+                    live=self.live.live_rows(first, done, copy=False),
+                    statics=False,
+                )
         self.logged_periods = max(done, self.logged_periods)
         if series:
             self.series_logged = done
-        t2 = time.perf_counter()
-        self.flush_ms.append((t2 - t0) * 1e3)
-        self.log_ms.append((t2 - t1) * 1e3)
-        self.record_ms.append((t1 - t_record) * 1e3)
-        self._cycle[0] += (t2 - t_record) * 1e3
-        if series and self._cycle[1]:
-            self.cycle_ms_per_vehicle_period.append(self._cycle[0] / self._cycle[1])
-            self._cycle = [0.0, 0]
 
     def status_snapshot(self, phase: str) -> dict:
         now = time.time()
@@ -441,51 +380,12 @@ class GroundStation:
         periods = min(self.live.complete_periods(), self.periods)
         if periods < 1:
             return None
-        t0 = time.perf_counter()
         rec = self.live.record(periods)
-        self.metrics_record_ms = (time.perf_counter() - t0) * 1e3
-        flush = sorted(self.flush_ms) or [math.nan]
-        vehicle_periods = self.flushed_vehicle_periods
-        metrics = compute_metrics(rec)
-        step_ms = metrics["step_time_ms"]["median"]
-        cycles = sorted(self.cycle_ms_per_vehicle_period)
-        logging_ms = cycles[len(cycles) // 2] if cycles else None
-        threads_ms = None
-        if self.rerun_threads_ms is not None and vehicle_periods:
-            threads_ms = self.rerun_threads_ms / vehicle_periods
-        share = None
-        if logging_ms is not None and step_ms:
-            share = (logging_ms + (threads_ms or 0.0)) / step_ms
         return {
             "scenario": self.scenario.name,
             **self.run_info,
             "duration_s": float(rec.t_s[-1]),
-            **metrics,
-            "gcs_flush_ms": {
-                "median": flush[len(flush) // 2],
-                "p99": flush[min(len(flush) - 1, int(0.99 * len(flush)))],
-                "count": len(self.flush_ms),
-            },
-            "gcs_log_ms_per_vehicle_period": (
-                sum(self.log_ms) / vehicle_periods if vehicle_periods else None
-            ),
-            "gcs_record_ms_per_vehicle_period": (
-                sum(self.record_ms) / vehicle_periods if vehicle_periods else None
-            ),
-            "gcs_flush_ms_per_vehicle_period": (
-                sum(self.flush_ms) / vehicle_periods if vehicle_periods else None
-            ),
-            "gcs_logging_ms_per_vehicle_period": {
-                "median": logging_ms,
-                "rerun_threads": threads_ms,
-                "cycles": len(cycles),
-                "whole_run": (
-                    (sum(self.log_ms) + sum(self.record_ms)) / vehicle_periods
-                    if vehicle_periods
-                    else None
-                ),
-            },
-            "gcs_logging_share_of_agent_step": share,
+            **compute_metrics(rec),
             "periods_recorded": periods,
             "periods_expected": self.periods,
         }

@@ -1,14 +1,11 @@
 """A flight record as a Rerun recording (`.rrd`): a map, time series, events and a blueprint.
 
-Everything is logged column-wise on the `sim_time` timeline, a duration in integer nanoseconds: the
-component columns of every entity that shares a time index are built straight as Arrow arrays
-(`fleetmpc.gcs.rerun_batch.ColumnBatch`) into one record batch, which Rerun splits into one chunk
-per entity, and all the chunks of a call go out in one `rr.send_chunks` (no `send_columns` per
-entity, no archetype conversions). A call costs per column (some 25 us for Rerun to make it, and as
-much to build its Arrow array) and per entity (some 15 us to send its chunk), hardly per row, so the
-vehicles of a fleet share entities, one instance or one line each, and a growing record is logged in
-slices: its map (`start`) every slice, its time series and flight_record rows (`series_start`) in
-bigger ones if the caller likes. Entity layout (a live ground station logs the same paths):
+Everything is logged on the `sim_time` timeline, a duration in integer nanoseconds, through the
+SDK's public column API: a slice of periods goes out as one `rr.send_columns` per entity (a
+call costs some 0.1-0.4 ms whatever its rows, so the vehicles of a fleet share entities, one
+instance or one line each, and a growing record is logged in slices: its map (`start`) every
+slice, its time series and flight_record rows (`series_start`) in bigger ones if the caller
+likes). Entity layout (a live ground station logs the same paths):
 
 - `map/vehicles`: every vehicle's position (Points2D) and heading (Arrows2D), one instance
   per vehicle in fleet order, coloured and labelled by a static logged once;
@@ -36,7 +33,6 @@ is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that
 """
 
 import json
-import os
 import uuid
 from functools import lru_cache
 from pathlib import Path
@@ -47,7 +43,6 @@ import rerun.blueprint as rrb
 
 from fleetmpc.gcs.metrics import pair_indices
 from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
-from fleetmpc.gcs.rerun_batch import ColumnBatch, send_batches
 
 __all__ = [
     "APPLICATION_ID",
@@ -64,7 +59,6 @@ __all__ = [
     "log_statics",
     "open_recording",
     "map_from_ned",
-    "rerun_threads_cpu_ms",
     "record_layout",
     "sim_time_ns",
     "write_recording",
@@ -118,14 +112,6 @@ def record_layout(n_vehicles: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
     }
     return (*((name, shapes[name]) for name in RECORD_ARRAYS), (MIN_SEPARATION_COLUMN, (1,)))
 
-
-BATCHER_TICK_S = 5.0
-"""How often the Rerun SDK's batchers wake to pass on what `log` calls left with them [s] (the
-SDK's default: 0.2 s), for the streams `open_recording` makes. What a flight logs goes out with
-`send_chunks` and `send_columns`, which do not wait for a batcher; only the statics logged when
-a recording opens do, and who logs them flushes the stream. Batchers waking five times a second
-cost a ground station at x1 some 0.01 ms per vehicle-period of idle wake-ups, more than a tenth
-of what its logging costs."""
 
 TRAIL_WINDOW_S = 20.0
 """Default length of the trail the map shows behind each vehicle [s]."""
@@ -201,9 +187,56 @@ def fleet_blueprint(
     )
 
 
-_POSITIONS = rr.Points2D.descriptor_positions()
-_ORIGINS = rr.Arrows2D.descriptor_origins()
-_VECTORS = rr.Arrows2D.descriptor_vectors()
+class _Slice:
+    """Rows of periods on the `sim_time` timeline: sends each entity's columns of them with
+    `rr.send_columns`."""
+
+    def __init__(self, stream: rr.RecordingStream, t_ns: np.ndarray) -> None:
+        self.stream = stream
+        self.t_ns = np.asarray(t_ns, dtype=np.int64)
+        self.rows = len(self.t_ns)
+
+    def send(self, path: str, columns: list, *, rows: np.ndarray | None = None) -> None:
+        """Send columns of every row (or of the rows selected by `rows`, a mask or indices)."""
+        t_ns = self.t_ns if rows is None else self.t_ns[rows]
+        index = rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+        self.stream.send_columns(path, indexes=[index], columns=columns)
+
+    def points(self, path: str, xy: np.ndarray, *, arrows: np.ndarray | None = None) -> None:
+        """Points2D positions xy (rows, n, 2), n in every row; with `arrows` (rows, n, 2) also
+        Arrows2D from those positions."""
+        n = xy.shape[1]
+        flat = xy.reshape(-1, 2)
+        columns = [*rr.Points2D.columns(positions=flat).partition([n] * self.rows)]
+        if arrows is not None:
+            vectors = arrows.reshape(-1, 2)
+            arrow = rr.Arrows2D.columns(origins=flat, vectors=vectors)
+            columns += [*arrow.partition([n] * self.rows)]
+        self.send(path, columns)
+
+    def strips(self, path: str, strips: np.ndarray, *, rows: np.ndarray | None = None) -> None:
+        """LineStrips2D: strips (R, S, P, 2), S strips of P points in each row sent (every row,
+        or those `rows` selects: nothing is logged at the others, so the viewer keeps what it
+        had). A strip with a non-finite point is sent empty, so every strip keeps its instance's
+        colour."""
+        r, count = strips.shape[:2]
+        lines = [s if np.isfinite(s).all() else s[:0] for s in strips.reshape(r * count, -1, 2)]
+        column = rr.LineStrips2D.columns(strips=lines).partition([count] * r)
+        self.send(path, [*column], rows=rows)
+
+    def scalars(self, path: str, values: np.ndarray) -> None:
+        """Scalars: values (rows,) or (rows, lines), one line per column (an entity with several
+        lines names them with a static SeriesLines). Rows with no finite value are not sent."""
+        v = np.asarray(values, dtype=np.float64).reshape(self.rows, -1)
+        keep = np.isfinite(v).any(axis=1)
+        if keep.any():
+            self.send(path, [*rr.Scalars.columns(scalars=v[keep])], rows=keep)
+
+    def values(self, path: str, name: str, rows: np.ndarray) -> None:
+        """AnyValues: a float64 list of width W per row, rows (rows, W), as component `name`."""
+        width = rows.shape[1]
+        column = rr.AnyValues.columns(**{name: rows.ravel()}).partition([width] * self.rows)
+        self.send(path, [*column])
 
 
 def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: dict) -> None:
@@ -227,7 +260,7 @@ def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: d
     )
 
 
-def _record_rows(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
+def _record_rows(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
     """Periods start.. of the record as `flight_record` rows (`record_layout`)."""
     rows = columns.rows
     parts = [np.asarray(getattr(rec, name))[start:].reshape(rows, -1) for name in RECORD_ARRAYS]
@@ -298,7 +331,7 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, liv
         stream.log(path, rr.SeriesLines(names=names, colors=colours), static=True)
 
 
-def _map(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
+def _map(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
     k, n = rec.truth.shape[:2]
     before = max(start - 1, 0)
     pos = map_from_ned(rec.truth[before:, :, :2])  # periods before .. k - 1
@@ -308,15 +341,13 @@ def _map(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
     steps = pos[np.stack([np.maximum(rows - 1, 0), rows], axis=1)]  # (K, 2 points, N, 2)
     yaw = rec.truth[start:, :, 2]
     heading = map_from_ned(np.stack([np.cos(yaw), np.sin(yaw)], axis=-1) * _HEADING_ARROW_M)
-    columns.points("map/vehicles", (_POSITIONS, _ORIGINS), here, per_row=n)
-    columns.points("map/vehicles", _VECTORS, heading, per_row=n)
-    columns.strips("map/trails", steps.transpose(0, 2, 1, 3), points_per_strip=2, per_row=n)
-    columns.points("map/slots", _POSITIONS, map_from_ned(rec.slots[start:]), per_row=n)
-    columns.points("map/target", _POSITIONS, map_from_ned(rec.target[start:]), per_row=1)
+    columns.points("map/vehicles", here, arrows=heading)
+    columns.strips("map/trails", steps.transpose(0, 2, 1, 3))
+    columns.points("map/slots", map_from_ned(rec.slots[start:]))
+    columns.points("map/target", map_from_ned(rec.target[start:])[:, None, :])
     pairs = _pairs(n)
     if len(pairs):
-        links = here[:, pairs]  # (K, P, 2 points, 2)
-        columns.strips("map/formation_links", links, points_per_strip=2, per_row=len(pairs))
+        columns.strips("map/formation_links", here[:, pairs])  # (K, P, 2 points, 2)
 
 
 @lru_cache(maxsize=8)
@@ -334,7 +365,7 @@ def _norm2(v: np.ndarray) -> np.ndarray:
     return np.hypot(v[..., 0], v[..., 1])
 
 
-def _series(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
+def _series(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
     pos = rec.truth[start:, :, :2]
     pairs = _pairs(len(rec.vehicle_ids))
     if len(pairs):
@@ -352,33 +383,23 @@ def _series(columns: ColumnBatch, rec: FlightRecord, *, start: int) -> None:
         columns.scalars(f"series/beta/{name}", np.concatenate([learned, truth], axis=1))
 
 
-def _live_map(columns: ColumnBatch, live: LiveRows, *, skip: int) -> None:
+def _live_map(columns: _Slice, live: LiveRows, *, skip: int) -> None:
     """Plans and the target prediction of a live slice, from its row `skip` on."""
     plans = live.plans[skip:]
-    k, n, m = plans.shape[:3]
+    k = plans.shape[0]
     has = np.isfinite(plans).all(axis=(2, 3))  # (K, N)
-    if has.all():
-        columns.strips("map/plans", map_from_ned(plans), points_per_strip=m, per_row=n)
-    elif has.any():
-        # Rows where no vehicle has a plan are null; the others hold one strip per vehicle
-        # (empty for a vehicle without a plan).
-        present = has.any(axis=1)
-        points = map_from_ned(plans[has])
-        lengths = np.where(has[present], m, 0).ravel()
-        columns.strips("map/plans", points, points_per_strip=lengths, per_row=n, present=present)
+    # Rows where no vehicle has a plan are not logged; in the others a vehicle without one has
+    # an empty strip.
+    present = has.any(axis=1)
+    if present.any():
+        columns.strips("map/plans", map_from_ned(plans[present]), rows=present)
     if live.target_prediction is not None:
         prediction = map_from_ned(np.asarray(live.target_prediction))
-        present = np.arange(k) == k - 1  # the prediction is made at the last row's time
-        columns.strips(
-            "map/target_prediction",
-            prediction,
-            points_per_strip=len(prediction),
-            per_row=1,
-            present=present,
-        )
+        # The prediction is made at the last row's time.
+        columns.strips("map/target_prediction", prediction[None, None], rows=np.array([k - 1]))
 
 
-def _live_series(columns: ColumnBatch, live: LiveRows, *, skip: int) -> None:
+def _live_series(columns: _Slice, live: LiveRows, *, skip: int) -> None:
     """Setpoint rates and plan ages of a live slice, from its row `skip` on."""
     columns.scalars("series/setpoint_rate", live.setpoint_rate_hz[skip:])
     if live.plan_age_s.shape[2]:
@@ -438,7 +459,7 @@ def log_flight_record(
     live: LiveRows | None = None,
     statics: bool = True,
 ) -> None:
-    """Log a FlightRecord to an open recording stream, column-wise, in one `rr.send_chunks`.
+    """Log a FlightRecord to an open recording stream, column-wise (`rr.send_columns`).
 
     run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
     start: log the map of periods `start`.. (a live ground station logs a growing record in
@@ -468,22 +489,17 @@ def log_flight_record(
     if live is not None and live.plans.shape[0] != k - first:
         raise ValueError(f"live rows: {live.plans.shape[0]} periods for a slice of {k - first}")
     t_ns = sim_time_ns(rec.t_s[first - period0 :])
-    batches = []
     if start < k:
-        columns = ColumnBatch(TIMELINE, t_ns[start - first :])
+        columns = _Slice(stream, t_ns[start - first :])
         _map(columns, rec, start=start - period0)
         if live is not None:
             _live_map(columns, live, skip=start - first)
-        batches.append(columns)
     if series_start < k:
-        if series_start != start or not batches:
-            batches.append(ColumnBatch(TIMELINE, t_ns[series_start - first :]))
-        columns = batches[-1]  # the map's, when the rows are the same: one batch, one call
+        columns = _Slice(stream, t_ns[series_start - first :])
         _record_rows(columns, rec, start=series_start - period0)
         _series(columns, rec, start=series_start - period0)
         if live is not None:
             _live_series(columns, live, skip=series_start - first)
-    send_batches(stream, *batches)
     if series_start < k:
         events = _qp_events(
             rec,
@@ -509,9 +525,6 @@ def open_recording(
     `spawn_viewer`: start a local viewer (the `rerun` executable) and stream to it;
     `trail_window_s`: length of the trail the map shows behind each vehicle [s].
     """
-    # The tick of every stream's batcher, the blueprint's too, which the SDK makes itself
-    # (its RERUN_FLUSH_TICK_SECS; a value already in the environment stands).
-    os.environ.setdefault("RERUN_FLUSH_TICK_SECS", f"{BATCHER_TICK_S:g}")
     stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()))
     blueprint = fleet_blueprint(vehicle_ids=vehicle_ids, trail_window_s=trail_window_s)
     if spawn_viewer:
@@ -526,33 +539,6 @@ def open_recording(
     if sinks:
         stream.set_sinks(*sinks, default_blueprint=blueprint)
     return stream
-
-
-_RERUN_THREADS = ("ChunkBatcher", "RecordingStream", "file_writer")
-"""Name prefixes of the threads the Rerun SDK (0.41) runs for a recording stream and its file
-sink: they batch, encode and write what the logging calls hand over, after the calls return."""
-
-
-def rerun_threads_cpu_ms() -> float | None:
-    """CPU time [ms] this process's Rerun SDK threads have used so far (Linux, from
-    /proc/self/task/*/schedstat, by thread name); None where that cannot be read. A viewer
-    sink's network threads are not among them."""
-    try:
-        tasks = os.listdir("/proc/self/task")
-    except OSError:
-        return None
-    total_ns, seen = 0, False
-    for tid in tasks:
-        try:
-            with open(f"/proc/self/task/{tid}/comm") as f:
-                if not f.read().startswith(_RERUN_THREADS):
-                    continue
-            with open(f"/proc/self/task/{tid}/schedstat") as f:
-                total_ns += int(f.read().split()[0])
-            seen = True
-        except (OSError, ValueError, IndexError):  # a thread that ended, or no schedstat
-            continue
-    return total_ns * 1e-6 if seen else None
 
 
 def write_recording(

@@ -216,10 +216,6 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     gs.flush(stream, final=True)
     stream.flush()
     stream.disconnect()
-    # Each flush's record build is timed inside the flush, beside its Rerun calls.
-    assert len(gs.record_ms) == len(gs.log_ms) == len(gs.flush_ms)
-    for rec_ms, log_ms, flush_ms in zip(gs.record_ms, gs.log_ms, gs.flush_ms, strict=True):
-        assert rec_ms > 0 and rec_ms + log_ms <= flush_ms
     want = gs.live.record()
     back = read_recording(path).record
     _assert_same_record(back, want)

@@ -9,6 +9,7 @@ starts is given it), which also catches grandchildren.
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -114,10 +115,7 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     assert m["centre_distance_error_m"] <= 0.1, m
     assert m["min_separation_m"] >= 2.0, m
     assert "separation error 1-2" in up.text()  # the summary table of `fleetmpc sim`
-    # What logging cost, against the agents' steps of the same run (a figure, not a gate).
-    assert 0 < m["gcs_logging_share_of_agent_step"] < 10, m
-    assert m["gcs_logging_ms_per_vehicle_period"]["rerun_threads"] > 0, m  # Linux: found them
-    assert "ground station logging" in up.text()
+    assert re.search(r"periods recorded +151 of 151", up.text())
     for name in ("zenoh-router", "target", "sitl-1", "agent-3", "gcs"):
         assert (run_dir / "logs" / f"{name}.log").is_file(), name
 
