@@ -30,7 +30,7 @@ import numpy as np
 from fleetmpc.errors import FleetMpcError
 from fleetmpc.gcs.ground_station import GroundStation, series_every
 from fleetmpc.gcs.record import FlightRecord
-from fleetmpc.gcs.recording import open_recording
+from fleetmpc.gcs.telemetry import RerunSink
 from fleetmpc.protocol.messages import (
     TARGET_ID,
     LearnedParams,
@@ -105,21 +105,22 @@ def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
         gs.inbox.put(message)
 
 
-def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int, stream) -> list[float]:
-    """The ground station fed the run period by period, flushed every `periods_per_flush`, and
-    its metrics computed, as a ground station ends; the stream (if any) flushed, so Rerun has
-    encoded and written everything, and left open. The wall time of each flush [ms]."""
+def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int) -> list[float]:
+    """The ground station (its sinks open) fed the run period by period, flushed every
+    `periods_per_flush`, its sinks closed (so Rerun has encoded and written everything) and its
+    metrics computed, as a ground station ends. The wall time of each flush [ms], the closing
+    in the last."""
     flush_ms = []
     for k in range(len(rec.t_s)):
         _receive(gs, rec, k)
         last = k == len(rec.t_s) - 1
         if last or (k + 1) % periods_per_flush == 0:
             t0 = time.perf_counter()
-            gs.flush(stream, final=last)
+            gs.flush(final=last)
+            if last:
+                gs.close_sinks()
             flush_ms.append((time.perf_counter() - t0) * 1e3)
     gs.metrics()
-    if stream is not None:
-        stream.flush()
     return flush_ms
 
 
@@ -140,24 +141,20 @@ def _logging(
     flush_without, flush_with = [], []
 
     def station() -> GroundStation:
-        duration_s = float(rec.t_s[-1])
-        return GroundStation(scenario, speed=1.0, duration_s=duration_s, series_every=series_every)
+        return GroundStation(scenario, speed=1.0, duration_s=float(rec.t_s[-1]))
 
     for _ in range(repeats):
         gs = station()
         t0 = time.process_time()
-        flush_without += (ms := _feed(gs, rec, periods_per_flush=periods_per_flush, stream=None))
+        flush_without += (ms := _feed(gs, rec, periods_per_flush=periods_per_flush))
         cpu_without.append(time.process_time() - t0)
         wall_without.append(sum(ms))
         gs = station()
-        stream = open_recording(vehicle_ids=scenario.vehicle_ids, path=rrd)
-        gs.start_recording(stream)  # as the ground station, before the flight
-        stream.flush()
+        gs.open_sinks([RerunSink(path=rrd, series_every=series_every)])  # before the flight
         t0 = time.process_time()
-        flush_with += (ms := _feed(gs, rec, periods_per_flush=periods_per_flush, stream=stream))
+        flush_with += (ms := _feed(gs, rec, periods_per_flush=periods_per_flush))
         cpu_with.append(time.process_time() - t0)
         wall_with.append(sum(ms))
-        stream.disconnect()
     vehicle_periods = len(rec.t_s) * len(scenario.vehicles)
     return {
         "periods_per_flush": periods_per_flush,

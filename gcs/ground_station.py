@@ -52,13 +52,7 @@ from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics, format_summary
-from fleetmpc.gcs.recording import (
-    log_events,
-    log_flight_record,
-    log_meta,
-    log_statics,
-    open_recording,
-)
+from fleetmpc.gcs.telemetry import RerunSink, TelemetrySink, open_sink, samples_of
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
@@ -123,6 +117,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--duration", type=float, help="fleet time to record [s] (default: scenario)"
     )
     parser.add_argument("--rrd", type=Path, help="write the Rerun recording here")
+    parser.add_argument(
+        "--telemetry",
+        metavar="URL",
+        action="append",
+        default=[],
+        help="also send the run to this sink: rrd:PATH, a Rerun viewer's rerun+http://HOST:PORT"
+        "/proxy, spawn: (a local viewer), memory:; repeatable",
+    )
     parser.add_argument(
         "--viewer",
         default="none",
@@ -200,11 +202,7 @@ class VehicleLink:
 class GroundStation:
     """The ground station's state and loop; `run` drives it from the command line."""
 
-    def __init__(
-        self, scenario: Scenario, *, speed: float, duration_s: float, series_every: int = 1
-    ) -> None:
-        if not series_every >= 1:
-            raise ConfigError("series_every", f"must be >= 1 flush, got {series_every}")
+    def __init__(self, scenario: Scenario, *, speed: float, duration_s: float) -> None:
         self.scenario = scenario
         self.speed = speed
         self.duration_s = duration_s
@@ -214,15 +212,8 @@ class GroundStation:
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.epoch_ns: int | None = None
         self.logged_periods = 0
-        """Periods whose map has been logged."""
-        self.series_every = series_every
-        """Flushes (with new periods) per logging of the time series and the flight_record rows:
-        they are all logged, in bigger slices, since a logging call costs per column and per
-        entity rather than per row; the map is logged by every flush."""
-        self.series_logged = 0
-        """Periods whose time series and flight_record rows have been logged."""
-        self._flushes = 0
-        """Flushes that had new periods."""
+        """Periods given to the sinks."""
+        self.sinks: list[TelemetrySink] = []
         self._events: list[tuple[int, str, str]] = []
         """(sim_time ns, level, text) events not logged yet."""
         self.run_info = {
@@ -315,47 +306,43 @@ class GroundStation:
             elif isinstance(message, TargetObservation):
                 self.live.add_target(message)
 
-    # -- logging ----------------------------------------------------------------------------------
-    def start_recording(self, stream) -> None:
-        """Log what a recording holds before the flight: the run's `meta`, colours, labels and
-        line names (the flushes log only the periods)."""
-        log_meta(stream, self.live.constants(), run_info=self.run_info)
-        log_statics(stream, self.scenario.vehicle_ids, live=True)
-        stream.flush(timeout_sec=0)  # out now, not at the batcher's next tick
+    # -- telemetry --------------------------------------------------------------------------------
+    def open_sinks(self, sinks: list[TelemetrySink]) -> None:
+        """Open the telemetry sinks before the flight: the run's constants and facts go out now
+        (the flushes give only the periods)."""
+        self.sinks = list(sinks)
+        for sink in self.sinks:
+            sink.open(self.live.constants(), self.run_info)
 
-    def finish_recording(self, stream) -> None:
-        """Wait until the Rerun SDK has written everything logged."""
-        stream.flush()
+    def close_sinks(self) -> None:
+        """Close the sinks: everything given to them is written."""
+        for sink in self.sinks:
+            sink.close()
+        self.sinks = []
 
-    def flush(self, stream, *, final: bool = False) -> None:
-        """Log what arrived since the last flush, in column batches: the map of the new periods,
-        and every `series_every` flushes (and in the `final` one) the time series and the
-        flight_record rows of the periods since they were last logged."""
+    def flush(self, *, final: bool = False) -> None:
+        """Give the sinks what arrived since the last flush: the events, and the samples of the
+        periods completed since then; then flush them (the last flush of a run leaves that to
+        `close_sinks`)."""
         self.drain_bus()
         events, self._events = self._events, []
         done = min(self.live.complete_periods(), self.periods)
-        new = done > self.logged_periods
-        self._flushes += new
-        due = final or (new and self._flushes % self.series_every == 0)
-        series = due and done > self.series_logged
-        series_start = self.series_logged if series else done
-        first = min(self.logged_periods, series_start)  # logged from here
-        period0 = max(first - 1, 0)  # the record's tail from here (the trail's first step)
-        if stream is not None:
-            log_events(stream, events)
-            if new or series_start < done:
-                log_flight_record(
-                    stream,
-                    self.live.record(done, first=period0, copy=False),
-                    start=self.logged_periods,
-                    series_start=series_start,
-                    period0=period0,
-                    live=self.live.live_rows(first, done, copy=False),
-                    statics=False,
-                )
-        self.logged_periods = max(done, self.logged_periods)
-        if series:
-            self.series_logged = done
+        if not self.sinks:
+            self.logged_periods = done
+            return
+        samples = []
+        if done > self.logged_periods:
+            first = self.logged_periods
+            samples = samples_of(
+                self.live.record(done, first=first), self.live.live_rows(first, done)
+            )
+        for sink in self.sinks:
+            for event in events:
+                sink.event(*event)
+            sink.log(samples)
+            if not final:
+                sink.flush()
+        self.logged_periods = done
 
     def status_snapshot(self, phase: str) -> dict:
         now = time.time()
@@ -435,22 +422,20 @@ def run(args: argparse.Namespace) -> int:
     net = scenario.network
     url = args.mavlink or f"udpin:{net.host}:{net.gcs_port}"
     every = series_every(flush_s=args.flush_s, series_flush_s=args.series_flush_s)
-    gs = GroundStation(scenario, speed=args.speed, duration_s=duration, series_every=every)
+    sinks: list[TelemetrySink] = [open_sink(u, series_every=every) for u in args.telemetry]
+    if args.rrd is not None or spawn or viewer_url is not None:
+        sinks.append(
+            RerunSink(path=args.rrd, viewer_url=viewer_url, spawn_viewer=spawn, series_every=every)
+        )
+    gs = GroundStation(scenario, speed=args.speed, duration_s=duration)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    mav = bus = stream = None
+    mav = bus = None
     completed = False
     try:
         mav = mavutil.mavlink_connection(url, source_system=GCS_SYSTEM_ID)
         bus = open_fleet_bus(args, scenario, sender_id=GROUND_STATION_ID, on_accept=gs.inbox.put)
-        if args.rrd is not None or spawn or viewer_url is not None:
-            stream = open_recording(
-                vehicle_ids=scenario.vehicle_ids,
-                path=args.rrd,
-                viewer_url=viewer_url,
-                spawn_viewer=spawn,
-            )
-            gs.start_recording(stream)
+        gs.open_sinks(sinks)
         if args.epoch_ns is not None:
             gs.set_epoch(args.epoch_ns)
         _log(f"listening on {url}; waiting for {len(gs.links)} vehicles to engage")
@@ -482,7 +467,7 @@ def run(args: argparse.Namespace) -> int:
                 bus.publish_epoch(epoch_ns=gs.epoch_ns, speed=args.speed)
                 next_announce = now + 0.5
             if now >= next_flush:
-                gs.flush(stream)
+                gs.flush()
                 next_flush = now + args.flush_s / args.speed
             if now >= next_status:
                 gs.drain_bus()
@@ -498,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
                 if gs.live.complete_periods() >= gs.periods or now >= end_grace:
                     completed = True
                     break
-        gs.flush(stream, final=True)
+        gs.flush(final=True)
     finally:
         if bus is not None:
             bus.close()
@@ -506,11 +491,8 @@ def run(args: argparse.Namespace) -> int:
             mav.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
-    if stream is not None:
-        gs.finish_recording(stream)
+        gs.close_sinks()
     metrics = gs.metrics()
-    if stream is not None:
-        stream.disconnect()
     if args.status_file is not None:
         _write_json(args.status_file, gs.status_snapshot("done"))
     if metrics is None:

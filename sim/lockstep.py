@@ -3,22 +3,31 @@
 Each period every agent steps on its own noisy measurement, the latest target observation and the
 neighbours' plans of the previous period (Dunbar & Murray's assumed trajectories), then the plants
 fly the commands for one period of plant ticks. Deterministic for a seed.
+
+Each period becomes a `PeriodSample` (`fleetmpc.gcs.telemetry`), as a live ground station makes
+them; the run's FlightRecord stacks them, and any telemetry sinks given (a Rerun recording, a
+viewer) are handed them as the ground station hands its own, every `FLUSH_S` of flight.
 """
 
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.gcs.record import FlightRecord, RunConstants
+from fleetmpc.gcs.telemetry import PeriodSample, TelemetrySink, record_of
 from fleetmpc.onboard.core.agent import Agent, AgentInput, reference_course_rate
 from fleetmpc.onboard.core.formation import Formation, TrueReference
+from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.plant import TruthPlant
 
-__all__ = ["build_agents", "run_lockstep"]
+__all__ = ["FLUSH_S", "build_agents", "run_lockstep"]
+
+FLUSH_S = 4.0
+"""How often [s of flight] the sinks are flushed: as a live ground station's default."""
 
 
 def build_agents(scenario: Scenario, *, learning: bool = True) -> list[Agent]:
@@ -44,8 +53,11 @@ def run_lockstep(
     duration_s: float | None = None,
     seed: int | None = None,
     progress: Callable[[float, float], None] | None = None,
+    sinks: Sequence[TelemetrySink] = (),
+    run_info: dict | None = None,
 ) -> FlightRecord:
-    """Fly the scenario in lockstep and return its record."""
+    """Fly the scenario in lockstep and return its record; the sinks (opened with `run_info`,
+    closed at the end) get every period's sample."""
     sc = scenario
     duration_s = sc.duration_s if duration_s is None else duration_s
     seed = sc.seed if seed is None else seed
@@ -64,23 +76,29 @@ def run_lockstep(
     """The slots the run is judged against: the formation at the rate-limited reference course
     of the true target, as the agents place it from their estimates."""
     n = len(plants)
+    ids = sc.vehicle_ids
     obs_period_ns = round(1e9 / sc.target.observation_rate_hz)
     next_obs_ns = 0
-    keys = (
-        "truth",
-        "target",
-        "target_velocity",
-        "slots",
-        "offsets",
-        "command",
-        "c",
-        "beta",
-        "beta_truth",
-        "qp_ok",
-        "step_ms",
-        "prediction",
+    constants = RunConstants(
+        scenario=sc.name,
+        vehicle_ids=ids,
+        desired_distance_m=truth_formation.desired_distances(),
+        trail_m=sc.formation.trail_m,
+        speed_max_m_s=sc.controller.speed_max_m_s,
+        yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
+        d_safe_m=sc.controller.d_safe_m,
     )
-    log: dict[str, list] = {k: [] for k in keys}
+    for sink in sinks:
+        sink.open(constants, run_info or {})
+    flush_every = max(1, round(FLUSH_S * 1e9 / period_ns))
+    ground_target = None
+    """The ground side's own target track for the sinks' map (as a live ground station's)."""
+    if sinks:
+        ground_target = TargetEstimator(observation_std_m=sc.target.observation_noise_m)
+    others = [[j for j in range(n) if j != i] for i in range(n)]
+    setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
+    samples: list[PeriodSample] = []
+    predictions: list[np.ndarray] = []
     plans: dict[int, object] = {}
     min_sep = np.inf
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
@@ -92,6 +110,8 @@ def run_lockstep(
         if t_ns >= next_obs_ns:
             obs = sc.target.observe(t_s, target_rng)
             next_obs_ns += obs_period_ns
+            if ground_target is not None:
+                ground_target.observe(t_ns, obs)
         outs = []
         for i, (agent, plant) in enumerate(zip(agents, plants, strict=True)):
             inp = AgentInput(
@@ -107,16 +127,21 @@ def run_lockstep(
         trail_x, trail_y, offsets = truth_formation.placement(course)
         cx, cy = float(tgt_pos[0]) - trail_x, float(tgt_pos[1]) - trail_y
         slots = np.array([(cx + ox, cy + oy) for ox, oy in offsets])
-        log["truth"].append(np.array([p.pose for p in plants]))
-        log["target"].append(tgt_pos)
-        log["target_velocity"].append(tgt_vel)
-        log["slots"].append(slots)
-        log["offsets"].append(slots - np.array((cx, cy)))
-        log["command"].append(np.array([o.command for o, _ in outs]))
-        log["c"].append(np.array([o.c[0] for o, _ in outs]))
-        log["beta"].append(np.array([o.beta for o, _ in outs]))
-        log["beta_truth"].append(
-            np.array(
+        prediction = None
+        if ground_target is not None and ((k + 1) % flush_every == 0 or k == periods - 1):
+            prediction, _ = ground_target.predict(t_ns, period_ns, sc.controller.horizon + 1)
+        ages = [o.neighbour_ages_s for o, _ in outs]
+        sample = PeriodSample(
+            t_ns=t_ns,
+            truth=np.array([p.pose for p in plants]),
+            target=tgt_pos,
+            target_velocity=tgt_vel,
+            slots=slots,
+            slot_offsets_world=slots - np.array((cx, cy)),
+            command=np.array([o.command for o, _ in outs]),
+            c=np.array([o.c[0] for o, _ in outs]),
+            beta=np.array([o.beta for o, _ in outs]),
+            beta_truth=np.array(
                 [
                     [
                         p.params.speed_effectiveness,
@@ -125,11 +150,23 @@ def run_lockstep(
                     ]
                     for p in plants
                 ]
-            )
+            ),
+            qp_ok=np.array([o.qp_ok for o, _ in outs]),
+            step_time_ms=np.array([ms for _, ms in outs]),
+            min_separation_m=float(min_sep),
+            plans=np.array([o.plan.states[:, :2] for o, _ in outs]),
+            plan_age_s=np.array(
+                [[ages[i].get(ids[j], np.nan) for j in others[i]] for i in range(n)]
+            ).reshape(n, n - 1),
+            setpoint_rate_hz=setpoint_rate,
+            target_prediction=prediction,
         )
-        log["qp_ok"].append(np.array([o.qp_ok for o, _ in outs]))
-        log["step_ms"].append(np.array([ms for _, ms in outs]))
-        log["prediction"].append(outs[0][0].target_prediction_m)
+        samples.append(sample)
+        predictions.append(outs[0][0].target_prediction_m)
+        for sink in sinks:  # (the QP fallbacks become events from the samples)
+            sink.log([sample])
+            if (k + 1) % flush_every == 0:
+                sink.flush()
         plans = {o.plan.vehicle_id: o.plan for o, _ in outs}
         if k == periods - 1:
             break
@@ -144,27 +181,11 @@ def run_lockstep(
                 min_sep = min(min_sep, math.sqrt(dx * dx + dy * dy))
         if progress is not None:
             progress((k + 1) * period_ns * 1e-9, duration_s)
-    return FlightRecord(
-        scenario=sc.name,
-        vehicle_ids=sc.vehicle_ids,
-        t_s=np.arange(periods) * period_ns * 1e-9,
-        truth=np.array(log["truth"]),
-        target=np.array(log["target"]),
-        target_velocity=np.array(log["target_velocity"]),
-        slots=np.array(log["slots"]),
-        command=np.array(log["command"]),
-        c=np.array(log["c"]),
-        beta=np.array(log["beta"]),
-        beta_truth=np.array(log["beta_truth"]),
-        qp_ok=np.array(log["qp_ok"]),
-        step_time_ms=np.array(log["step_ms"]),
-        desired_distance_m=truth_formation.desired_distances(),
-        trail_m=sc.formation.trail_m,
-        slot_offsets_world=np.array(log["offsets"]),
-        min_separation_m=min_sep,
-        speed_max_m_s=sc.controller.speed_max_m_s,
-        yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
-        d_safe_m=sc.controller.d_safe_m,
-        target_prediction=np.array(log["prediction"]),
+    for sink in sinks:
+        sink.close()
+    return record_of(
+        constants,
+        samples,
+        target_prediction=np.array(predictions),
         prediction_horizon_periods=sc.controller.horizon,
     )

@@ -11,7 +11,7 @@ from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.figures import write_figures
 from fleetmpc.gcs.metrics import compute_metrics, format_summary
 from fleetmpc.gcs.progress import ProgressBar
-from fleetmpc.gcs.recording import write_recording
+from fleetmpc.gcs.telemetry import open_sink
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 
@@ -34,7 +34,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rrd",
         metavar="FILE",
-        help="write the run as a Rerun recording (`fleetmpc report` reads it)",
+        help="write the run as a Rerun recording (`fleetmpc report` reads it); the same as"
+        " --telemetry rrd:FILE",
+    )
+    parser.add_argument(
+        "--telemetry",
+        metavar="URL",
+        action="append",
+        default=[],
+        help="also send the run to this sink: rrd:PATH, a Rerun viewer's rerun+http://HOST:PORT"
+        "/proxy, spawn: (a local viewer); repeatable",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -49,20 +58,31 @@ def run(args: argparse.Namespace) -> int:
         for p in report.problems:
             print(f"  - {p}")
     duration = sc.duration_s if args.duration is None else args.duration
+    urls = ([f"rrd:{args.rrd}"] if args.rrd else []) + list(args.telemetry)
+    sinks = [open_sink(url) for url in urls]
+    run_info = {
+        "learning": not args.no_learning and sc.learning.enabled,
+        "feasible": report.feasible,
+        "seed": sc.seed if args.seed is None else args.seed,
+    }
     bar = None if args.quiet else ProgressBar(f"sim {sc.name}")
     try:
         rec = run_lockstep(
-            sc, learning=not args.no_learning, duration_s=duration, seed=args.seed, progress=bar
+            sc,
+            learning=not args.no_learning,
+            duration_s=duration,
+            seed=args.seed,
+            progress=bar,
+            sinks=sinks,
+            run_info={**run_info, "source": "lockstep"},
         )
     finally:
         if bar is not None:
             bar.close()
     metrics = {
         "scenario": sc.name,
-        "learning": not args.no_learning and sc.learning.enabled,
-        "feasible": report.feasible,
+        **run_info,
         "duration_s": float(rec.t_s[-1]),
-        "seed": sc.seed if args.seed is None else args.seed,
         **compute_metrics(rec),
     }
     print(format_summary(metrics))
@@ -74,8 +94,6 @@ def run(args: argparse.Namespace) -> int:
     if args.plots:
         for p in write_figures(rec, args.plots):
             print(f"figure: {p}")
-    if args.rrd:
-        run_info = {k: metrics[k] for k in ("learning", "feasible", "seed")}
-        rid = write_recording(rec, args.rrd, run_info=run_info)
-        print(f"recording: {args.rrd} (id {rid})")
+    for url in urls:
+        print(f"telemetry: {url}")
     return 0

@@ -13,6 +13,7 @@ from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.recording import log_flight_record, open_recording
 from fleetmpc.gcs.rrd_reader import read_recording
+from fleetmpc.gcs.telemetry import RerunSink
 from fleetmpc.protocol.messages import NeighbourPlanAge, PlanMessage
 from fleetmpc.sim.lockstep import run_lockstep
 
@@ -197,9 +198,8 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     whether the time series and flight_record rows go out with every flush or every third
     (and the final one)."""
     path = tmp_path / "live.rrd"
-    gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S, series_every=series_every)
-    stream = open_recording(vehicle_ids=paper.vehicle_ids, path=path)
-    gs.start_recording(stream)
+    gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
+    gs.open_sinks([RerunSink(path=path, series_every=series_every)])
     ages = {vid: [o for o in paper.vehicle_ids if o != vid] for vid in paper.vehicle_ids}
     for k in range(len(lockstep.t_s)):
         msgs = period_messages(lockstep, k, period_ns=gs.live.period_ns, horizon=5)
@@ -212,10 +212,9 @@ def test_ground_station_flushes_read_back_as_the_live_record(
         for message in (*msgs.plans, msgs.target):
             gs.inbox.put(message)
         if k % 7 == 6:
-            gs.flush(stream)
-    gs.flush(stream, final=True)
-    stream.flush()
-    stream.disconnect()
+            gs.flush()
+    gs.flush(final=True)
+    gs.close_sinks()
     want = gs.live.record()
     back = read_recording(path).record
     _assert_same_record(back, want)

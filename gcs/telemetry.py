@@ -1,0 +1,313 @@
+"""One telemetry path: a fleet run as one frozen sample per control period, into sinks.
+
+The lockstep simulation and the live ground station both describe a run as `PeriodSample`s, one
+per control period (every vehicle's pose, command, first correction c_0, learned β, QP status,
+step time, plan, neighbour plan ages and setpoint rate; the target and the slots; the minimum
+separation known so far), and hand them to `TelemetrySink`s: opened with the run's constants,
+given samples and events, flushed, closed. A sink is chosen by URL, as the links are:
+
+- ``memory:`` keeps the samples; `MemorySink.record` stacks them into the `FlightRecord` the
+  metrics and the figures read;
+- ``rrd:PATH`` writes a Rerun recording; a Rerun viewer's gRPC URL
+  (``rerun+http://HOST:PORT/proxy``) streams to that viewer; ``spawn:`` starts a local viewer
+  (`fleetmpc.gcs.recording` holds the entity layout).
+
+So a `sim --rrd` recording and an `up` recording are written by the same code from the same
+type: the same entities, read back into the same record (`fleetmpc.gcs.rrd_reader`).
+"""
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from fleetmpc.errors import ConfigError
+from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
+
+__all__ = [
+    "MemorySink",
+    "PeriodSample",
+    "RerunSink",
+    "TelemetrySink",
+    "open_sink",
+    "record_of",
+    "samples_of",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class PeriodSample:
+    """One control period of a fleet of N vehicles (horizon M)."""
+
+    t_ns: int
+    """The period's time on the fleet clock [ns]."""
+    truth: np.ndarray
+    """Each vehicle's pose (N, 3): North, East [m], yaw [rad]."""
+    target: np.ndarray
+    """The target's position (2,) [m]."""
+    target_velocity: np.ndarray
+    """The target's velocity (2,) [m/s]."""
+    slots: np.ndarray
+    """Each vehicle's slot (N, 2) [m], from the true target."""
+    slot_offsets_world: np.ndarray
+    """Each slot's offset from the formation centre (N, 2) [m]."""
+    command: np.ndarray
+    """Each vehicle's command (N, 2): speed [m/s], yaw rate [rad/s]."""
+    c: np.ndarray
+    """Each vehicle's first correction c_0 (N, 2) (a live run knows only its norm: (|c_0|, 0))."""
+    beta: np.ndarray
+    """Each vehicle's learned (a_V, a_w, d_x, d_y) (N, 4)."""
+    beta_truth: np.ndarray
+    """Each vehicle's true (a_V, a_w, wind North, wind East) (N, 4)."""
+    qp_ok: np.ndarray
+    """Each vehicle's QP status (N,): True when it solved and passed its checks."""
+    step_time_ms: np.ndarray
+    """Each agent's step time (N,) [ms]."""
+    min_separation_m: float
+    """The smallest distance between two vehicles of the run up to this period [m]."""
+    plans: np.ndarray
+    """Each vehicle's planned positions (N, M + 1, 2) [m]; NaN where it has none."""
+    plan_age_s: np.ndarray
+    """Age of each other vehicle's plan as vehicle i sees it (N, N - 1) [s], fleet order."""
+    setpoint_rate_hz: np.ndarray
+    """Each vehicle's setpoint rate (N,) [Hz]."""
+    target_prediction: np.ndarray | None = None
+    """The ground side's prediction of the target over the horizon (M + 1, 2) [m], or None."""
+
+
+_RECORD_FIELDS = (
+    "truth",
+    "target",
+    "target_velocity",
+    "slots",
+    "slot_offsets_world",
+    "command",
+    "c",
+    "beta",
+    "beta_truth",
+    "qp_ok",
+    "step_time_ms",
+)
+"""The per-period fields a sample and a FlightRecord share."""
+
+
+def record_of(constants: RunConstants, samples: Sequence[PeriodSample], **extra) -> FlightRecord:
+    """The FlightRecord of consecutive samples (its minimum separation the last one's);
+    `extra`: FlightRecord fields samples do not carry (the lockstep's target prediction)."""
+    if not samples:
+        raise ValueError("no samples")
+    arrays = {name: np.array([getattr(s, name) for s in samples]) for name in _RECORD_FIELDS}
+    return FlightRecord(
+        t_s=np.array([s.t_ns for s in samples], dtype=np.int64) * 1e-9,
+        **arrays,
+        min_separation_m=samples[-1].min_separation_m,
+        **constants.as_fields(),
+        **extra,
+    )
+
+
+def live_rows_of(samples: Sequence[PeriodSample]) -> LiveRows:
+    """Plans, plan ages, setpoint rates of the samples, and the last one's target prediction."""
+    return LiveRows(
+        plans=np.array([s.plans for s in samples]),
+        setpoint_rate_hz=np.array([s.setpoint_rate_hz for s in samples]),
+        plan_age_s=np.array([s.plan_age_s for s in samples]),
+        target_prediction=samples[-1].target_prediction,
+    )
+
+
+def samples_of(rec: FlightRecord, live: LiveRows, *, period0: int = 0) -> list[PeriodSample]:
+    """The samples of a record's periods `period0`.. and the live rows of the same periods
+    (the target prediction goes with the last)."""
+    k = len(rec.t_s)
+    out = []
+    for j in range(period0, k):
+        out.append(
+            PeriodSample(
+                t_ns=round(float(rec.t_s[j]) * 1e9),
+                **{name: getattr(rec, name)[j] for name in _RECORD_FIELDS},
+                min_separation_m=rec.min_separation_m,
+                plans=live.plans[j - period0],
+                plan_age_s=live.plan_age_s[j - period0],
+                setpoint_rate_hz=live.setpoint_rate_hz[j - period0],
+                target_prediction=live.target_prediction if j == k - 1 else None,
+            )
+        )
+    return out
+
+
+class TelemetrySink(Protocol):
+    """Where a run's samples and events go."""
+
+    def open(self, constants: RunConstants, run_info: dict) -> None:
+        """Start a run: its constants and the facts about it (JSON-able)."""
+        ...
+
+    def log(self, samples: Sequence[PeriodSample]) -> None:
+        """The next periods of the run, in order."""
+        ...
+
+    def event(self, t_ns: int, level: str, text: str) -> None:
+        """An event at t_ns: level "INFO" or "WARN"."""
+        ...
+
+    def flush(self) -> None:
+        """Pass on what was logged so far (a live viewer shows it)."""
+        ...
+
+    def close(self) -> None:
+        """End the run: everything logged is passed on."""
+        ...
+
+
+class MemorySink:
+    """Keeps a run's samples and events."""
+
+    def __init__(self) -> None:
+        self.constants: RunConstants | None = None
+        self.run_info: dict = {}
+        self.samples: list[PeriodSample] = []
+        self.events: list[tuple[int, str, str]] = []
+
+    def open(self, constants: RunConstants, run_info: dict) -> None:
+        self.constants, self.run_info = constants, dict(run_info)
+
+    def log(self, samples: Sequence[PeriodSample]) -> None:
+        self.samples.extend(samples)
+
+    def event(self, t_ns: int, level: str, text: str) -> None:
+        self.events.append((t_ns, level, text))
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def record(self, **extra) -> FlightRecord:
+        """The FlightRecord of every sample so far (`record_of`)."""
+        if self.constants is None:
+            raise RuntimeError("the sink was never opened")
+        return record_of(self.constants, self.samples, **extra)
+
+
+class RerunSink:
+    """A Rerun recording (a `.rrd` file, a viewer, or both): samples are kept until `flush`,
+    which logs the map of the new periods; the time series, the flight_record rows and the QP
+    events go out every `series_every` flushes that had new periods, and at `close`. A logging
+    call costs per entity, not per row, so bigger slices cost less per period."""
+
+    def __init__(
+        self,
+        *,
+        path: str | Path | None = None,
+        viewer_url: str | None = None,
+        spawn_viewer: bool = False,
+        series_every: int = 1,
+    ) -> None:
+        if path is None and viewer_url is None and not spawn_viewer:
+            raise ValueError("a Rerun sink needs a file, a viewer URL or a spawned viewer")
+        self._target = {"path": path, "viewer_url": viewer_url, "spawn_viewer": spawn_viewer}
+        self.series_every = max(1, int(series_every))
+        self.stream = None
+        self._constants: RunConstants | None = None
+        self._map: list[PeriodSample] = []
+        """Samples whose map is not logged yet, after the last logged one (its trail's start)."""
+        self._series: list[PeriodSample] = []
+        """Samples whose time series and flight_record rows are not logged yet."""
+        self._last: PeriodSample | None = None
+        self._periods = 0
+        """Periods logged (their map) so far."""
+        self._series_periods = 0
+        """Periods whose time series are logged."""
+        self._flushes = 0
+        self._events: list[tuple[int, str, str]] = []
+
+    def open(self, constants: RunConstants, run_info: dict) -> None:
+        from fleetmpc.gcs import recording
+
+        self._constants = constants
+        self.stream = recording.open_recording(vehicle_ids=constants.vehicle_ids, **self._target)
+        recording.log_meta(self.stream, constants, run_info=run_info)
+        recording.log_statics(self.stream, constants.vehicle_ids, live=True)
+        self.stream.flush(timeout_sec=0)
+
+    def log(self, samples: Sequence[PeriodSample]) -> None:
+        self._map.extend(samples)
+        self._series.extend(samples)
+
+    def event(self, t_ns: int, level: str, text: str) -> None:
+        self._events.append((t_ns, level, text))
+
+    def _send(self, *, series: bool) -> None:
+        from fleetmpc.gcs import recording
+
+        events, self._events = self._events, []
+        recording.log_events(self.stream, events)
+        if self._map:
+            # The map's slice starts one period early when it can, for the trail's first step.
+            head = [self._last] if self._last is not None else []
+            rows = head + self._map
+            recording.log_flight_record(
+                self.stream,
+                record_of(self._constants, rows),
+                start=self._periods,
+                series_start=self._periods + len(self._map),
+                period0=self._periods - len(head),
+                live=live_rows_of(self._map),
+                statics=False,
+            )
+            self._periods += len(self._map)
+            self._last, self._map = self._map[-1], []
+        if series and self._series:
+            rows = self._series
+            recording.log_flight_record(
+                self.stream,
+                record_of(self._constants, rows),
+                start=self._series_periods + len(rows),
+                series_start=self._series_periods,
+                period0=self._series_periods,
+                live=live_rows_of(rows),
+                statics=False,
+            )
+            self._series_periods += len(rows)
+            self._series = []
+
+    def flush(self) -> None:
+        if self.stream is None:
+            return
+        new = bool(self._map)
+        self._flushes += new
+        self._send(series=new and self._flushes % self.series_every == 0)
+        self.stream.flush(timeout_sec=0)
+
+    def close(self) -> None:
+        if self.stream is None:
+            return
+        self._send(series=True)
+        self.stream.flush()
+        self.stream.disconnect()
+        self.stream = None
+
+
+def open_sink(url: str, *, series_every: int = 1) -> TelemetrySink:
+    """The sink a URL names: ``memory:``, ``rrd:PATH``, ``rerun+http://HOST:PORT/proxy`` (a
+    running viewer) or ``spawn:`` (a local viewer)."""
+    if url == "memory:":
+        return MemorySink()
+    if url.startswith("rrd:") and len(url) > 4:
+        return RerunSink(path=url[4:], series_every=series_every)
+    if url.startswith(("rerun+http://", "rerun+https://")):
+        return RerunSink(viewer_url=url, series_every=series_every)
+    if url == "spawn:":
+        return RerunSink(spawn_viewer=True, series_every=series_every)
+    raise ConfigError(
+        "telemetry",
+        f"{url!r} is not a sink URL (memory:, rrd:PATH, rerun+http://HOST:PORT/proxy, spawn:)",
+    )
+
+
+def _field_names() -> tuple[str, ...]:
+    return tuple(f.name for f in fields(PeriodSample))

@@ -1,0 +1,112 @@
+"""One telemetry path: the lockstep simulation and the ground station write the same recording.
+
+The live side is a `GroundStation` fed what a fleet that flew the lockstep run would send it
+(`fleetmpc.bench.telemetry.period_messages`), flushed as it flushes in flight."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import rerun as rr
+
+from fleetmpc.bench.telemetry import period_messages
+from fleetmpc.errors import ConfigError
+from fleetmpc.gcs.ground_station import GroundStation
+from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.gcs.rrd_reader import read_recording
+from fleetmpc.gcs.telemetry import MemorySink, RerunSink, open_sink
+from fleetmpc.protocol.messages import NeighbourPlanAge
+from fleetmpc.sim.lockstep import run_lockstep
+
+DURATION_S = 10.0
+
+
+def _entities(path) -> dict[str, set[str]]:
+    """Entity path -> the components logged on it, over the whole recording."""
+    out: dict[str, set[str]] = {}
+    for chunk in rr.chunk.RrdReader(path).stream():
+        names = chunk.to_record_batch().schema.names
+        out.setdefault(chunk.entity_path, set()).update(
+            n for n in names if n != "rerun.controls.RowId" and n != "sim_time"
+        )
+    return out
+
+
+@pytest.fixture(scope="module")
+def recordings(paper, tmp_path_factory):
+    """A lockstep recording of paper.toml, and the ground station's of the same flight."""
+    tmp = tmp_path_factory.mktemp("telemetry")
+    sim_rrd, live_rrd = tmp / "sim.rrd", tmp / "live.rrd"
+    memory = MemorySink()
+    rec = run_lockstep(
+        paper, duration_s=DURATION_S, sinks=[RerunSink(path=sim_rrd), memory], run_info={}
+    )
+    gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
+    gs.open_sinks([RerunSink(path=live_rrd)])
+    for k in range(len(rec.t_s)):
+        msgs = period_messages(rec, k, period_ns=gs.live.period_ns, horizon=5)
+        for pose in msgs.poses:
+            gs.live.add_pose(*pose)
+        for m in msgs.statuses:  # each vehicle sees its neighbours' plans one period old
+            seen = tuple(
+                NeighbourPlanAge(o, 200_000_000) for o in paper.vehicle_ids if o != m.sender_id
+            )
+            status = dataclasses.replace(m.status, neighbour_plan_ages=seen, setpoint_rate_hz=5.0)
+            gs.inbox.put(dataclasses.replace(m, status=status))
+        for message in (*msgs.plans, msgs.target):
+            gs.inbox.put(message)
+        if k % 20 == 19:
+            gs.flush()
+    gs.flush(final=True)
+    gs.close_sinks()
+    return rec, memory, sim_rrd, live_rrd
+
+
+def test_lockstep_and_live_recordings_hold_the_same_entities(recordings) -> None:
+    _, _, sim_rrd, live_rrd = recordings
+    sim, live = _entities(sim_rrd), _entities(live_rrd)
+    assert sim == live
+    for entity in ("/map/vehicles", "/map/plans", "/map/target_prediction", "/flight_record"):
+        assert entity in sim
+    for series in ("separation", "plan_age", "setpoint_rate", "beta/effectiveness"):
+        assert f"/series/{series}" in sim
+
+
+def test_both_read_back_into_the_record_the_metrics_read(recordings) -> None:
+    rec, memory, sim_rrd, live_rrd = recordings
+    sim, live = read_recording(sim_rrd).record, read_recording(live_rrd).record
+    for back in (sim, live):
+        assert back.truth.shape == rec.truth.shape
+        np.testing.assert_array_equal(back.truth, rec.truth)  # the live telemetry is the truth
+        assert compute_metrics(back)["min_separation_m"] > 0
+    np.testing.assert_array_equal(sim.command, rec.command)
+    np.testing.assert_array_equal(sim.beta, rec.beta)
+    assert sim.min_separation_m == rec.min_separation_m
+    # The memory sink holds the very samples the lockstep record stacks.
+    np.testing.assert_array_equal(memory.record().truth, rec.truth)
+    np.testing.assert_array_equal(memory.record().step_time_ms, rec.step_time_ms)
+
+
+def test_the_lockstep_map_holds_plans_and_one_target_prediction_per_flush(recordings) -> None:
+    _, _, sim_rrd, _ = recordings
+    rows = []
+    for chunk in rr.chunk.RrdReader(sim_rrd).stream():
+        if chunk.entity_path == "/map/target_prediction" and not chunk.is_static:
+            rows.append(chunk.num_rows)
+    # Flushed every 4 s of flight (20 periods) and at the end: 51 periods give 3 flushes.
+    assert sum(rows) == 3
+
+
+@pytest.mark.parametrize(
+    ("url", "kind"),
+    [("memory:", MemorySink), ("rrd:/tmp/x.rrd", RerunSink), ("spawn:", RerunSink)],
+)
+def test_a_sink_is_chosen_by_url(url, kind) -> None:
+    assert isinstance(open_sink(url), kind)
+
+
+@pytest.mark.parametrize("url", ["rrd:", "file.rrd", "http://127.0.0.1:9876", ""])
+def test_a_bad_sink_url_names_the_field(url) -> None:
+    with pytest.raises(ConfigError) as info:
+        open_sink(url)
+    assert info.value.field == "telemetry"
