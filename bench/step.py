@@ -36,8 +36,9 @@ import numpy as np
 
 from fleetmpc.errors import FleetMpcError
 from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
+from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.dekf import DualEkf
-from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
@@ -137,7 +138,7 @@ def _cvxpy_rebuild(mpc: TubeLbmpc) -> Callable[[QpData], np.ndarray | None]:
     M = mpc.M
 
     def solve(d: QpData) -> np.ndarray | None:
-        Sz, sz, St, st, Hu = mpc.condense(d)
+        Sz, sz, St, st, Hu = mpc.problem.condense(d)
         c = cp.Variable(2 * M)
         terms, cons = [], []
         for j in range(1, M + 1):

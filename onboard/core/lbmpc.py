@@ -17,30 +17,20 @@ heading enters the model through sin and cos, so a plan that turned the other wa
 wrongly), and n_kj' ptil_j >= b_kj for every neighbour k and step j whose half-plane the caller set
 (`fleetmpc.onboard.core.separation` places them; docs/design.md, "Safety").
 
-OSQP is set up once with a fixed sparsity pattern (structural zeros kept) and updated every period
-with warm start; every solve is checked (status, finiteness, bounds).
-
-Speed: a period runs in a fraction of a millisecond, so the per-period code counts numpy calls.
-Everything that does not depend on the period's data is built in the constructor (the constant
-entries of the condensing system and of the weights, the QP's index maps). One plain-float pass
-over the horizon linearizes both models, rotates the gains, rolls out c = 0, and builds the
-bounds, the separation rows and the terminal weight; its values reach their places in one
-scatter; one triangular solve condenses the horizon (`TubeLbmpc._precompute`); an elementwise
-product and two BLAS products give the cost; one take hands P, A and q to OSQP; one product gives
-the solution's predictions and inputs, and one take sorts them by kind into contiguous arrays.
+The QP's structure and its values each period are `fleetmpc.onboard.core.condensed_qp`'s: OSQP
+is set up once with a fixed sparsity pattern (structural zeros kept) and updated every period
+with warm start; every solve is checked here (status, finiteness, bounds), and a failed one
+leaves the caller the tube's feedback law (`TubeLbmpc.fallback_input`).
 """
 
 import math
-import struct
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import blas
 
 from fleetmpc.errors import InfeasibleError
+from fleetmpc.onboard.core.condensed_qp import CondensedQp, QpData
 from fleetmpc.onboard.core.config import ControllerSettings
-from fleetmpc.onboard.core.sparse_qp import INFINITY, FixedPatternQp
 from fleetmpc.onboard.core.tube import (
     cruise_linearization,
     dare_gain,
@@ -49,7 +39,7 @@ from fleetmpc.onboard.core.tube import (
 )
 from fleetmpc.onboard.core.unicycle import wrap
 
-__all__ = ["QpData", "QpSolution", "TubeLbmpc"]
+__all__ = ["QpSolution", "TubeLbmpc"]
 
 _UNCONVERGED = ("solved inaccurate", "maximum iterations reached")
 """OSQP statuses whose iterate is used if it keeps every constraint (`FEASIBILITY_TOL`): the cost
@@ -58,57 +48,6 @@ may be a little short of its optimum, the plan is still one the vehicle may fly.
 FEASIBILITY_TOL = 1e-3
 """How far an unconverged iterate may break a constraint row and still be used [m, m/s, rad/s]:
 a millimetre on a separation row, well inside every margin."""
-
-_BLOCK = 8
-"""Rows per step j in the condensing system: zbar_j (3), ztil_j (3), u_j (2)."""
-
-
-Floats = (
-    np.ndarray | Sequence[float] | Sequence[Sequence[float]] | Sequence[Sequence[Sequence[float]]]
-)
-"""An array, or the same numbers as (nested) sequences of plain floats."""
-
-
-def _rows(a: Floats) -> list:
-    """Nested plain-float lists (or the sequences as given) of a small array-like."""
-    return a.tolist() if isinstance(a, np.ndarray) else a
-
-
-@dataclass(frozen=True, eq=False)
-class QpData:
-    """Everything one period's QP depends on. Shapes use M = horizon, N = number of neighbours.
-
-    Each array may also be given as nested sequences of plain floats of its shape (rows as lists
-    or tuples): the agent computes its data in floats, and the QP's float pass reads them as
-    floats, so an array round trip in between would cost more than the arithmetic on them.
-    """
-
-    z0: Floats
-    """Current state estimate (3,)."""
-    lin_states: Floats
-    """Linearization trajectory (M + 1, 3); lin_states[0] should be z0."""
-    lin_inputs: Floats
-    """Linearization inputs (M, 2); speeds must not be 0."""
-    beta: Floats
-    """Learned oracle parameters (4,)."""
-    u_s: Floats
-    """Steady-state inputs under the learned model (M, 2)."""
-    targets: Floats
-    """Cost targets r_j for j = 1..M (M, 3): position and heading (unwrapped near lin_states)."""
-    position_weights: Floats
-    """Position weight of each stage j = 1..M (M,) [1/m^2]."""
-    terminal_scale: float
-    """Scale of the terminal weight P (formation weight present / formation weight assumed)."""
-    speed_now_m_s: float
-    """The speed the vehicle was last commanded [m/s]: the first planned speed changes from it
-    by at most speed_rate_max_m_s2 tau."""
-    yaw_rate_now_rad_s: float
-    """The yaw rate the vehicle was last commanded [rad/s]: the first planned yaw rate's change
-    from it is penalized like the later ones' (r_yaw_rate_change)."""
-    separation_planes: Floats
-    """Per neighbour k and step j = 1..M, a half-plane (n_x, n_y, b) that the learned prediction's
-    position must keep to, n' ptil_j >= b, with n a unit normal (N, M, 3); a non-finite b
-    disables the row."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,186 +99,6 @@ class TubeLbmpc:
                 "reduce the disturbance box W or the horizon, or raise the input bounds",
             )
         self.tube_radius_m = position_tube_radius(self.A0, self.B0, self.K0, w_bar, M)
-        self._precompute()
-        self._last_c: np.ndarray | None = None
-
-    # -- constant structure ---------------------------------------------------------------------
-    def _precompute(self) -> None:
-        """Build what every period shares, so a period only writes the values that change.
-
-        Condensing as one triangular system. Stack, per step j = 0..M, the two predictions and
-        the input they lead to, v_j = [zbar_j; ztil_j; u_j] (8 rows, `_BLOCK`; u_M is padding),
-        then the separation rows s_kj = n_kj' ptil_j for neighbour k and step j = 1..M (N M
-        rows; on the learned prediction, where the vehicle is expected to be, wind included),
-        then the speed-change rows a_j = V_j - V_{j-1}, j = 0..M-1 (M rows; V_{-1} is the speed
-        now, a constant). Their derivatives with respect to c obey
-            dzbar_0 = dztil_0 = 0
-            du_j         - K_j dzbar_j                  = E_j   (E_j injects c_j into u_j)
-            dzbar_{j+1}  - A_j dzbar_j   - B_j du_j     = 0
-            dztil_{j+1}  - A~_j dztil_j  - B~_j du_j    = 0
-            ds_kj        - n_kj' dptil_j                = 0
-            da_j         - dV_j + dV_{j-1}              = 0   (no dV_{-1} term),
-        a unit lower-triangular system T D = E (m x m, m = 8 (M + 1) + N M + M) whose forward
-        substitution (one BLAS dtrsm) is the recursion through the horizon.
-
-        Y (m x 2M + 2) holds D in its first 2M columns, then two constant columns: the learned
-        cost residual ztil_j(c = 0) - r_j on the ztil_j rows, j = 1..M (0 elsewhere), and the
-        rows' values at c = 0 (zref_j, ztil_j(c = 0), u_s,j: the linearized models' rollouts of
-        u_s from z0). With W twice the cost weights on the step rows (block diagonal by step:
-        Q on ztil_j, the terminal P on ztil_M, R on u_j, 0 on zbar), the cost is
-        (Y c + y)' W (Y c + y) / 2 over the first 2M + 1 columns, so one product H = Y' W Y
-        holds OSQP's P and q as [[P, q], [q', .]]; OSQP's A is the u, s and a rows of Y; and one
-        product Y [c; 0; 1] gives every prediction and input of the solution. W is diagonal but
-        for the terminal P, so it is kept as its diagonal (0 on the ztil_M rows), repeated along
-        the columns of Y (`_w`, so that the diagonal part of W Y is an elementwise product of
-        two arrays of one shape), and P_M, whose product with the ztil_M rows overwrites theirs.
-        The products run over all 2M + 2 columns of the step rows (a contiguous block whose last
-        column's products go unread), so that BLAS reads Y in place.
-
-        Persistent buffers: OSQP's values, T, Y, P_M and H are views into one flat buffer, so
-        that the period's float pass reaches every value it computes (T's and Y's entries, the
-        bounds l and u, the terminal P) with one scatter through a flat index map (`_lin_dest`),
-        and P, A and q reach OSQP with one take (`_qp_sources`). Entries that never change (T's
-        unit diagonal, the identity parts of A and A~, B's tau, K_j's heading column, which the
-        rotation leaves as K0's, the heading and input weights, the separation rows'
-        u = +infinity) are written once. A period overwrites every entry that depends on its
-        data, so nothing of an earlier period (even a non-finite one) survives into the next;
-        the stage position weights in `_w`, which change only with the number of formation
-        terms, are rewritten whenever they differ from the last period's.
-
-        Also cached: the K0 and P0 entries as floats, the tightened input box of each step, the
-        packer of the float pass, and the OSQP problem with its fixed pattern.
-        """
-        s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
-        steps = _BLOCK * (M + 1)
-        m = steps + N * M + M
-        accel = steps + N * M  # the first speed-change row
-        self._K0_entries = tuple(float(k) for k in self.K0.ravel())
-        self._P0_entries = tuple(self.P0.ravel().tolist())
-        zbar_row = [_BLOCK * j for j in range(M + 1)]  # rows of zbar_j, ztil_j and u_j
-        ztil_row = [_BLOCK * j + 3 for j in range(M + 1)]
-        u_row = [_BLOCK * j + 6 for j in range(M + 1)]
-        # OSQP's pattern: P upper triangle dense; u_j depends on c_0..c_j; a separation row at
-        # step j on c_0..c_{j-1}. A's rows are Y's u rows, then its separation rows.
-        p_mask = np.triu(np.ones((n, n), dtype=bool))
-        in_mask = np.zeros((2 * M, n), dtype=bool)
-        for j in range(M):
-            in_mask[2 * j : 2 * j + 2, : 2 * j + 2] = True
-        sep_mask = np.zeros((N * M, n), dtype=bool)
-        for k in range(N):
-            for j in range(1, M + 1):
-                sep_mask[k * M + j - 1, : 2 * j] = True
-        accel_mask = np.zeros((M, n), dtype=bool)  # u_j - u_{j-1} on c_0..c_j
-        for j in range(M):
-            accel_mask[j, : 2 * j + 2] = True
-        a_mask = np.vstack([in_mask, sep_mask, accel_mask])
-        # The period buffer (OSQP's values, T, Y) and, carved from np.arange alongside, each
-        # entry's flat index.
-        shapes = {
-            "qp": ((FixedPatternQp.data_size(p_mask, a_mask),), "C"),
-            "T": ((m, m), "F"),  # Fortran order: dtrsm reads it in place
-            "Y": ((m, n + 2), "C"),
-            "P_M": ((3, 3), "C"),
-            "H": ((n + 2, n + 2), "C"),
-        }
-        total = sum(math.prod(shape) for shape, _ in shapes.values())
-        self._buffer = np.zeros(total)
-        views, index, start = {}, {}, 0
-        for name, (shape, order) in shapes.items():
-            stop = start + math.prod(shape)
-            views[name] = self._buffer[start:stop].reshape(shape, order=order)
-            index[name] = np.arange(start, stop).reshape(shape, order=order)
-            start = stop
-        a_rows = [u_row[j] + i for j in range(M) for i in (0, 1)] + list(range(steps, m))
-        self._a_rows = np.array(a_rows)
-        """Y's rows that are A's, in A's order."""
-        self._qp = qp = FixedPatternQp(
-            p_mask,
-            a_mask,
-            eps=s.solver_eps,
-            max_iter=s.solver_max_iter,
-            a_rows=np.array(a_rows),
-            a_row_length=n + 2,
-            data=views["qp"],
-        )
-        qp.u[2 * M : 2 * M + N * M] = INFINITY  # separation rows: lower bounds only
-        il, iu = index["qp"][qp.layout["l"]], index["qp"][qp.layout["u"]]
-        self._T, self._Y = T, Y = views["T"], views["Y"]
-        T[np.arange(m), np.arange(m)] = 1.0
-        for j in range(M):
-            T[zbar_row[j + 1] + 2, u_row[j] + 1] = -self.tau  # B[2, 1] (B~[2, 1] varies)
-            T[u_row[j] : u_row[j] + 2, zbar_row[j] + 2] = -self.K0[:, 2]  # (not rotated)
-            for r in range(3):  # the identity parts of A_j and A~_j
-                T[zbar_row[j + 1] + r, zbar_row[j] + r] = -1.0
-                T[ztil_row[j + 1] + r, ztil_row[j] + r] = -1.0
-        for j in range(M):  # the speed-change rows: ds_j - du_j + du_{j-1} = 0
-            T[accel + j, u_row[j]] = -1.0
-            if j:
-                T[accel + j, u_row[j - 1]] = 1.0
-        self._E = np.zeros((m, n), order="F")
-        for j in range(M):
-            self._E[u_row[j] : u_row[j] + 2, 2 * j : 2 * j + 2] = np.eye(2)
-        # Where the float pass's values go (see `_fill` for their order).
-        iT, iY = index["T"], index["Y"]
-        dest = iY[: ztil_row[0] + 3, n + 1].tolist()  # zbar_0 = ztil_0 = z0
-        for j in range(M):
-            zb, zt, u = zbar_row[j], ztil_row[j], u_row[j]
-            zb1, zt1 = zbar_row[j + 1], ztil_row[j + 1]
-            for entries in (
-                iT[u : u + 2, zb : zb + 2],  # K_j's position columns
-                iY[u : u + 2, n + 1],  # u_s,j
-                il[2 * j : 2 * j + 2],  # its bounds, lower
-                iu[2 * j : 2 * j + 2],  # and upper
-                iT[zb1 : zb1 + 2, zb + 2],  # A_j's heading column
-                iT[zb1 : zb1 + 2, u : u + 2],  # B_j
-                iT[zt1 : zt1 + 2, zt + 2],  # A~_j's heading column
-                iT[zt1 : zt1 + 2, u : u + 2],  # B~_j
-                iT[zt1 + 2 : zt1 + 3, u + 1],  # B~_j[2, 1]
-                iY[zb1 : zt1 + 3, n + 1],  # zref_{j+1}, ztil_{j+1} at c = 0
-                iY[zt1 : zt1 + 3, n],  # cost residual
-            ):
-                dest += entries.ravel().tolist()
-        for k in range(N):
-            for j in range(1, M + 1):
-                dest += iT[steps + k * M + j - 1, ztil_row[j] : ztil_row[j] + 2].tolist()
-                dest.append(int(il[2 * M + k * M + j - 1]))
-        for j in range(M):  # the speed-change rows' bounds
-            dest += (int(il[2 * M + N * M + j]), int(iu[2 * M + N * M + j]))
-        # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its column n):
-        # q_heading and the stage position weights (`_stage_weights`) on ztil_j, the terminal P
-        # on ztil_M (written every period, through the scatter), R on u_j.
-        dest += index["P_M"].ravel().tolist()  # terminal P, row-major
-        self._lin_dest = np.array(dest, dtype=np.intp)
-        self._pack = struct.Struct(f"{len(dest)}d").pack
-        self._w = np.zeros((steps, n + 2))
-        self._w_steps = w = self._w.reshape(M + 1, _BLOCK, n + 2)
-        w[1:M, 5] = 2.0 * s.q_heading
-        w[:M, 6], w[:M, 7] = 2.0 * s.r_speed, 2.0 * s.r_yaw_rate
-        self._stage_weights: list[float] = [0.0] * (M - 1)
-        """The position weights of j = 1..M-1 that `_w` holds (zero until the first period)."""
-        self._P_M = views["P_M"]
-        self._H = views["H"]  # [[P, q, .], [q', ., .], ...]: P's upper triangle and q to OSQP
-        iH = index["H"]
-        self._qp_sources = qp.value_sources(iH[:n, :n], index["Y"], iH[:n, n])
-        self._qp_values = qp.data[: qp.layout["q"].stop]
-        """OSQP's Px, Ax and q, gathered from H and Y with one take."""
-        self._Y_steps = Y[:steps]
-        self._yaw_rows = np.array([u_row[j] + 1 for j in range(M)])
-        """Y's rows of the planned yaw rates."""
-        self._yaw_change = np.zeros((M, n + 1))
-        """Each planned yaw rate's change from the one before (the first: from the yaw rate
-        flown now), as [derivative in c; value at c = 0]."""
-        self._WY = np.zeros((steps, n + 2))
-        terminal = slice(ztil_row[M], ztil_row[M] + 3)
-        self._Y_terminal, self._WY_terminal = Y[terminal], self._WY[terminal]
-        self._by_kind = np.array(
-            [u_row[j] + i for j in range(M) for i in range(2)]
-            + [ztil_row[j] + i for j in range(M + 1) for i in range(3)]
-            + [zbar_row[j] + i for j in range(M + 1) for i in range(3)]
-        )
-        """The step rows as the solution hands them out: inputs, learned, nominal predictions."""
-        self._x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
-        """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
         # (The speed's lower bound 0 is not tightened: a plan may stop, and a feedback that
         # would take the speed below it is clipped there.)
         lower = (self.u_min[None, :] + self.tightening * [0.0, 1.0]).tolist()
@@ -349,9 +108,12 @@ class TubeLbmpc:
         slack = 1e-3 * self.u_max + 1e-6
         self._first_input_box = (*(self.u_min - slack).tolist(), *(self.u_max + slack).tolist())
         """U with a solver's tolerance: a first input outside it fails the solve's check."""
-        self._warm = np.zeros(n)
-        self._x_ext = np.zeros(n + 2)  # [c; 0; 1]: Y's rows at c
-        self._x_ext[-1] = 1.0
+        self.problem = CondensedQp(
+            s, n_neighbours=n_neighbours, K0=self.K0, P0=self.P0, input_box=self.input_box
+        )
+        """The QP, condensed: its structure, and its values each period."""
+        self._warm = np.zeros(2 * M)
+        self._last_c: np.ndarray | None = None
 
     # -- small maps -----------------------------------------------------------------------------
     def feedback_gain(self, yaw: float) -> np.ndarray:
@@ -364,7 +126,7 @@ class TubeLbmpc:
 
     def terminal_weight(self, yaw: float) -> np.ndarray:
         """P at heading `yaw` (3, 3): T P0 T'."""
-        return np.array(self._terminal_entries(yaw, 1.0)).reshape(3, 3)
+        return np.array(self.problem.terminal_entries(yaw, 1.0)).reshape(3, 3)
 
     def fallback_input(self, z: np.ndarray, reference: np.ndarray, u_s: np.ndarray) -> np.ndarray:
         """The tube feedback law u = u_s + K (z - z_ref), clipped to U (used when a solve fails)."""
@@ -380,158 +142,18 @@ class TubeLbmpc:
             status=status,
             c=np.zeros((self.M, 2)),
             inputs=np.array(d.u_s, dtype=float),
-            nominal=self._x0[:, :3].copy(),
-            learned=self._x0[:, 3:].copy(),
+            nominal=self.problem.x0[:, :3].copy(),
+            learned=self.problem.x0[:, 3:].copy(),
             iterations=0,
         )
 
     # -- one period -----------------------------------------------------------------------------
-    def _fill(self, d: QpData) -> None:
-        """One plain-float pass over the period's data: both models along the linearization
-        trajectory, the rotated gains, the c = 0 rollouts, the input bounds, the separation rows
-        and the terminal weight, scattered into T, Y's constant columns, OSQP's l and u and P_M;
-        then the stage position weights into `_w` if they changed.
-
-        Per step j, at phi = th + tau a_w w / 2:
-            A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
-            dy/dth = tau a_V v cos phi,  B = [[tau a_V cos phi, dx/dth tau a_w / 2],
-            [tau a_V sin phi, dy/dth tau a_w / 2], [0, tau a_w]],
-            e = (tau d_x - dx/dth phi, tau d_y - dy/dth phi, 0),
-        with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal,
-        and K_j = K0 T(th_j)'. T holds their negatives (the system's off-diagonal blocks); the
-        c = 0 values are zref and ztil, the linearized models' rollouts of u_s from z0; the cost
-        residual's heading is wrapped; u_j = Hu_j c + u_s,j stays in the tightened box, so the
-        input rows' bounds are the box less u_s,j.
-
-        Values go out in `_lin_dest`'s order through one `struct` pack (a list of a couple of
-        hundred floats becomes an array 3-4x faster than through np.array). With M a handful of
-        steps, a float loop is cheaper than a few dozen numpy calls on (M,)-arrays.
-        """
-        tau, trust = self.tau, self.settings.yaw_rate_trust_rad_s
-        a_v, a_w, d_x, d_y = _rows(d.beta)
-        tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
-        hn = 0.5 * tau  # nominal, a_V = a_w = 1
-        k00, k01, _, k10, k11, _ = self._K0_entries
-        sin, cos = math.sin, math.cos
-        xb, yb, hb = _rows(d.z0)
-        xt, yt, ht = xb, yb, hb
-        out = [xb, yb, hb, xt, yt, ht]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
-        ref: list[
-            tuple[float, float]
-        ] = []  # ptil(0)'s positions, j = 1..M (the separation rows' linearization)
-        lin = _rows(d.lin_states)
-        steps = zip(
-            lin[: self.M],
-            _rows(d.lin_inputs),
-            _rows(d.u_s),
-            _rows(d.targets),
-            self.input_box,
-            strict=True,
-        )
-        for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
-            c, s = cos(th), sin(th)
-            # The yaw rate keeps within the trust region about the linearization's.
-            lo_w, hi_w = max(lo_w, min(w - trust, hi_w)), min(hi_w, max(w + trust, lo_w))
-            out += (
-                k01 * s - k00 * c, -k00 * s - k01 * c,  # -K_j's position columns
-                k11 * s - k10 * c, -k10 * s - k11 * c,
-                us_v, us_w,  # u_s,j
-                lo_v - us_v, lo_w - us_w, hi_v - us_v, hi_w - us_w,  # input rows' l, u
-            )  # fmt: skip
-            phi = th + hn * w
-            s, c = sin(phi), cos(phi)
-            dx, dy = -tau * v * s, tau * v * c
-            b00, b01, b10, b11 = tau * c, dx * hn, tau * s, dy * hn
-            xb, yb, hb = (
-                xb + dx * hb + b00 * us_v + b01 * us_w - dx * phi,
-                yb + dy * hb + b10 * us_v + b11 * us_w - dy * phi,
-                hb + tau * us_w,
-            )
-            phi = th + hw * w
-            s, c = sin(phi), cos(phi)
-            tx, ty = -tv * v * s, tv * v * c
-            t00, t01, t10, t11 = tv * c, tx * hw, tv * s, ty * hw
-            xt, yt, ht = (
-                xt + tx * ht + t00 * us_v + t01 * us_w + tau * d_x - tx * phi,
-                yt + ty * ht + t10 * us_v + t11 * us_w + tau * d_y - ty * phi,
-                ht + tw * us_w,
-            )
-            out += (
-                -dx, -dy, -b00, -b01, -b10, -b11,  # -A_j's heading column, -B_j
-                -tx, -ty, -t00, -t01, -t10, -t11, -tw,  # the same of A~_j, B~_j
-                xb, yb, hb, xt, yt, ht,  # zref_{j+1}, ztil_{j+1} at c = 0
-                xt - rx, yt - ry, wrap(ht - rh),  # cost residual
-            )  # fmt: skip
-            ref.append((xt, yt))
-        if self.n_neighbours:
-            self._separation(d, ref, out)
-        # Speed changes: u_0 - V_now and u_j - u_{j-1} within +-a_max tau, less their values at
-        # c = 0 (the steady speeds' changes).
-        step = self.settings.speed_rate_max_m_s2 * tau
-        last = float(d.speed_now_m_s)
-        for us_v, _ in _rows(d.u_s):
-            out += (-step - (us_v - last), step - (us_v - last))
-            last = us_v
-        # The terminal P at the last target heading rh (doubled).
-        out += self._terminal_entries(rh, 2.0 * d.terminal_scale)
-        self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
-        self._set_stage_weights(_rows(d.position_weights)[: self.M - 1])
-
-    def _set_stage_weights(self, weights: Sequence[float]) -> None:
-        """Write the position weights of j = 1..M-1 (doubled) into `_w` when they changed."""
-        if list(weights) != self._stage_weights:  # (a list, whatever sequence they came in)
-            doubled = 2.0 * np.asarray(weights, float)
-            self._w_steps[1 : self.M, 3:5] = doubled[:, None, None]
-            self._stage_weights = list(weights)
-
-    def _condense(self, d: QpData) -> None:
-        """Fill T, Y and the bounds for this period (`_precompute` describes them)."""
-        self._fill(d)
-        self._Y[:, : 2 * self.M] = blas.dtrsm(1.0, self._T, self._E, lower=1, diag=1)
-
-    def condense(self, d: QpData) -> tuple[np.ndarray, ...]:
-        """Affine maps of c: (Sz, sz) nominal states, (St, st) learned states, Hu inputs.
-
-        Shapes: Sz, St (M + 1, 3, 2M); sz, st (M + 1, 3); Hu (M, 2, 2M), whose constant part
-        is u_s.
-        """
-        M, n = self.M, 2 * self.M
-        self._condense(d)
-        D = self._Y_steps[:, :n].reshape(M + 1, _BLOCK, n)
-        x0 = self._x0
-        return (
-            D[:, :3].copy(),
-            x0[:, :3].copy(),
-            D[:, 3:6].copy(),
-            x0[:, 3:].copy(),
-            D[:M, 6:].copy(),
-        )
-
-    def assemble(self, d: QpData) -> None:
-        """Build this period's QP values: P, q, A, l and u in OSQP's buffer (not yet handed to
-        OSQP)."""
-        self._condense(d)
-        # Cost: [[P, q], [q', .]] = Y' W Y over the step rows (W doubled); A from Y's rows.
-        np.multiply(self._w, self._Y_steps, out=self._WY)  # W's diagonal part
-        np.dot(self._P_M, self._Y_terminal, out=self._WY_terminal)
-        np.dot(self._Y_steps.T, self._WY, out=self._H)
-        rho = self.settings.r_yaw_rate_change
-        if rho:  # + rho sum_j (w_j - w_{j-1})^2, w_{-1} the yaw rate flown now
-            n = 2 * self.M
-            rows = self._Y.take(self._yaw_rows, axis=0)
-            change = self._yaw_change
-            change[:, :n] = rows[:, :n]
-            change[:, n] = rows[:, n + 1]
-            change[1:] -= change[:-1].copy()
-            change[0, n] -= d.yaw_rate_now_rad_s
-            self._H[: n + 1, : n + 1] += (2.0 * rho) * change.T.dot(change)
-        self._buffer.take(self._qp_sources, out=self._qp_values)
-
     def solve(self, d: QpData) -> QpSolution:
         """Build this period's QP values, solve it, and check the answer."""
         M, n = self.M, 2 * self.M
-        qp = self._qp
-        self.assemble(d)
+        problem = self.problem
+        qp = problem.osqp
+        problem.assemble(d)
         if not qp.finite():
             # Never hand the solver non-finite data: it would poison its factorization.
             self._last_c = None
@@ -548,11 +170,7 @@ class TubeLbmpc:
         if not ok:
             self._last_c = None
             x = np.zeros(n)
-        # Predictions and inputs at c = x: the step rows of Y times [c; 0; 1].
-        self._x_ext[:n] = x
-        # (Gathered by kind, so that each comes out as a contiguous array.)
-        y = self._Y_steps.dot(self._x_ext).take(self._by_kind)
-        inputs, learned, nominal = y[:n], y[n : n + 3 * M + 3], y[n + 3 * M + 3 :]
+        inputs, learned, nominal = problem.predictions(x)  # at c = x
         u0, w0 = inputs[:2].tolist()
         v_lo, w_lo, v_hi, w_hi = self._first_input_box
         if ok and not (v_lo <= u0 <= v_hi and w_lo <= w0 <= w_hi):
@@ -573,36 +191,6 @@ class TubeLbmpc:
         """True when x keeps every constraint of this period's QP to within FEASIBILITY_TOL."""
         if not math.isfinite(x.dot(x)):
             return False
-        Ax = self._Y[self._a_rows, : 2 * self.M].dot(x)
-        qp, tol = self._qp, FEASIBILITY_TOL
+        Ax = self.problem.constraint_rows(x)
+        qp, tol = self.problem.osqp, FEASIBILITY_TOL
         return bool(np.all(Ax >= qp.l - tol) and np.all(Ax <= qp.u + tol))
-
-    @staticmethod
-    def _separation(d: QpData, ref: list[tuple[float, float]], out: list[float]) -> None:
-        """Separation rows, for neighbour k and step j = 1..M: appends to `out` -n_kj (the
-        system's entries) and the row's lower bound.
-
-        The row is n_kj' ptil_j(c) >= b_kj, i.e. n_kj' dptil_j/dc c >= b_kj - n_kj' ptil_j(0),
-        with `ref` the ptil_j(0). A row whose bound is not finite is off: zero normal, lower bound
-        -infinity. Plain floats: N M is a handful of pairs.
-        """
-        isfinite = math.isfinite
-        for planes in _rows(d.separation_planes):
-            for (nx, ny, b), (rx, ry) in zip(planes, ref, strict=True):
-                if isfinite(b):
-                    out += (-nx, -ny, b - (nx * rx + ny * ry))
-                else:
-                    out += (0.0, 0.0, -INFINITY)
-
-    def _terminal_entries(self, yaw: float, scale: float) -> tuple[float, ...]:
-        """The 9 entries (row-major) of scale T(yaw) P0 T(yaw)', from P0's entries."""
-        a, b, d, _, e, f, _, _, g = self._P0_entries  # P0 is symmetric
-        c, s = math.cos(yaw), math.sin(yaw)
-        r0 = (c * a - s * b, c * b - s * e)  # row 0 of T P0, position columns
-        r1 = (s * a + c * b, s * b + c * e)
-        p00 = scale * (r0[0] * c - r0[1] * s)
-        p01 = scale * (r0[0] * s + r0[1] * c)
-        p11 = scale * (r1[0] * s + r1[1] * c)
-        p02 = scale * (c * d - s * f)
-        p12 = scale * (s * d + c * f)
-        return p00, p01, p02, p01, p11, p12, p02, p12, scale * g

@@ -9,8 +9,9 @@ from fleetmpc.bench.baseline import THIS_TREE, compare
 from fleetmpc.bench.step import _cvxpy_rebuild, _input_bounds
 from fleetmpc.cli import main
 from fleetmpc.errors import FleetMpcError
+from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings
-from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.unicycle import rollout
 
 SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)

@@ -2,8 +2,9 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
+from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings
-from fleetmpc.onboard.core.lbmpc import QpData, TubeLbmpc
+from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, linearize, rollout
 
 SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)
@@ -55,7 +56,7 @@ def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.nda
 def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
     """The same QP written out independently in cvxpy and solved by Clarabel."""
     M = mpc.M
-    Sz, sz, St, st, Hu = mpc.condense(d)
+    Sz, sz, St, st, Hu = mpc.problem.condense(d)
     c = cp.Variable(2 * M)
     cost = 0
     for j in range(1, M + 1):
@@ -105,7 +106,7 @@ def test_zero_c_reproduces_the_steady_inputs():
     rng = np.random.default_rng(0)
     mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
     d = _random_data(rng, mpc)
-    Sz, sz, St, st, Hu = mpc.condense(d)
+    Sz, sz, St, st, Hu = mpc.problem.condense(d)
     nominal = rollout(d.z0, d.u_s, np.array([1.0, 1.0, 0.0, 0.0]), mpc.tau)
     # With c = 0 the inputs are u_s exactly and the nominal prediction is close to u_s's rollout.
     np.testing.assert_allclose(Hu @ np.zeros(2 * mpc.M) + d.u_s, d.u_s)
@@ -172,7 +173,7 @@ def test_condensed_maps_match_the_linearized_closed_loop():
     rng = np.random.default_rng(3)
     mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
     d = _random_data(rng, mpc)
-    Sz, sz, St, st, Hu = mpc.condense(d)
+    Sz, sz, St, st, Hu = mpc.problem.condense(d)
     c = rng.normal(0.0, 0.3, 2 * mpc.M)
     zbar, ztil = d.z0.copy(), d.z0.copy()
     zref = d.z0.copy()

@@ -1,0 +1,184 @@
+"""One vehicle's neighbours as its agent sees them each period (docs/design.md, "Safety" and
+"Formation reference"; the plan ages of "The plan bus").
+
+From the neighbours' latest plans and their ages: the margin inflation of each (v_max x the age
+beyond one period; a forgotten plan drops its neighbour), the formation terms of the fresh ones
+and their pull on this vehicle's goal, the separation half-planes against each
+(`fleetmpc.onboard.core.separation` places them) and the give-way rule that breaks a deadlock
+between two vehicles stopped nose to nose. Plain floats throughout: the horizon is a handful of
+points.
+"""
+
+import math
+from collections.abc import Mapping
+
+from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.separation import (
+    NO_PLANE,
+    Plane,
+    intersample_allowance,
+    separation_planes,
+)
+from fleetmpc.protocol.plan import Plan
+
+__all__ = ["Neighbourhood"]
+
+
+class Neighbourhood:
+    """The neighbours of vehicle `vehicle_id` in the fleet `fleet_ids`; `tube_radius_m` (the
+    tube's widest position radius) widens every separation margin."""
+
+    def __init__(
+        self,
+        vehicle_id: int,
+        *,
+        fleet_ids: tuple[int, ...],
+        controller: ControllerSettings,
+        tube_radius_m: float,
+    ) -> None:
+        self.settings = controller
+        self.neighbour_ids = tuple(i for i in fleet_ids if i != vehicle_id)
+        M = controller.horizon
+        self._no_planes = [NO_PLANE] * M
+        between = intersample_allowance(
+            speed_max_m_s=controller.speed_max_m_s,
+            period_s=controller.period_s,
+            d_safe_m=controller.d_safe_m,
+        )
+        self.margin_m = 0.5 * (controller.d_safe_m + between) + tube_radius_m
+        """Distance kept from a shared separation line before the plan-age inflation
+        (`fleetmpc.onboard.core.separation`) [m]."""
+        self._alone_margin_m = controller.d_safe_m + between + tube_radius_m
+        """Distance kept from a stale neighbour's position before the plan-age inflation [m]."""
+        self._fleet_index = {vid: i for i, vid in enumerate(fleet_ids)}
+
+    def inflations_and_pull(
+        self,
+        stamp_ns: int,
+        neighbour_plans: Mapping[int, Plan],
+        ages: dict[int, float],
+        centres: list[tuple[float, float]],
+        offsets: list[list[tuple[float, float]]],
+    ) -> tuple[list[float], list[tuple[float, float]] | None, int]:
+        """The neighbours' plan-age inflations and their pull on this vehicle's goal.
+
+        Returns the margin inflation v_max x (age beyond one period) of each neighbour [m]
+        (infinite for an absent or forgotten one), the pull sum_k (p_kj - slot_kj) at
+        j = 1..M over the neighbours whose plan is fresh (None if there is none) and their
+        count. `centres` and `offsets` are the formation's centre and every vehicle's
+        offset at j = 0..M+1.
+        """
+        s, M = self.settings, self.settings.horizon
+        when_ns = stamp_ns + s.period_ns
+        inflations: list[float] = []
+        pull: list[tuple[float, float]] | None = None
+        n_terms = 0
+        steps = list(zip(centres[1 : M + 1], offsets[1 : M + 1], strict=True))
+        for nid in self.neighbour_ids:
+            plan = neighbour_plans.get(nid)
+            age = ages.get(nid, math.inf)
+            if plan is None or age > s.plan_forget_s or age < -s.period_s:
+                inflations.append(math.inf)
+                continue
+            inflations.append(s.speed_max_m_s * max(0.0, age - s.period_s))
+            if age <= s.plan_stale_s:
+                reach = s.plan_extrapolation_s
+                positions = plan.position_list(when_ns, M, max_extrapolation_s=reach)
+                k = self._fleet_index[nid]
+                terms = [
+                    (px - (cx + o[k][0]), py - (cy + o[k][1]))
+                    for (px, py), ((cx, cy), o) in zip(positions, steps, strict=True)
+                ]
+                pull = (
+                    terms
+                    if pull is None
+                    else [(a + b, c + d) for (a, c), (b, d) in zip(pull, terms, strict=True)]
+                )
+                n_terms += 1
+        return inflations, pull, n_terms
+
+    def planes(
+        self,
+        stamp_ns: int,
+        neighbour_plans: Mapping[int, Plan],
+        last_plan: Plan | None,
+        here: tuple[float, float],
+        drift: tuple[float, float],
+        ages: dict[int, float],
+        inflations: list[float],
+    ) -> list[list[Plane]]:
+        """Separation half-planes against each neighbour at j = 1..M (`separation_planes`),
+        between where this vehicle's previous plan `last_plan` (or, without one, the vehicle)
+        and the neighbour's plan are now; the distance is shared while the neighbour's plan is at
+        most two periods old."""
+        s, M = self.settings, self.settings.horizon
+        own = here if last_plan is None else last_plan.position_at(stamp_ns)
+        drift_steps = [
+            (drift[0] * j * s.period_s, drift[1] * j * s.period_s) for j in range(1, M + 1)
+        ]
+        planes = []
+        for nid, inflation in zip(self.neighbour_ids, inflations, strict=True):
+            plan = neighbour_plans.get(nid)
+            if plan is None or not math.isfinite(inflation):
+                planes.append(self._no_planes)
+                continue
+            shared = ages[nid] <= 2.0 * s.period_s + 1e-9
+            margin = (self.margin_m if shared else self._alone_margin_m) + inflation
+            theirs = plan.position_at(stamp_ns)
+            planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
+        return planes
+
+    def goal(
+        self,
+        slots: list[tuple[float, float]],
+        pull: list[tuple[float, float]] | None,
+        n_terms: int,
+        weight: float,
+    ) -> list[tuple[float, float]]:
+        """Position targets at j = 1..M: the slot pulled toward where the neighbours' plans put
+        it, (q_p slot + q_f (n slot + pull)) / (q_p + n q_f)."""
+        q_p, q_f = self.settings.q_position, self.settings.q_formation
+        if pull is None:
+            return [(q_p * x / weight, q_p * y / weight) for x, y in slots]
+        return [
+            (
+                (q_p * x + q_f * (n_terms * x + px)) / weight,
+                (q_p * y + q_f * (n_terms * y + py)) / weight,
+            )
+            for (x, y), (px, py) in zip(slots, pull, strict=True)
+        ]
+
+    def give_way(
+        self,
+        goal: list[tuple[float, float]],
+        planes: list[list[Plane]],
+        here: tuple[float, float],
+        speed_now_m_s: float,
+    ) -> list[tuple[float, float]]:
+        """The goal moved to the right of every neighbour it lies behind: the rule of the road
+        that breaks a deadlock.
+
+        Two vehicles whose goals lie beyond each other's separation lines would stop nose to
+        nose, each holding its side. When the vehicle has (nearly) stopped (commanded slower than
+        min_linearization_speed_m_s), its goal's last point lies beyond a neighbour's line and
+        it is within its margin of that line, every goal point moves along the line, to the
+        right of the way toward the neighbour, by twice the margin; both vehicles do so, each to
+        its own right, and they slide past each other as two ships keep to starboard.
+        """
+        if speed_now_m_s >= self.settings.min_linearization_speed_m_s:
+            return goal  # (still under way: not stuck)
+        shift_x = shift_y = 0.0
+        (gx, gy), (hx, hy) = goal[-1], here
+        for plane in planes:
+            nx, ny, b = plane[-1]
+            if not math.isfinite(b):
+                continue
+            beyond = nx * gx + ny * gy < b
+            pressed = nx * hx + ny * hy - b < self.margin_m
+            if beyond and pressed:
+                # Toward the neighbour is -n; its right (NED: a positive rotation) is (n_y, -n_x).
+                shift_x += 2.0 * self.margin_m * ny
+                shift_y -= 2.0 * self.margin_m * nx
+        if shift_x == shift_y == 0.0:
+            return goal
+        return [(x + shift_x, y + shift_y) for x, y in goal]
