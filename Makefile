@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow lint bench install clean compose-file compose-ci
+.PHONY: demo test test-slow test-viewer lint bench install clean compose-file compose-ci
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,12 @@ test: lint
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+
+# Recordings as a user sees them: Rerun's web viewer in headless Chromium (installed from
+# Debian's packages when missing; needs root).
+test-viewer: $(STAMP)
+	command -v chromium >/dev/null || (apt-get update -qq && apt-get install -y -qq chromium)
+	$(BIN)/python -m pytest -q -m viewer
 
 bench: $(STAMP)
 	$(BIN)/pip install --quiet -e '.[bench]'

@@ -43,6 +43,7 @@ import rerun.blueprint as rrb
 
 from fleetmpc.gcs.metrics import pair_indices
 from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
+from fleetmpc.gcs.viewer import spawn_viewer as spawn_viewer_process
 
 __all__ = [
     "APPLICATION_ID",
@@ -522,14 +523,14 @@ def open_recording(
     """A recording stream with its blueprint, teed to an `.rrd` file and/or a viewer.
 
     `viewer_url`: a running viewer's gRPC URL (``rerun+http://HOST:9876/proxy``);
-    `spawn_viewer`: start a local viewer (the `rerun` executable) and stream to it;
+    `spawn_viewer`: start a local viewer (`fleetmpc.gcs.viewer`: its analytics off) and
+    stream to it;
     `trail_window_s`: length of the trail the map shows behind each vehicle [s].
     """
     stream = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id or str(uuid.uuid4()))
     blueprint = fleet_blueprint(vehicle_ids=vehicle_ids, trail_window_s=trail_window_s)
     if spawn_viewer:
-        stream.spawn(default_blueprint=blueprint)
-        viewer_url = viewer_url or "rerun+http://127.0.0.1:9876/proxy"
+        viewer_url = viewer_url or spawn_viewer_process()
     sinks = []
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)

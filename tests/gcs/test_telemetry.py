@@ -110,3 +110,16 @@ def test_a_bad_sink_url_names_the_field(url) -> None:
     with pytest.raises(ConfigError) as info:
         open_sink(url)
     assert info.value.field == "telemetry"
+
+
+def test_a_viewer_already_listening_is_used_as_it_is() -> None:
+    """`spawn_viewer` starts nothing when a viewer (here a bare socket) holds the port."""
+    import socket
+
+    from fleetmpc.gcs.viewer import spawn_viewer
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        assert spawn_viewer(port=port) == f"rerun+http://127.0.0.1:{port}/proxy"
