@@ -478,9 +478,11 @@ def run(args: argparse.Namespace) -> int:
                 next_status = now + _STATUS_WALL_S
             t = gs.fleet_s()
             if t is not None and t >= end_s:
+                # (read anew: a slow flush or status in this pass must not use up the wait)
                 if end_grace is None:
-                    end_grace = now + _END_GRACE_WALL_S
-                if gs.live.complete_periods() >= gs.periods or now >= end_grace:
+                    end_grace = time.monotonic() + _END_GRACE_WALL_S
+                done = gs.live.complete_periods() >= gs.periods
+                if done or time.monotonic() >= end_grace:
                     completed = True
                     break
         gs.flush(final=True)

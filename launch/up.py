@@ -91,6 +91,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="seconds of flight between its loggings of the time series"
         f" (default {SERIES_FLUSH_S:g})",
     )
+    parser.add_argument(
+        "--gate-formation-m",
+        type=float,
+        metavar="M",
+        help="also gate the run on its formation: separation and centre-distance errors at most"
+        " M metres (as `fleetmpc compose` does with 0.1); default: the safety gate only",
+    )
     parser.add_argument("--quiet", action="store_true", help="no status table")
 
 
@@ -298,13 +305,13 @@ def _gcs_options(args: argparse.Namespace) -> list[str]:
     """The ground station's own options of an `up` command line (checked here, so a bad value
     stops `up` before anything starts)."""
     options = ["--engage-timeout", f"{args.engage_timeout:g}"]
-    for name in ("flush_s", "series_flush_s"):
+    for name in ("flush_s", "series_flush_s", "gate_formation_m"):
         value = getattr(args, name)
         flag = f"--{name.replace('_', '-')}"
         if value is None:
             continue
         if not (value > 0 and math.isfinite(value)):
-            raise ConfigError(flag, f"must be a number of seconds > 0, got {value:g}")
+            raise ConfigError(flag, f"must be a number > 0, got {value:g}")
         options += [flag, repr(value)]
     return options
 
