@@ -158,17 +158,26 @@ def fleet_blueprint(
         start=rrb.TimeRangeBoundary.cursor_relative(seconds=-trail_window_s),
         end=rrb.TimeRangeBoundary.cursor_relative(),
     )
+    # Panels with many lines hide their legend (it would cover the plot); the lines keep their
+    # vehicles' map colours and name themselves on hover.
+    hidden = rrb.PlotLegend(visible=False)
     series = [
         rrb.TimeSeriesView(origin="series/separation", name="separation [m]"),
         rrb.TimeSeriesView(origin="series/centre_distance", name="centre distance [m]"),
         rrb.TimeSeriesView(origin="series/formation_error", name="formation error [m]"),
         rrb.TimeSeriesView(origin="series/c_norm", name="||c||"),
         rrb.TimeSeriesView(
-            origin="series/beta/effectiveness", name="effectiveness (learned, truth)"
+            origin="series/beta/effectiveness",
+            name="effectiveness (learned, truth)",
+            plot_legend=hidden,
         ),
-        rrb.TimeSeriesView(origin="series/beta/drift_m_s", name="drift [m/s] (learned, truth)"),
+        rrb.TimeSeriesView(
+            origin="series/beta/drift_m_s", name="drift [m/s] (learned, truth)", plot_legend=hidden
+        ),
         rrb.TimeSeriesView(origin="series/solve_time_ms", name="agent step [ms]"),
-        rrb.TimeSeriesView(origin="series/plan_age", name="neighbour plan age [s]"),
+        rrb.TimeSeriesView(
+            origin="series/plan_age", name="neighbour plan age [s]", plot_legend=hidden
+        ),
         rrb.TimeSeriesView(origin="series/setpoint_rate", name="setpoint rate [Hz]"),
     ]
     return rrb.Blueprint(
@@ -182,8 +191,8 @@ def fleet_blueprint(
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],
             ),
-            rrb.Grid(*series),
-            column_shares=[1, 1],
+            rrb.Grid(*series, grid_columns=2),
+            column_shares=[2, 3],
         ),
     )
 
@@ -278,6 +287,7 @@ def _series_names(
     rgb = [_colour(i) for i in range(len(ids))]
     pairs = pair_indices(len(ids))
     out = {
+        "series/centre_distance": (["centre distance"], [(23, 190, 207)]),
         "series/separation": (
             [f"{ids[a]}-{ids[b]}" for a, b in pairs],
             [_colour(len(ids) + p) for p in range(len(pairs))],
