@@ -3,9 +3,10 @@
 Everything is logged on the `sim_time` timeline, a duration in integer nanoseconds, through the
 SDK's public column API: a slice of periods goes out as one `rr.send_columns` per entity (a
 call costs some 0.1-0.4 ms whatever its rows, so the vehicles of a fleet share entities, one
-instance or one line each, and a growing record is logged in slices: its map (`start`) every
-slice, its time series and flight_record rows (`series_start`) in bigger ones if the caller
-likes). Entity layout (a live ground station logs the same paths):
+instance or one line each, and a run is logged in slices: its map (`log_map`) and its time
+series and flight_record rows (`log_series`), the latter in bigger slices if the caller likes;
+`fleetmpc.gcs.telemetry.RerunSink` does both from a run's samples). Entity layout, the same for
+a lockstep and a live run:
 
 - `map/vehicles`: every vehicle's position (Points2D) and heading (Arrows2D), one instance
   per vehicle in fleet order, coloured and labelled by a static logged once;
@@ -21,9 +22,9 @@ likes). Entity layout (a live ground station logs the same paths):
   learned, then truth, per parameter and vehicle) as Scalars, the lines named and
   coloured by a static SeriesLines;
 - `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
-- live runs only: `map/plans` (each agent's planned horizon, LineStrips2D),
-  `map/target_prediction` (the ground station's prediction of the target over the horizon),
-  `series/plan_age` [s] (one line per vehicle and neighbour) and `series/setpoint_rate` [Hz];
+- `map/plans` (each agent's planned horizon, LineStrips2D), `map/target_prediction` (the
+  ground side's prediction of the target over the horizon), `series/plan_age` [s] (one line per
+  vehicle and neighbour) and `series/setpoint_rate` [Hz];
 - `meta` (static AnyValues) and `flight_record` (AnyValues: one `periods` column, a float64
   list per period that packs every per-period FlightRecord field in `record_layout`'s order):
   what `fleetmpc.gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
@@ -39,38 +40,28 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
+from fleetmpc.gcs.blueprint import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, fleet_blueprint
 from fleetmpc.gcs.metrics import pair_indices
 from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
 from fleetmpc.gcs.viewer import spawn_viewer as spawn_viewer_process
 
 __all__ = [
     "APPLICATION_ID",
-    "BETA_SERIES",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
     "RECORD_COLUMN",
-    "TIMELINE",
-    "TRAIL_WINDOW_S",
-    "fleet_blueprint",
     "log_events",
-    "log_flight_record",
+    "log_map",
+    "log_series",
     "log_meta",
-    "log_statics",
     "open_recording",
     "map_from_ned",
     "record_layout",
     "sim_time_ns",
-    "write_recording",
 ]
 
 APPLICATION_ID = "fleetmpc"
-TIMELINE = "sim_time"
-BETA_SERIES = (("effectiveness", (0, 1)), ("drift_m_s", (2, 3)))
-"""Entities `series/beta/<name>` and the beta entries each holds: its lines are the first entry
-of every vehicle, then the second, learned; then the same of the truth."""
-_BETA_LINE_NAMES = ("speed", "yaw rate", "drift North", "drift East")
 RECORD_ARRAYS = (
     "truth",
     "target",
@@ -114,20 +105,7 @@ def record_layout(n_vehicles: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
     return (*((name, shapes[name]) for name in RECORD_ARRAYS), (MIN_SEPARATION_COLUMN, (1,)))
 
 
-TRAIL_WINDOW_S = 20.0
-"""Default length of the trail the map shows behind each vehicle [s]."""
-
 _HEADING_ARROW_M = 2.0
-_RGB = (
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (188, 189, 34),
-)
 
 
 _EAST_SOUTH = np.array([1.0, -1.0])
@@ -142,59 +120,6 @@ def map_from_ned(north_east_m: np.ndarray) -> np.ndarray:
 def sim_time_ns(t_s: np.ndarray) -> np.ndarray:
     """Sample times [s] -> integer nanoseconds (int64) for the `sim_time` timeline."""
     return np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64)
-
-
-def _colour(i: int) -> tuple[int, int, int]:
-    return _RGB[i % len(_RGB)]
-
-
-def fleet_blueprint(
-    *, vehicle_ids: tuple[int, ...], trail_window_s: float = TRAIL_WINDOW_S
-) -> rrb.Blueprint:
-    """The viewer layout: the map on the left, the time series on the right; the map shows
-    `map/trails` over the last `trail_window_s` [s] before the time cursor."""
-    trail = rrb.VisibleTimeRanges(
-        timeline=TIMELINE,
-        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-trail_window_s),
-        end=rrb.TimeRangeBoundary.cursor_relative(),
-    )
-    # Panels with many lines hide their legend (it would cover the plot); the lines keep their
-    # vehicles' map colours and name themselves on hover.
-    hidden = rrb.PlotLegend(visible=False)
-    series = [
-        rrb.TimeSeriesView(origin="series/separation", name="separation [m]"),
-        rrb.TimeSeriesView(origin="series/centre_distance", name="centre distance [m]"),
-        rrb.TimeSeriesView(origin="series/formation_error", name="formation error [m]"),
-        rrb.TimeSeriesView(origin="series/c_norm", name="||c||"),
-        rrb.TimeSeriesView(
-            origin="series/beta/effectiveness",
-            name="effectiveness (learned, truth)",
-            plot_legend=hidden,
-        ),
-        rrb.TimeSeriesView(
-            origin="series/beta/drift_m_s", name="drift [m/s] (learned, truth)", plot_legend=hidden
-        ),
-        rrb.TimeSeriesView(origin="series/solve_time_ms", name="agent step [ms]"),
-        rrb.TimeSeriesView(
-            origin="series/plan_age", name="neighbour plan age [s]", plot_legend=hidden
-        ),
-        rrb.TimeSeriesView(origin="series/setpoint_rate", name="setpoint rate [Hz]"),
-    ]
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial2DView(
-                    origin="map",
-                    name=f"map ({len(vehicle_ids)} UAVs)",
-                    overrides={"/map/trails": trail},
-                ),
-                rrb.TextLogView(origin="events", name="events"),
-                row_shares=[4, 1],
-            ),
-            rrb.Grid(*series, grid_columns=2),
-            column_shares=[2, 3],
-        ),
-    )
 
 
 class _Slice:
@@ -251,8 +176,7 @@ class _Slice:
 
 def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: dict) -> None:
     """The static `meta`: the run's constants and facts about it (JSON-able: learning, seed,
-    ...) that are not in the record. `log_flight_record` logs it with its first slice; a live
-    ground station logs it when it opens its recording, before the fleet flies."""
+    ...) that are not in the record; logged when a recording opens."""
     c = constants
     stream.log(
         "meta",
@@ -277,69 +201,6 @@ def _record_rows(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
     parts.append(np.full((rows, 1), rec.min_separation_m))
     packed = np.concatenate(parts, axis=1, dtype=np.float64)
     columns.values("flight_record", RECORD_COLUMN, packed)
-
-
-def _series_names(
-    ids: tuple[int, ...], *, live: bool
-) -> dict[str, tuple[list[str], list[tuple[int, ...]]]]:
-    """Line names and colours of every multi-line series entity (logged once, static)."""
-    uav = [f"UAV {v}" for v in ids]
-    rgb = [_colour(i) for i in range(len(ids))]
-    pairs = pair_indices(len(ids))
-    out = {
-        "series/centre_distance": (["centre distance"], [(23, 190, 207)]),
-        "series/separation": (
-            [f"{ids[a]}-{ids[b]}" for a, b in pairs],
-            [_colour(len(ids) + p) for p in range(len(pairs))],
-        ),
-    }
-    if live:
-        out["series/setpoint_rate"] = (uav, rgb)
-        out["series/plan_age"] = (
-            [f"UAV {v} sees {o}" for v in ids for o in ids if o != v],
-            [_colour(i) for i, v in enumerate(ids) for o in ids if o != v],
-        )
-    for name in _PER_VEHICLE_SERIES:
-        out[f"series/{name}"] = (uav, rgb)
-    for name, entries in BETA_SERIES:
-        # The second entry's lines a lighter shade of the vehicle's colour; the truth's faint.
-        learned = [f"UAV {v} {_BETA_LINE_NAMES[e]}" for e in entries for v in ids]
-        shades = rgb + [tuple((x + 255) // 2 for x in c) for c in rgb]
-        colours = shades + [(*c, 110) for c in shades]
-        out[f"series/beta/{name}"] = (learned + [f"{line} truth" for line in learned], colours)
-    return out
-
-
-def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], *, live: bool) -> None:
-    """Colours, labels and line names: logged once, at the start of a recording.
-
-    `log_flight_record` logs them with its first slice; a live ground station logs them (and
-    `log_meta`) when it opens its recording, before the fleet flies (`statics=False` then), so
-    that the first logging calls of a process, which are slow, are not paid during the flight."""
-    ids = vehicle_ids
-    rgb = [_colour(i) for i in range(len(ids))]
-    stream.log(
-        "map/vehicles",
-        rr.Points2D.from_fields(colors=rgb, labels=[f"UAV {v}" for v in ids], radii=[-4.0]),
-        static=True,
-    )
-    stream.log("map/vehicles", rr.Arrows2D.from_fields(colors=rgb), static=True)
-    stream.log("map/trails", rr.LineStrips2D.from_fields(colors=rgb), static=True)
-    stream.log(
-        "map/slots",
-        rr.Points2D.from_fields(colors=rgb, radii=[-3.0], labels=[f"slot {v}" for v in ids]),
-        static=True,
-    )
-    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
-    if live:
-        stream.log("map/plans", rr.LineStrips2D.from_fields(colors=rgb), static=True)
-        stream.log(
-            "map/target_prediction",
-            rr.LineStrips2D.from_fields(colors=[(0, 0, 0)], radii=[-1.0]),
-            static=True,
-        )
-    for path, (names, colours) in _series_names(ids, live=live).items():
-        stream.log(path, rr.SeriesLines(names=names, colors=colours), static=True)
 
 
 def _map(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
@@ -367,10 +228,6 @@ def _pairs(n: int) -> np.ndarray:
     return np.array(pair_indices(n), dtype=np.intp).reshape(-1, 2)
 
 
-_PER_VEHICLE_SERIES = ("formation_error", "c_norm", "solve_time_ms")
-"""Series entities with one line per vehicle, besides beta and the live-only ones."""
-
-
 def _norm2(v: np.ndarray) -> np.ndarray:
     """Euclidean norm over a last axis of length 2."""
     return np.hypot(v[..., 0], v[..., 1])
@@ -395,7 +252,7 @@ def _series(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
 
 
 def _live_map(columns: _Slice, live: LiveRows, *, skip: int) -> None:
-    """Plans and the target prediction of a live slice, from its row `skip` on."""
+    """Plans and the target prediction of a slice's live rows, from row `skip` on."""
     plans = live.plans[skip:]
     k = plans.shape[0]
     has = np.isfinite(plans).all(axis=(2, 3))  # (K, N)
@@ -411,7 +268,7 @@ def _live_map(columns: _Slice, live: LiveRows, *, skip: int) -> None:
 
 
 def _live_series(columns: _Slice, live: LiveRows, *, skip: int) -> None:
-    """Setpoint rates and plan ages of a live slice, from its row `skip` on."""
+    """Setpoint rates and plan ages of a slice's live rows, from row `skip` on."""
     columns.scalars("series/setpoint_rate", live.setpoint_rate_hz[skip:])
     if live.plan_age_s.shape[2]:
         columns.scalars("series/plan_age", live.plan_age_s[skip:])
@@ -459,66 +316,27 @@ def _qp_events(
     return events
 
 
-def log_flight_record(
-    stream: rr.RecordingStream,
-    rec: FlightRecord,
-    *,
-    run_info: dict | None = None,
-    start: int = 0,
-    series_start: int | None = None,
-    period0: int = 0,
-    live: LiveRows | None = None,
-    statics: bool = True,
-) -> None:
-    """Log a FlightRecord to an open recording stream, column-wise (`rr.send_columns`).
+def log_map(stream: rr.RecordingStream, rec: FlightRecord, live: LiveRows, *, head: bool) -> None:
+    """The map of a slice of periods: the record's rows (with `head`, the first is only where
+    the trail's first step starts: the period before the slice) and the live rows of the
+    periods logged (plans, and the target prediction at the last)."""
+    start = 1 if head else 0
+    columns = _Slice(stream, sim_time_ns(rec.t_s[start:]))
+    _map(columns, rec, start=start)
+    _live_map(columns, live, skip=0)
 
-    run_info: JSON-able facts about the run that are not in the record (learning, seed, ...).
-    start: log the map of periods `start`.. (a live ground station logs a growing record in
-    slices; the trail's first step starts at period `start` - 1).
-    series_start: log the time series, the `flight_record` rows and the QP events of periods
-    `series_start`.. (default: start). A live ground station logs them every few flushes, in
-    bigger slices (the record's end in the flushes between: none).
-    period0: the period of the record's first row: a live ground station passes the tail of its
-    record, from the period before the first it logs (at most start - 1 unless start is 0).
-    live: what a live run adds to periods min(start, series_start).. (plans, setpoint rates,
-    plan ages, the target prediction).
-    statics: log the static `meta` (`log_meta`: the record's constants and the run facts),
-    colours, labels and line names (`log_statics`) with the first slice (min(start,
-    series_start) = 0); a live ground station, which logs them when it opens its recording,
-    passes False.
-    """
-    k = period0 + len(rec.t_s)
-    series_start = start if series_start is None else series_start
-    first = min(start, series_start)
-    if first == 0 and statics:
-        log_meta(stream, RunConstants.of(rec), run_info=run_info or {})
-        log_statics(stream, rec.vehicle_ids, live=live is not None)
-    if first >= k:
-        return
-    if not (period0 <= first and (start == 0 or period0 < start)):
-        raise ValueError(f"a record from period {period0} for a map from {start}, series {first}")
-    if live is not None and live.plans.shape[0] != k - first:
-        raise ValueError(f"live rows: {live.plans.shape[0]} periods for a slice of {k - first}")
-    t_ns = sim_time_ns(rec.t_s[first - period0 :])
-    if start < k:
-        columns = _Slice(stream, t_ns[start - first :])
-        _map(columns, rec, start=start - period0)
-        if live is not None:
-            _live_map(columns, live, skip=start - first)
-    if series_start < k:
-        columns = _Slice(stream, t_ns[series_start - first :])
-        _record_rows(columns, rec, start=series_start - period0)
-        _series(columns, rec, start=series_start - period0)
-        if live is not None:
-            _live_series(columns, live, skip=series_start - first)
-    if series_start < k:
-        events = _qp_events(
-            rec,
-            t_ns=t_ns[series_start - first :],
-            start=series_start - period0,
-            run_start=series_start == 0,
-        )
-        log_events(stream, events)
+
+def log_series(
+    stream: rr.RecordingStream, rec: FlightRecord, live: LiveRows, *, run_start: bool
+) -> None:
+    """The time series, the `flight_record` rows and the QP events of a slice of periods (the
+    run's start event first when it begins the run)."""
+    t_ns = sim_time_ns(rec.t_s)
+    columns = _Slice(stream, t_ns)
+    _record_rows(columns, rec, start=0)
+    _series(columns, rec, start=0)
+    _live_series(columns, live, skip=0)
+    log_events(stream, _qp_events(rec, t_ns=t_ns, start=0, run_start=run_start))
 
 
 def open_recording(
@@ -550,24 +368,3 @@ def open_recording(
     if sinks:
         stream.set_sinks(*sinks, default_blueprint=blueprint)
     return stream
-
-
-def write_recording(
-    rec: FlightRecord,
-    path: str | Path,
-    *,
-    recording_id: str | None = None,
-    run_info: dict | None = None,
-    trail_window_s: float = TRAIL_WINDOW_S,
-) -> str:
-    """Write a FlightRecord and its blueprint to an `.rrd` file; return the recording id."""
-    stream = open_recording(
-        vehicle_ids=rec.vehicle_ids,
-        path=path,
-        recording_id=recording_id,
-        trail_window_s=trail_window_s,
-    )
-    log_flight_record(stream, rec, run_info=run_info)
-    stream.flush()
-    stream.disconnect()
-    return stream.get_recording_id()

@@ -15,8 +15,9 @@ import pyarrow as pa
 import rerun as rr
 
 from fleetmpc.errors import FleetMpcError
+from fleetmpc.gcs.blueprint import TIMELINE
 from fleetmpc.gcs.record import FlightRecord
-from fleetmpc.gcs.recording import MIN_SEPARATION_COLUMN, RECORD_COLUMN, TIMELINE, record_layout
+from fleetmpc.gcs.recording import MIN_SEPARATION_COLUMN, RECORD_COLUMN, record_layout
 
 __all__ = ["RecordingError", "RecordingRun", "read_recording"]
 

@@ -17,13 +17,14 @@ type: the same entities, read back into the same record (`fleetmpc.gcs.rrd_reade
 """
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from fleetmpc.errors import ConfigError
+from fleetmpc.gcs import blueprint, recording
 from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
 
 __all__ = [
@@ -34,6 +35,7 @@ __all__ = [
     "open_sink",
     "record_of",
     "samples_of",
+    "write_recording",
 ]
 
 
@@ -206,10 +208,16 @@ class RerunSink:
         viewer_url: str | None = None,
         spawn_viewer: bool = False,
         series_every: int = 1,
+        recording_id: str | None = None,
     ) -> None:
         if path is None and viewer_url is None and not spawn_viewer:
             raise ValueError("a Rerun sink needs a file, a viewer URL or a spawned viewer")
-        self._target = {"path": path, "viewer_url": viewer_url, "spawn_viewer": spawn_viewer}
+        self._target = {
+            "path": path,
+            "viewer_url": viewer_url,
+            "spawn_viewer": spawn_viewer,
+            "recording_id": recording_id,
+        }
         self.series_every = max(1, int(series_every))
         self.stream = None
         self._constants: RunConstants | None = None
@@ -218,20 +226,15 @@ class RerunSink:
         self._series: list[PeriodSample] = []
         """Samples whose time series and flight_record rows are not logged yet."""
         self._last: PeriodSample | None = None
-        self._periods = 0
-        """Periods logged (their map) so far."""
-        self._series_periods = 0
-        """Periods whose time series are logged."""
+        self._series_started = False
         self._flushes = 0
         self._events: list[tuple[int, str, str]] = []
 
     def open(self, constants: RunConstants, run_info: dict) -> None:
-        from fleetmpc.gcs import recording
-
         self._constants = constants
         self.stream = recording.open_recording(vehicle_ids=constants.vehicle_ids, **self._target)
         recording.log_meta(self.stream, constants, run_info=run_info)
-        recording.log_statics(self.stream, constants.vehicle_ids, live=True)
+        blueprint.log_statics(self.stream, constants.vehicle_ids)
         self.stream.flush(timeout_sec=0)
 
     def log(self, samples: Sequence[PeriodSample]) -> None:
@@ -242,38 +245,19 @@ class RerunSink:
         self._events.append((t_ns, level, text))
 
     def _send(self, *, series: bool) -> None:
-        from fleetmpc.gcs import recording
-
         events, self._events = self._events, []
         recording.log_events(self.stream, events)
         if self._map:
-            # The map's slice starts one period early when it can, for the trail's first step.
+            # From the last period logged, when there is one: the trail's first step starts there.
             head = [self._last] if self._last is not None else []
-            rows = head + self._map
-            recording.log_flight_record(
-                self.stream,
-                record_of(self._constants, rows),
-                start=self._periods,
-                series_start=self._periods + len(self._map),
-                period0=self._periods - len(head),
-                live=live_rows_of(self._map),
-                statics=False,
-            )
-            self._periods += len(self._map)
+            rec = record_of(self._constants, head + self._map)
+            recording.log_map(self.stream, rec, live_rows_of(self._map), head=bool(head))
             self._last, self._map = self._map[-1], []
         if series and self._series:
-            rows = self._series
-            recording.log_flight_record(
-                self.stream,
-                record_of(self._constants, rows),
-                start=self._series_periods + len(rows),
-                series_start=self._series_periods,
-                period0=self._series_periods,
-                live=live_rows_of(rows),
-                statics=False,
-            )
-            self._series_periods += len(rows)
-            self._series = []
+            rec = record_of(self._constants, self._series)
+            run_start = not self._series_started
+            recording.log_series(self.stream, rec, live_rows_of(self._series), run_start=run_start)
+            self._series_started, self._series = True, []
 
     def flush(self) -> None:
         if self.stream is None:
@@ -309,5 +293,25 @@ def open_sink(url: str, *, series_every: int = 1) -> TelemetrySink:
     )
 
 
-def _field_names() -> tuple[str, ...]:
-    return tuple(f.name for f in fields(PeriodSample))
+def write_recording(
+    rec: FlightRecord,
+    path: str | Path,
+    *,
+    recording_id: str | None = None,
+    run_info: dict | None = None,
+) -> str:
+    """Write a FlightRecord on its own (no plans, plan ages or setpoint rates) to an `.rrd`
+    file; the recording's id."""
+    k, n = rec.truth.shape[:2]
+    blank = LiveRows(
+        plans=np.full((k, n, 1, 2), np.nan),
+        setpoint_rate_hz=np.full((k, n), np.nan),
+        plan_age_s=np.full((k, n, max(n - 1, 0)), np.nan),
+        target_prediction=None,
+    )
+    sink = RerunSink(path=path, recording_id=recording_id)
+    sink.open(RunConstants.of(rec), run_info or {})
+    rid = sink.stream.get_recording_id()
+    sink.log(samples_of(rec, blank))
+    sink.close()
+    return rid

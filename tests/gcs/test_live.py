@@ -11,9 +11,9 @@ from fleetmpc.bench.telemetry import period_messages
 from fleetmpc.gcs.ground_station import GroundStation
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.gcs.recording import log_flight_record, open_recording
+from fleetmpc.gcs.record import LiveRows, RunConstants
 from fleetmpc.gcs.rrd_reader import read_recording
-from fleetmpc.gcs.telemetry import RerunSink
+from fleetmpc.gcs.telemetry import RerunSink, samples_of
 from fleetmpc.protocol.messages import NeighbourPlanAge, PlanMessage
 from fleetmpc.sim.lockstep import run_lockstep
 
@@ -106,12 +106,20 @@ def _first_periods(rec, end: int):
 
 def test_a_record_logged_in_slices_reads_back_whole(lockstep, tmp_path) -> None:
     path = tmp_path / "sliced.rrd"
-    stream = open_recording(vehicle_ids=lockstep.vehicle_ids, path=path)
-    k = len(lockstep.t_s)
+    sink = RerunSink(path=path, series_every=2)
+    sink.open(RunConstants.of(lockstep), {})
+    k, n = lockstep.truth.shape[:2]
+    blank = LiveRows(
+        plans=np.full((k, n, 1, 2), np.nan),
+        setpoint_rate_hz=np.full((k, n), np.nan),
+        plan_age_s=np.full((k, n, n - 1), np.nan),
+        target_prediction=None,
+    )
+    samples = samples_of(lockstep, blank)
     for start, end in ((0, 7), (7, 8), (8, k)):
-        log_flight_record(stream, _first_periods(lockstep, end), start=start)
-    stream.flush()
-    stream.disconnect()
+        sink.log(samples[start:end])
+        sink.flush()
+    sink.close()
     back = read_recording(path).record
     for name in ("t_s", "truth", "command", "c", "beta", "slots", "qp_ok"):
         np.testing.assert_array_equal(getattr(back, name), getattr(lockstep, name), err_msg=name)
