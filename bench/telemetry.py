@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from fleetmpc.errors import FleetMpcError
-from fleetmpc.gcs.ground_station import GroundStation, series_every
+from fleetmpc.gcs.ground_station import series_every
 from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import RerunSink
 from fleetmpc.protocol.messages import (
     TARGET_ID,

@@ -37,43 +37,27 @@ short, 2 on a configuration or start-up error (e.g. a vehicle never engaged).
 
 import argparse
 import json
-import math
 import os
-import queue
 import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
-from fleetmpc.clock import ClockSync, FleetClock
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.gcs.check import check_scenario
-from fleetmpc.gcs.live import LiveRecord
-from fleetmpc.gcs.metrics import compute_metrics, format_summary
-from fleetmpc.gcs.telemetry import RerunSink, TelemetrySink, open_sink, samples_of
+from fleetmpc.gcs.metrics import format_summary
+from fleetmpc.gcs.station import GroundStation, gate_failures
+from fleetmpc.gcs.telemetry import RerunSink, TelemetrySink, open_sink
 from fleetmpc.onboard.open_bus import open_fleet_bus
-from fleetmpc.protocol.local_frame import ned_from_geodetic
-from fleetmpc.protocol.mavlink_map import (
-    Autopilot,
-    FlightMode,
-    ModeFlag,
-    Severity,
-    mode_from_custom,
-)
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
-    PlanMessage,
-    StatusMessage,
-    TargetObservation,
 )
-from fleetmpc.scenario import Scenario, flight_time, load_scenario
+from fleetmpc.scenario import flight_time, load_scenario
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
-__all__ = ["FLUSH_S", "SERIES_FLUSH_S", "GroundStation", "add_arguments", "run", "series_every"]
+__all__ = ["FLUSH_S", "SERIES_FLUSH_S", "add_arguments", "run", "series_every"]
 
 EXIT_WITHOUT_TEARDOWN = True
 """A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
@@ -81,7 +65,6 @@ EXIT_WITHOUT_TEARDOWN = True
 GCS_SYSTEM_ID = 255
 """MAVLink system id of the ground station (the conventional GCS id)."""
 _STATUS_WALL_S = 0.5
-_LINK_LOST_WALL_S = 3.0
 _AFTER_END_SIM_S = 0.5
 """Telemetry collected past the last period, so it can be interpolated."""
 _END_GRACE_WALL_S = 2.0
@@ -89,9 +72,7 @@ _END_GRACE_WALL_S = 2.0
 a loaded host delivers late; then it ends with what it has (and the periods gate says so)."""
 FLUSH_S = 4.0
 """Default seconds of flight between two Rerun logging batches: 20 control periods of the
-paper's 0.2 s, at which logging costs under a tenth of the agents' step in a live run of the
-paper's fleet (its summary gives the figure; `fleetmpc bench --gcs-logging` compares
-intervals)."""
+paper's 0.2 s (`fleetmpc bench --gcs-logging` compares intervals)."""
 SERIES_FLUSH_S = 4.0
 """Default seconds of flight between two loggings of the time series and the flight_record
 rows."""
@@ -180,223 +161,6 @@ def _viewer(text: str) -> tuple[bool, str | None]:
         "--viewer",
         f"must be spawn, connect=rerun+http://HOST:PORT/proxy or none, got {text!r}",
     )
-
-
-@dataclass
-class VehicleLink:
-    """What the ground station knows of one vehicle's MAVLink side."""
-
-    autopilot: Autopilot | None = None
-    mode: FlightMode | None = None
-    armed: bool = False
-    last_wall_s: float | None = None
-    messages: int = 0
-    lost_reported: bool = False
-    clock: ClockSync | None = None
-
-    @property
-    def engaged(self) -> bool:
-        return self.armed and self.mode == FlightMode.OFFBOARD
-
-
-class GroundStation:
-    """The ground station's state and loop; `run` drives it from the command line."""
-
-    def __init__(self, scenario: Scenario, *, speed: float, duration_s: float) -> None:
-        self.scenario = scenario
-        self.speed = speed
-        self.duration_s = duration_s
-        self.periods = int(round(duration_s * 1e9 / scenario.controller.period_ns)) + 1
-        self.live = LiveRecord(scenario, periods=self.periods)
-        self.links = {vid: VehicleLink() for vid in scenario.vehicle_ids}
-        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
-        self.epoch_ns: int | None = None
-        self.logged_periods = 0
-        """Periods given to the sinks."""
-        self.sinks: list[TelemetrySink] = []
-        self._events: list[tuple[int, str, str]] = []
-        """(sim_time ns, level, text) events not logged yet."""
-        self.run_info = {
-            "learning": scenario.learning.enabled,
-            "feasible": check_scenario(scenario).feasible,
-            "seed": scenario.seed,
-            "source": "live",
-        }
-
-    # -- clocks -----------------------------------------------------------------------------------
-    def fleet_s(self, wall_ns: int | None = None) -> float | None:
-        if self.epoch_ns is None:
-            return None
-        wall_ns = time.time_ns() if wall_ns is None else wall_ns
-        return (wall_ns - self.epoch_ns) * self.speed * 1e-9
-
-    def set_epoch(self, epoch_ns: int) -> None:
-        self.epoch_ns = epoch_ns
-        clock = FleetClock(epoch_ns=epoch_ns, speed=self.speed)
-        for link in self.links.values():
-            link.clock = ClockSync(clock)
-
-    # -- MAVLink ----------------------------------------------------------------------------------
-    def on_mavlink(self, msg, received_ns: int) -> None:
-        vid = msg.get_srcSystem()
-        link = self.links.get(vid)
-        if link is None or msg.get_srcComponent() != 1:
-            return
-        link.messages += 1
-        link.last_wall_s = received_ns * 1e-9
-        if link.lost_reported:
-            link.lost_reported = False
-            self._event("INFO", f"UAV {vid}: link back")
-        kind = msg.get_type()
-        if kind == "HEARTBEAT":
-            try:
-                autopilot = Autopilot(msg.autopilot)
-            except ValueError:
-                return
-            mode = mode_from_custom(msg.custom_mode, autopilot)
-            armed = bool(msg.base_mode & ModeFlag.SAFETY_ARMED)
-            if (mode, armed) != (link.mode, link.armed):
-                name = mode.name if mode is not None else f"custom mode {msg.custom_mode}"
-                self._event("INFO", f"UAV {vid}: {name}, {'armed' if armed else 'disarmed'}")
-            link.autopilot, link.mode, link.armed = autopilot, mode, armed
-        elif kind == "STATUSTEXT":
-            level = "WARN" if msg.severity <= Severity.WARNING else "INFO"
-            self._event(level, f"UAV {vid}: {msg.text}")
-        elif kind == "GLOBAL_POSITION_INT" and link.clock is not None:
-            link.clock.update(
-                time_boot_ns=msg.time_boot_ms * 1_000_000, received_wall_ns=received_ns
-            )
-            t_ns = link.clock.fleet_ns(msg.time_boot_ms * 1_000_000)
-            north, east = ned_from_geodetic(
-                msg.lat * 1e-7,
-                msg.lon * 1e-7,
-                home_lat_deg=self.scenario.site.home_lat_deg,
-                home_lon_deg=self.scenario.site.home_lon_deg,
-            )
-            yaw = math.radians(msg.hdg * 0.01) if msg.hdg != 65535 else math.nan
-            self.live.add_pose(vid, t_ns * 1e-9, north, east, yaw)
-
-    def _event(self, level: str, text: str) -> None:
-        t = self.fleet_s()
-        self._events.append((max(0, round((t or 0.0) * 1e9)), level, text))
-
-    def check_links(self, now_wall_s: float) -> None:
-        for vid, link in self.links.items():
-            if link.last_wall_s is None or link.lost_reported:
-                continue
-            if now_wall_s - link.last_wall_s > _LINK_LOST_WALL_S:
-                link.lost_reported = True
-                self._event("WARN", f"UAV {vid}: no MAVLink for {_LINK_LOST_WALL_S:g} s")
-
-    # -- the bus ----------------------------------------------------------------------------------
-    def drain_bus(self) -> None:
-        while True:
-            try:
-                message = self.inbox.get_nowait()
-            except queue.Empty:
-                return
-            if isinstance(message, PlanMessage):
-                self.live.add_plan(message)
-                if message.status.qp_fallback:
-                    self._events.append(
-                        (message.stamp_ns, "WARN", f"UAV {message.sender_id}: QP fallback")
-                    )
-            elif isinstance(message, StatusMessage):
-                self.live.add_status(message)
-            elif isinstance(message, TargetObservation):
-                self.live.add_target(message)
-
-    # -- telemetry --------------------------------------------------------------------------------
-    def open_sinks(self, sinks: list[TelemetrySink]) -> None:
-        """Open the telemetry sinks before the flight: the run's constants and facts go out now
-        (the flushes give only the periods)."""
-        self.sinks = list(sinks)
-        for sink in self.sinks:
-            sink.open(self.live.constants(), self.run_info)
-
-    def close_sinks(self) -> None:
-        """Close the sinks: everything given to them is written."""
-        for sink in self.sinks:
-            sink.close()
-        self.sinks = []
-
-    def flush(self, *, final: bool = False) -> None:
-        """Give the sinks what arrived since the last flush: the events, and the samples of the
-        periods completed since then; then flush them (the last flush of a run leaves that to
-        `close_sinks`)."""
-        self.drain_bus()
-        events, self._events = self._events, []
-        done = min(self.live.complete_periods(), self.periods)
-        if not self.sinks:
-            self.logged_periods = done
-            return
-        samples = []
-        if done > self.logged_periods:
-            first = self.logged_periods
-            samples = samples_of(
-                self.live.record(done, first=first), self.live.live_rows(first, done)
-            )
-        for sink in self.sinks:
-            for event in events:
-                sink.event(*event)
-            sink.log(samples)
-            if not final:
-                sink.flush()
-        self.logged_periods = done
-
-    def status_snapshot(self, phase: str) -> dict:
-        now = time.time()
-        vehicles = {}
-        for vid, link in self.links.items():
-            st = self.live.latest_status(vid)
-            plan = self.live.latest_plan(vid)
-            ages = [a.age_ns * 1e-9 for a in st.status.neighbour_plan_ages] if st else []
-            vehicles[str(vid)] = {
-                "mode": link.mode.name if link.mode is not None else None,
-                "armed": link.armed,
-                "slot_error_m": st.status.slot_error_m if st else None,
-                "solve_ms": plan.status.solve_time_us * 1e-3 if plan else None,
-                "plan_age_s": max(ages) if ages else None,
-                "setpoint_rate_hz": st.status.setpoint_rate_hz if st else None,
-                "link_age_s": None if link.last_wall_s is None else now - link.last_wall_s,
-                "qp_fallbacks": st.status.qp_fallbacks if st else 0,
-            }
-        return {"phase": phase, "fleet_s": self.fleet_s(), "vehicles": vehicles}
-
-    def metrics(self) -> dict | None:
-        periods = min(self.live.complete_periods(), self.periods)
-        if periods < 1:
-            return None
-        rec = self.live.record(periods)
-        return {
-            "scenario": self.scenario.name,
-            **self.run_info,
-            "duration_s": float(rec.t_s[-1]),
-            **compute_metrics(rec),
-            "periods_recorded": periods,
-            "periods_expected": self.periods,
-        }
-
-
-def gate_failures(metrics: dict, scenario: Scenario, *, formation_m: float | None) -> list[str]:
-    """What broke, as sentences; empty if the run passes."""
-    broken = []
-    d_safe = scenario.controller.d_safe_m
-    if not metrics["min_separation_m"] >= d_safe:
-        broken.append(f"min separation {metrics['min_separation_m']:.3f} m < d_safe {d_safe} m")
-    if metrics["periods_recorded"] < metrics["periods_expected"]:
-        broken.append(
-            f"recorded {metrics['periods_recorded']} of {metrics['periods_expected']} periods"
-        )
-    if formation_m is not None:
-        pairs = metrics["separation_pairs"]
-        for (a, b), e in zip(pairs, metrics["separation_error_m"], strict=True):
-            if not e <= formation_m:
-                broken.append(f"separation error {a}-{b} {e:.4f} m > {formation_m} m")
-        if not metrics["centre_distance_error_m"] <= formation_m:
-            c = metrics["centre_distance_error_m"]
-            broken.append(f"centre distance error {c:.4f} m > {formation_m} m")
-    return broken
 
 
 def _log(text: str) -> None:

@@ -8,11 +8,11 @@ import pytest
 import rerun as rr
 
 from fleetmpc.bench.telemetry import period_messages
-from fleetmpc.gcs.ground_station import GroundStation
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.record import LiveRows, RunConstants
 from fleetmpc.gcs.rrd_reader import read_recording
+from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import RerunSink, samples_of
 from fleetmpc.protocol.messages import NeighbourPlanAge, PlanMessage
 from fleetmpc.sim.lockstep import run_lockstep

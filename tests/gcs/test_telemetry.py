@@ -11,9 +11,9 @@ import rerun as rr
 
 from fleetmpc.bench.telemetry import period_messages
 from fleetmpc.errors import ConfigError
-from fleetmpc.gcs.ground_station import GroundStation
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
+from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import MemorySink, RerunSink, open_sink
 from fleetmpc.protocol.messages import NeighbourPlanAge
 from fleetmpc.sim.lockstep import run_lockstep

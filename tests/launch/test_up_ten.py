@@ -27,7 +27,7 @@ from pathlib import Path
 import pytest
 from helpers import Child, live_processes_naming, scenario_on_free_ports
 
-from fleetmpc.gcs.ground_station import gate_failures
+from fleetmpc.gcs.station import gate_failures
 from fleetmpc.launch.compose import ComposeOptions
 from fleetmpc.scenario import Scenario, load_scenario
 from fleetmpc.sim.suite import SLOT_RMS_MAX_M
