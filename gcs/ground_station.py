@@ -47,7 +47,7 @@ from pathlib import Path
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.station import GroundStation, gate_failures
-from fleetmpc.gcs.telemetry import RerunSink, TelemetrySink, open_sink
+from fleetmpc.gcs.telemetry import RerunSink, TelemetrySink, add_telemetry_argument, open_sink
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
@@ -98,14 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--duration", type=float, help="fleet time to record [s] (default: scenario)"
     )
     parser.add_argument("--rrd", type=Path, help="write the Rerun recording here")
-    parser.add_argument(
-        "--telemetry",
-        metavar="URL",
-        action="append",
-        default=[],
-        help="also send the run to this sink: rrd:PATH, a Rerun viewer's rerun+http://HOST:PORT"
-        "/proxy, spawn: (a local viewer), memory:; repeatable",
-    )
+    add_telemetry_argument(parser)
     parser.add_argument(
         "--viewer",
         default="none",

@@ -6,7 +6,23 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["FlightRecord", "LiveRows", "RunConstants"]
+__all__ = ["PERIOD_FIELDS", "FlightRecord", "LiveRows", "RunConstants"]
+
+PERIOD_FIELDS = (
+    "truth",
+    "target",
+    "target_velocity",
+    "slots",
+    "command",
+    "c",
+    "beta",
+    "beta_truth",
+    "qp_ok",
+    "step_time_ms",
+    "slot_offsets_world",
+)
+"""The FlightRecord fields with one row per period (besides `t_s`), in the order a recording
+stores them."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -43,7 +43,7 @@ import rerun as rr
 
 from fleetmpc.gcs.blueprint import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, fleet_blueprint
 from fleetmpc.gcs.metrics import pair_indices
-from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
+from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants
 from fleetmpc.gcs.viewer import spawn_viewer as spawn_viewer_process
 
 __all__ = [
@@ -62,19 +62,7 @@ __all__ = [
 ]
 
 APPLICATION_ID = "fleetmpc"
-RECORD_ARRAYS = (
-    "truth",
-    "target",
-    "target_velocity",
-    "slots",
-    "command",
-    "c",
-    "beta",
-    "beta_truth",
-    "qp_ok",
-    "step_time_ms",
-    "slot_offsets_world",
-)
+RECORD_ARRAYS = PERIOD_FIELDS
 """Per-period FlightRecord fields stored losslessly under `flight_record`."""
 RECORD_COLUMN = "periods"
 """The `flight_record` component: one float64 list per period, the parts of `record_layout`

@@ -25,13 +25,14 @@ import numpy as np
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs import blueprint, recording
-from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
+from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants
 
 __all__ = [
     "MemorySink",
     "PeriodSample",
     "RerunSink",
     "TelemetrySink",
+    "add_telemetry_argument",
     "open_sink",
     "record_of",
     "samples_of",
@@ -79,28 +80,12 @@ class PeriodSample:
     """The ground side's prediction of the target over the horizon (M + 1, 2) [m], or None."""
 
 
-_RECORD_FIELDS = (
-    "truth",
-    "target",
-    "target_velocity",
-    "slots",
-    "slot_offsets_world",
-    "command",
-    "c",
-    "beta",
-    "beta_truth",
-    "qp_ok",
-    "step_time_ms",
-)
-"""The per-period fields a sample and a FlightRecord share."""
-
-
 def record_of(constants: RunConstants, samples: Sequence[PeriodSample], **extra) -> FlightRecord:
     """The FlightRecord of consecutive samples (its minimum separation the last one's);
     `extra`: FlightRecord fields samples do not carry (the lockstep's target prediction)."""
     if not samples:
         raise ValueError("no samples")
-    arrays = {name: np.array([getattr(s, name) for s in samples]) for name in _RECORD_FIELDS}
+    arrays = {name: np.array([getattr(s, name) for s in samples]) for name in PERIOD_FIELDS}
     return FlightRecord(
         t_s=np.array([s.t_ns for s in samples], dtype=np.int64) * 1e-9,
         **arrays,
@@ -129,7 +114,7 @@ def samples_of(rec: FlightRecord, live: LiveRows, *, period0: int = 0) -> list[P
         out.append(
             PeriodSample(
                 t_ns=round(float(rec.t_s[j]) * 1e9),
-                **{name: getattr(rec, name)[j] for name in _RECORD_FIELDS},
+                **{name: getattr(rec, name)[j] for name in PERIOD_FIELDS},
                 min_separation_m=rec.min_separation_m,
                 plans=live.plans[j - period0],
                 plan_age_s=live.plan_age_s[j - period0],
@@ -274,6 +259,18 @@ class RerunSink:
         self.stream.flush()
         self.stream.disconnect()
         self.stream = None
+
+
+def add_telemetry_argument(parser) -> None:
+    """The ``--telemetry URL`` option of a command that runs a fleet (repeatable)."""
+    parser.add_argument(
+        "--telemetry",
+        metavar="URL",
+        action="append",
+        default=[],
+        help="also send the run to this sink: rrd:PATH, a Rerun viewer's rerun+http://HOST:PORT"
+        "/proxy, spawn: (a local viewer), memory:; repeatable",
+    )
 
 
 def open_sink(url: str, *, series_every: int = 1) -> TelemetrySink:

@@ -11,7 +11,7 @@ from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.figures import write_figures
 from fleetmpc.gcs.metrics import compute_metrics, format_summary
 from fleetmpc.gcs.progress import ProgressBar
-from fleetmpc.gcs.telemetry import open_sink
+from fleetmpc.gcs.telemetry import add_telemetry_argument, open_sink
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 
@@ -37,14 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="write the run as a Rerun recording (`fleetmpc report` reads it); the same as"
         " --telemetry rrd:FILE",
     )
-    parser.add_argument(
-        "--telemetry",
-        metavar="URL",
-        action="append",
-        default=[],
-        help="also send the run to this sink: rrd:PATH, a Rerun viewer's rerun+http://HOST:PORT"
-        "/proxy, spawn: (a local viewer); repeatable",
-    )
+    add_telemetry_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
