@@ -25,37 +25,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fleetmpc.gcs.growable import Growable
 from fleetmpc.gcs.metrics import pair_indices
 from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
-from fleetmpc.onboard.core.agent import reference_course_rate
-from fleetmpc.onboard.core.formation import Formation, TrueReference
+from fleetmpc.gcs.scenario_rows import ScenarioRows
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.protocol.messages import PlanMessage, StatusMessage, TargetObservation
 from fleetmpc.scenario import Scenario
 
-__all__ = ["LiveRecord", "formation_reference"]
-
-
-def formation_reference(
-    formation: Formation,
-    course: TrueReference,
-    target_m: np.ndarray,
-    target_velocity_m_s: np.ndarray,
-    period_s: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Slots (K, N, 2) of the true target over K consecutive periods and each slot's offset from
-    the formation centre (K, N, 2), for target positions and velocities (K, 2).
-
-    The reference course is stateful (rate-limited, held while the target is nearly still), so
-    the periods go through `course` in order, continuing where its previous call stopped.
-    """
-    velocities = np.asarray(target_velocity_m_s).tolist()
-    placements = [formation.placement(course.follow(v, period_s)) for v in velocities]
-    trail = np.array([(x, y) for x, y, _ in placements]).reshape(-1, 2)
-    offsets = np.array([o for _, _, o in placements]).reshape(len(placements), formation.size, 2)
-    centre = np.asarray(target_m, dtype=float).reshape(-1, 2) - trail
-    slots = centre[:, None, :] + offsets
-    return slots, slots - centre[:, None, :]
+__all__ = ["LiveRecord"]
 
 
 def _unwrap_step(previous_rad: float, yaw_rad: float, *, correction: float) -> float:
@@ -68,80 +46,6 @@ def _unwrap_step(previous_rad: float, yaw_rad: float, *, correction: float) -> f
     if ddmod == -math.pi and dd > 0:
         ddmod = math.pi
     return correction + (0.0 if abs(dd) < math.pi else ddmod - dd)
-
-
-class _Rows:
-    """An array grown along its first axis with room to spare: putting rows costs those rows,
-    not a copy of every row before them (as a concatenation would, every flush)."""
-
-    def __init__(self) -> None:
-        self._buffer: np.ndarray | None = None
-        self.count = 0
-
-    def put(self, at: int, rows: np.ndarray) -> None:
-        """Rows `at` .. of the array become `rows`; the rows after them are dropped."""
-        end = at + len(rows)
-        if self._buffer is None or end > len(self._buffer):
-            grown = np.empty((max(2 * end, 64), *rows.shape[1:]), dtype=rows.dtype)
-            if self._buffer is not None:
-                grown[:at] = self._buffer[:at]
-            self._buffer = grown
-        self._buffer[at:end] = rows
-        self.count = end
-
-    @property
-    def rows(self) -> np.ndarray:
-        """The array's rows (a view, valid until the next `put`)."""
-        return np.empty((0,)) if self._buffer is None else self._buffer[: self.count]
-
-
-class _Samples:
-    """A vehicle's telemetry as four columns (t_s, north, east, unwrapped yaw), grown along the
-    samples with room to spare; each column is contiguous, as `np.interp` wants it."""
-
-    def __init__(self) -> None:
-        self._buffer = np.empty((4, 0))
-        self.count = 0
-
-    def append(self, columns: np.ndarray) -> None:
-        """Append samples (4, S)."""
-        end = self.count + columns.shape[1]
-        if end > self._buffer.shape[1]:
-            grown = np.empty((4, max(2 * end, 64)))
-            grown[:, : self.count] = self._buffer[:, : self.count]
-            self._buffer = grown
-        self._buffer[:, self.count : end] = columns
-        self.count = end
-
-    @property
-    def columns(self) -> np.ndarray:
-        """(4, S) t_s, north, east, unwrapped yaw (a view, valid until the next `append`)."""
-        return self._buffer[:, : self.count]
-
-
-class _Table:
-    """Per period and vehicle, a row of `width` floats: what arrived for that period (NaN where
-    nothing did), grown along the periods with room to spare."""
-
-    def __init__(self, vehicles: int, width: int) -> None:
-        self.width = width
-        self._buffer = np.full((0, vehicles, width), np.nan)
-
-    def _reserve(self, periods: int) -> None:
-        if periods > len(self._buffer):
-            grown = np.full((max(2 * periods, 64), *self._buffer.shape[1:]), np.nan)
-            grown[: len(self._buffer)] = self._buffer
-            self._buffer = grown
-
-    def set(self, periods: list[int], vehicles: list[int], rows) -> None:
-        """Row (period, vehicle) becomes `rows[j]` for each (periods[j], vehicles[j]) (distinct)."""
-        self._reserve(max(periods) + 1)
-        self._buffer[periods, vehicles] = rows
-
-    def rows(self, k0: int, k_n: int) -> np.ndarray:
-        """Periods k0 .. k_n - 1 (K, N, width) (a view, valid until the next `set`)."""
-        self._reserve(k_n)
-        return self._buffer[k0:k_n]
 
 
 def _hold(events: np.ndarray, arrived: np.ndarray, before: np.ndarray) -> np.ndarray:
@@ -174,14 +78,13 @@ class _Track:
     """The periods of `plans`, sorted."""
     status: StatusMessage | None = None
     """The newest status (the table holds every status's row)."""
-    columns: _Samples = field(default_factory=_Samples)
-    """Every telemetry sample but the pending ones, as arrays (filled on demand)."""
+    columns: Growable = field(default_factory=lambda: Growable((4, 0), axis=1))
+    """Every telemetry sample but the pending ones, as columns (4, S) t_s, north, east and
+    unwrapped yaw, each contiguous as `np.interp` wants it (filled on demand)."""
     yaw_correction: float = 0.0
     """What the unwrapping adds to the newest sample's raw yaw [rad]."""
 
 
-_SCENARIO_FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", "beta_truth")
-"""Per-period fields that depend only on the scenario (computed once per period)."""
 _RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta")
 """Per-period FlightRecord fields built from what was received."""
 _LIVE_FIELDS = ("plans", "setpoint_rate_hz", "plan_age_s")
@@ -226,11 +129,7 @@ class LiveRecord:
             {o: a for a, o in enumerate(x for x in self.ids if x != vid)} for vid in self.ids
         ]
         """Per vehicle, the column of each other vehicle in its plan ages."""
-        self._formation = Formation(scenario.formation)
-        self._truth_course = TrueReference(
-            reference_course_rate(scenario.controller, scenario.formation)
-        )
-        """The reference course of the true target, advanced as the scenario's periods are."""
+        self._scenario_rows = ScenarioRows(scenario)
         self._target = TargetEstimator(
             observation_std_m=max(scenario.target.observation_noise_m, 1e-3),
             accel_std_m_s2=scenario.controller.target_accel_std_m_s2,
@@ -240,8 +139,10 @@ class LiveRecord:
         self._target_pending: TargetObservation | None = None
         horizon = scenario.controller.horizon
         self._no_plan = [math.nan] * 2 * (horizon + 1)
-        self._plan_table = _Table(n, _PLAN_COLUMNS + 2 * (horizon + 1))
-        self._status_table = _Table(n, _STATUS_COLUMNS + max(n - 1, 0))
+        self._plan_table = Growable((0, n, _PLAN_COLUMNS + 2 * (horizon + 1)), fill=math.nan)
+        self._status_table = Growable((0, n, _STATUS_COLUMNS + max(n - 1, 0)), fill=math.nan)
+        """Per period and vehicle, the row of the plan or status that arrived for that period
+        (NaN where none did)."""
         self._pending_plans: dict[tuple[int, int], list[float]] = {}
         """Rows of the plans not in the plan table yet, by (period, vehicle index), made as
         the plans arrive (the work is the same whether the record is built once or a flush at
@@ -250,8 +151,7 @@ class LiveRecord:
         """Rows of the statuses not in the status table yet, by (first period at or after
         them, vehicle index); a newer status of the same vehicle and period replaces an older
         one."""
-        self._scenario_rows = {name: _Rows() for name in _SCENARIO_FIELDS}
-        self._received_rows = {name: _Rows() for name in _CACHED}
+        self._received_rows = {name: Growable() for name in _CACHED}
         self._constant_fields = self.constants().as_fields()
         self._desired_distance_m = self._constant_fields.pop("desired_distance_m")
         """The record's constants (an array, copied into each record) and the others."""
@@ -260,7 +160,7 @@ class LiveRecord:
         self._valid = 0
         """Periods whose received fields in the cache are current."""
         if periods > 0:
-            self._scenario_periods(periods)
+            self._scenario_rows.extend(periods)
 
     def _invalidate(self, period: int) -> None:
         self._valid = max(0, min(self._valid, period))
@@ -381,7 +281,7 @@ class LiveRecord:
         for i, vid in enumerate(self.ids):
             track = self._tracks[vid]
             if track.columns.count:
-                ts, north, east, yaw = track.columns.columns
+                ts, north, east, yaw = track.columns.array
                 out[i, 0] = np.interp(t_s, ts, north)
                 out[i, 1] = np.interp(t_s, ts, east)
                 out[i, 2, :yaw_until] = np.interp(t_s[:yaw_until], ts, yaw)
@@ -391,40 +291,6 @@ class LiveRecord:
                 i_plan = bisect_right(ks, round(t * 1e9 / self.period_ns)) - 1
                 out[i, :, j] = track.plans[ks[i_plan]].plan.states[0] if i_plan >= 0 else math.nan
         return out
-
-    def _scenario_periods(self, k_n: int) -> None:
-        """Extend the scenario's per-period fields to `k_n` periods (a ground station computes
-        its whole run's before the flight: `periods`)."""
-        sc = self.scenario
-        k0 = self._scenario_rows["target"].count
-        if k_n <= k0:
-            return
-        times = (np.arange(k0, k_n) * self.period_ns * 1e-9).tolist()
-        state_at = sc.target.state_floats
-        truths = [sc.vehicle(vid).truth for vid in self.ids]
-        flat: list[float] = []
-        for t in times:
-            position, velocity = state_at(t)
-            flat += position
-            flat += velocity
-            for truth in truths:
-                flat += (truth.speed_effectiveness, truth.yaw_rate_effectiveness, *truth.wind.at(t))
-        n = len(self.ids)
-        values = np.array(flat, dtype=float).reshape(len(times), 4 + 4 * n)
-        target, target_vel = values[:, 0:2], values[:, 2:4]
-        slots, offsets = formation_reference(
-            self._formation, self._truth_course, target, target_vel, self.period_ns * 1e-9
-        )
-        beta_truth = values[:, 4:].reshape(len(times), n, 4)
-        new = {
-            "target": target,
-            "target_velocity": target_vel,
-            "slots": slots,
-            "slot_offsets_world": offsets,
-            "beta_truth": beta_truth,
-        }
-        for name, rows in new.items():
-            self._scenario_rows[name].put(k0, rows)
 
     def _plan_row(self, message: PlanMessage) -> list[float]:
         """The plan table's row of a plan (see `_PLAN_COLUMNS`)."""
@@ -458,23 +324,26 @@ class LiveRecord:
             due = [key for key in pending if key[0] < k_n]
             if due:
                 rows = [pending.pop(key) for key in due]
-                table.set([p for p, _ in due], [i for _, i in due], rows)
+                table.reserve(max(p for p, _ in due) + 1)
+                table.array[[p for p, _ in due], [i for _, i in due]] = rows
 
     def _held_before(self, name: str, k0: int) -> np.ndarray:
         """The held row of each vehicle at period k0 - 1 (NaN before period 0: a message's
         stamp is not negative)."""
         if k0:
-            return self._received_rows[name].rows[k0 - 1]
+            return self._received_rows[name].array[k0 - 1]
         return np.nan
 
     def _received_periods(self, k0: int, k_n: int) -> dict[str, np.ndarray]:
         """The received fields of periods k0 .. k_n - 1."""
         k = k_n - k0
         self._take_pending(k_n)
-        events = self._plan_table.rows(k0, k_n)
+        self._plan_table.reserve(k_n)
+        self._status_table.reserve(k_n)
+        events = self._plan_table.array[k0:k_n]
         arrived = ~np.isnan(events[:, :, 5])
         plan = _hold(events, arrived, self._held_before("plan_held", k0))
-        statuses = self._status_table.rows(k0, k_n)
+        statuses = self._status_table.array[k0:k_n]
         status = _hold(statuses, statuses[:, :, 0] == 1.0, self._held_before("status_held", k0))
         # The period times, then the plant ticks since the previous period (the separation's).
         t_s = np.arange(k0, k_n) * self.period_ns * 1e-9
@@ -494,7 +363,7 @@ class LiveRecord:
     ) -> dict[str, np.ndarray]:
         """The received fields `names` of periods `first` .. `k_n` - 1 (cached): copies, or
         views of the cache."""
-        rows = {name: self._received_rows[name].rows[first:k_n] for name in _CACHED}
+        rows = {name: self._received_rows[name].array[first:k_n] for name in _CACHED}
         plan, status = rows["plan_held"], rows["status_held"]
         k, n = plan.shape[:2]
         views = {
@@ -558,13 +427,13 @@ class LiveRecord:
             raise ValueError("no complete control period yet")
         if not 0 <= first < k_n:
             raise ValueError(f"no periods in {first} .. {k_n - 1}")
-        self._scenario_periods(k_n)
+        self._scenario_rows.extend(k_n)
         self._update_cache(k_n)
-        scenario = {name: self._scenario_rows[name].rows[first:k_n] for name in _SCENARIO_FIELDS}
+        scenario = self._scenario_rows.rows(first, k_n)
         rows = {name: a.copy() if copy else a for name, a in scenario.items()}
         rows |= self._received(first, k_n, _RECEIVED_FIELDS, copy=copy)
         with np.errstate(invalid="ignore"):
-            min_separation = np.fmin.reduce(self._received_rows["separation_min"].rows[:k_n])
+            min_separation = np.fmin.reduce(self._received_rows["separation_min"].array[:k_n])
         return FlightRecord(
             t_s=np.arange(first, k_n) * self.period_ns * 1e-9,
             **rows,
@@ -579,7 +448,7 @@ class LiveRecord:
         return RunConstants(
             scenario=sc.name,
             vehicle_ids=self.ids,
-            desired_distance_m=self._formation.desired_distances(),
+            desired_distance_m=self._scenario_rows.formation.desired_distances(),
             trail_m=sc.formation.trail_m,
             speed_max_m_s=sc.controller.speed_max_m_s,
             yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
