@@ -5,6 +5,7 @@ import shutil
 import subprocess
 import sys
 import tomllib
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -64,3 +65,20 @@ def test_a_module_that_breaks_a_layer_is_caught(tmp_path, module, source, contra
     done = _lint_imports(tmp_path)
     assert done.returncode == 1, done.stdout
     assert contract in done.stdout.split("Broken contracts")[-1], done.stdout
+
+
+def test_a_wheel_installs_only_the_fleetmpc_import_name(tmp_path):
+    """`pip install .` puts one top-level name in site-packages: `fleetmpc`."""
+    done = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q"]
+        + ["-w", str(tmp_path), str(ROOT)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    (wheel,) = tmp_path.glob("fleetmpc-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        top = {name.split("/")[0] for name in archive.namelist()}
+    assert {t for t in top if not t.endswith(".dist-info")} == {"fleetmpc"}
+    assert any(name.startswith("fleetmpc/onboard/core/") for name in archive.namelist())

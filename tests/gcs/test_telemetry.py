@@ -123,3 +123,13 @@ def test_a_viewer_already_listening_is_used_as_it_is() -> None:
         server.listen()
         port = server.getsockname()[1]
         assert spawn_viewer(port=port) == f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def test_report_works_on_both_recordings(recordings, tmp_path) -> None:
+    from fleetmpc.cli import main
+
+    _, _, sim_rrd, live_rrd = recordings
+    for name, rrd in (("sim", sim_rrd), ("live", live_rrd)):
+        out = tmp_path / name
+        assert main(["report", str(rrd), "--out", str(out)]) == 0
+        assert (out / "fig1_paths.png").is_file() and (out / "metrics.json").is_file()
