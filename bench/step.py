@@ -237,9 +237,9 @@ def run(args: argparse.Namespace) -> int:
 
         return bench_baseline.run(args)
     if args.gcs_logging:
-        from fleetmpc.bench import telemetry as bench_logging
+        from fleetmpc.bench import telemetry
 
-        return bench_logging.run(args)
+        return telemetry.run(args)
     sc = load_scenario(args.scenario)
     load_before = load_average()
     # 1 and 2, alternately (so both see the same machine): uninstrumented runs for the real-time

@@ -52,7 +52,7 @@ def _rows(column: pa.Array) -> list[np.ndarray]:
 
 
 def read_recording(path: str | Path) -> RecordingRun:
-    """Read a `.rrd` written by `fleetmpc.gcs.recording.write_recording` back into a
+    """Read a `.rrd` written through `fleetmpc.gcs.telemetry.RerunSink` back into a
     FlightRecord."""
     p = Path(path)
     if not p.is_file():

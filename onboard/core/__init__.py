@@ -1,5 +1,5 @@
 """Pure maths core of the onboard agent.
 
 Imports only numpy, scipy, osqp and filterpy: no sockets, clocks, loggers or globals
-(enforced by the ruff `banned-api` rule in pyproject.toml).
+(enforced by an import-linter contract in pyproject.toml).
 """
