@@ -11,7 +11,7 @@ explicit endpoints (`fleetmpc.protocol.zenoh_config.options_from_args`), scoutin
 Fleet time (`fleetmpc.onboard.runner`): ``--epoch-ns`` gives the epoch, ``--wait-epoch`` takes the
 first one the ground station announces on the bus; the agent connects, streams and engages either
 way, and steps once the epoch is known. An announced speed other than ``--speed`` is an error (exit
-2). SIGINT/SIGTERM: hold the vehicle where it is (`fleetmpc.onboard.runner.wind_down`: position
+2). SIGINT/SIGTERM: hold the vehicle where it is (`fleetmpc.onboard.setpoints.wind_down`: position
 setpoints for 50 ms, then HOLD), close the Zenoh session and the link, print a JSON summary on
 stdout, exit 0.
 """
@@ -28,12 +28,8 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.core.agent import Agent
 from fleetmpc.onboard.open_bus import open_fleet_bus
-from fleetmpc.onboard.runner import (
-    FleetRunner,
-    RunnerSettings,
-    SetpointStreamer,
-    wind_down,
-)
+from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
+from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
 from fleetmpc.scenario import load_scenario, mavlink_url
 
 __all__ = ["add_arguments", "run"]

@@ -40,6 +40,17 @@ from fleetmpc.protocol.mavlink_setpoint import (
 
 __all__ = ["MavlinkAutopilotLink"]
 
+STREAM_INTERVALS_US = {
+    32: 33_333,  # LOCAL_POSITION_NED: the pose, at 30 Hz (PX4's onboard-link rate)
+    30: 33_333,  # ATTITUDE: the yaw, with it
+    33: -1,  # GLOBAL_POSITION_INT: not read here (the ground station has a link of its own)
+    74: -1,  # VFR_HUD: not read here
+}
+"""SET_MESSAGE_INTERVAL requests [us] a link makes when it connects (-1: stop the stream). A
+PX4 "onboard" link streams about 150 messages per second of autopilot time by default, half of
+them ones the agent does not read; every one costs the agent a parse and the autopilot a send,
+four times as many per wall second at x4."""
+
 _MAX_POSITION_M = 1e6
 _MAX_BOOT_MS = 2**32 - 1
 
@@ -269,11 +280,11 @@ class MavlinkAutopilotLink(AutopilotLink):
         raise AutopilotLinkError(f"no HEARTBEAT and pose from {self.url} in {timeout_s} s")
 
     def _request_streams(self, autopilot: Autopilot) -> None:
-        """ArduPilot streams nothing until asked: position and attitude at 50 Hz."""
-        if autopilot != Autopilot.ARDUPILOTMEGA:
-            return
-        for msg_id in (32, 30):  # LOCAL_POSITION_NED, ATTITUDE
-            interval_us = 20_000
+        """Ask the autopilot for the streams this link reads (`STREAM_INTERVALS_US`):
+        ArduPilot streams nothing until asked, PX4 streams more than the agent reads."""
+        for msg_id, interval_us in STREAM_INTERVALS_US.items():
+            if interval_us < 0 and autopilot == Autopilot.ARDUPILOTMEGA:
+                continue  # (nothing to stop: it streams only what it is asked for)
             self._command(511, (float(msg_id), float(interval_us)), timeout_s=1.0)
 
     def engage(self, *, timeout_s: float) -> bool:

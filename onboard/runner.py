@@ -26,8 +26,7 @@ leaves the loop: the command becomes zero and the status says why.
 Mode loss is reported, not fought.
 """
 
-import bisect
-import contextlib
+import dataclasses
 import json
 import math
 import threading
@@ -42,6 +41,7 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLink, LinkState
 from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
 from fleetmpc.onboard.planbus import PlanBus
+from fleetmpc.onboard.setpoints import SetpointStreamer, gap_stats_ms
 from fleetmpc.protocol.mavlink_map import FlightMode
 from fleetmpc.protocol.messages import (
     MAX_SETPOINT_RATE_HZ,
@@ -51,126 +51,15 @@ from fleetmpc.protocol.messages import (
     VehicleMode,
     VehicleStatus,
 )
+from fleetmpc.protocol.plan import Plan
 
 __all__ = [
     "FleetRunner",
     "RunnerSettings",
-    "SetpointStreamer",
-    "gap_stats_ms",
-    "wind_down",
 ]
 
 _MAX_NEIGHBOURS = 8
 _U32_MAX = 2**32 - 1
-
-
-def gap_stats_ms(times_ns: list[int]) -> dict[str, float]:
-    """p50 / p99 / max of the gaps between consecutive times [ms]."""
-    if len(times_ns) < 2:
-        return {"p50": math.nan, "p99": math.nan, "max": math.nan, "count": float(len(times_ns))}
-    gaps = np.diff(np.asarray(times_ns, dtype=np.int64)) * 1e-6
-    return {
-        "p50": float(np.percentile(gaps, 50)),
-        "p99": float(np.percentile(gaps, 99)),
-        "max": float(gaps.max()),
-        "count": float(len(times_ns)),
-    }
-
-
-class SetpointStreamer:
-    """Sends the latest command to the autopilot at a fixed rate from its own thread.
-
-    The command is a velocity (`set_command`) or a point to hold (`hold_position`, sent at the
-    altitude the link last reported; zeros until it reports one); the newest call wins.
-    """
-
-    def __init__(
-        self,
-        link: AutopilotLink,
-        *,
-        period_s: float,
-        monotonic_ns: Callable[[], int] = time.monotonic_ns,
-    ) -> None:
-        if not 0.001 <= period_s <= 0.1:
-            raise ConfigError("setpoint period_s", f"must be in [0.001, 0.1] s, got {period_s}")
-        self._link = link
-        self._period_s = period_s
-        self._now = monotonic_ns
-        self._lock = threading.Lock()
-        self._command = (0.0, 0.0)
-        self._hold: tuple[float, float] | None = None
-        self._stop = threading.Event()
-        self.send_times_ns: list[int] = []
-        self._thread = threading.Thread(target=self._loop, name="setpoints", daemon=True)
-
-    def set_command(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
-        with self._lock:
-            self._command = (float(speed_m_s), float(yaw_rate_rad_s))
-            self._hold = None
-
-    def hold_position(self, *, north_m: float, east_m: float) -> None:
-        """Stream position setpoints at (North, East) from now on, until `set_command`."""
-        with self._lock:
-            self._hold = (float(north_m), float(east_m))
-
-    def rate_hz(self, *, window_ns: int) -> float:
-        """Setpoints sent per second of the streamer's clock over its last `window_ns`."""
-        if window_ns <= 0:
-            raise ConfigError("window_ns", f"must be > 0, got {window_ns}")
-        times = self.send_times_ns  # appended by the streaming thread, never reordered
-        end = len(times)
-        start = bisect.bisect_right(times, self._now() - window_ns, 0, end)
-        return (end - start) * 1e9 / window_ns
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _loop(self) -> None:
-        next_s = time.monotonic()
-        while not self._stop.is_set():
-            with self._lock:
-                (v, w), hold = self._command, self._hold
-            down = self._link.state().down_m if hold is not None else math.nan
-            # A link must not raise, but never let the stream die.
-            with contextlib.suppress(Exception):
-                if math.isfinite(down):
-                    self._link.send_position_setpoint(north_m=hold[0], east_m=hold[1], down_m=down)
-                else:
-                    self._link.send_setpoint(speed_m_s=v, yaw_rate_rad_s=w)
-            self.send_times_ns.append(self._now())
-            next_s += self._period_s
-            delay = next_s - time.monotonic()
-            if delay < 0:
-                next_s = time.monotonic()
-                delay = 0.0
-            self._stop.wait(delay)
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=1.0)
-
-
-def wind_down(
-    link: AutopilotLink, streamer: SetpointStreamer | None, *, engaged: bool, settle_s: float = 0.05
-) -> None:
-    """The agent's last act on its vehicle: leave it holding where it is.
-
-    The stream switches to position setpoints where the link last saw the vehicle (zero velocity
-    when it never reported a pose) for `settle_s` of wall time, so the last command the autopilot
-    flies is a point, not the agent's last velocity, then stops; an engaged vehicle is then asked
-    to HOLD (a real autopilot would otherwise fall back to its failsafe when the stream ends).
-    """
-    if streamer is not None:
-        state = link.state()
-        if state.has_pose:
-            streamer.hold_position(north_m=state.north_m, east_m=state.east_m)
-        else:
-            streamer.set_command(speed_m_s=0.0, yaw_rate_rad_s=0.0)
-        time.sleep(settle_s)
-        streamer.stop()
-    if engaged:
-        link.hold()
 
 
 @dataclass(frozen=True)
@@ -201,6 +90,22 @@ class RunnerSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 0:
                 raise ConfigError(name, f"must be an integer >= 0, got {value!r}")
+
+
+def _hold_plan(plan: Plan, state: LinkState) -> Plan:
+    """The plan of a vehicle its autopilot holds where it is: its pose over the whole horizon.
+
+    While the autopilot is out of the agent's hands (HOLD, or a lost mode) the agent's own plan
+    would tell the neighbours about motion that does not happen; they plan their separation
+    against what the vehicle really does instead."""
+    pose = np.array([state.north_m, state.east_m, state.yaw_rad])
+    return Plan(
+        vehicle_id=plan.vehicle_id,
+        stamp_ns=plan.stamp_ns,
+        period_ns=plan.period_ns,
+        states=np.tile(pose, (len(plan.states), 1)),
+        inputs=np.zeros_like(plan.inputs),
+    )
 
 
 def _vehicle_mode(state: LinkState) -> VehicleMode:
@@ -324,6 +229,7 @@ class FleetRunner:
                 obs = np.array([target.north_m, target.east_m])
                 obs_stamp = target.stamp_ns
             plans = self.bus.latest_plans(stamp_ns, self.settings.plan_max_age_ns)
+            held = _vehicle_mode(state) == VehicleMode.HOLD
             out = self.agent.step(
                 AgentInput(
                     stamp_ns=stamp_ns,
@@ -331,8 +237,12 @@ class FleetRunner:
                     target_observation=obs,
                     target_stamp_ns=obs_stamp,
                     neighbour_plans=plans,
+                    # A held vehicle flies none of the commands: the filter is told so.
+                    applied_input=np.zeros(2) if held else None,
                 )
             )
+            if held:
+                out = dataclasses.replace(out, plan=_hold_plan(out.plan, state))
         except Exception as e:  # never raise out of the control loop
             self.step_errors += 1
             self.last_status = f"step error: {type(e).__name__}: {e}"

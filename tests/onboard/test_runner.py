@@ -12,13 +12,8 @@ from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
-from fleetmpc.onboard.runner import (
-    FleetRunner,
-    RunnerSettings,
-    SetpointStreamer,
-    gap_stats_ms,
-    wind_down,
-)
+from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
+from fleetmpc.onboard.setpoints import SetpointStreamer, gap_stats_ms, wind_down
 from fleetmpc.protocol.mavlink_map import FlightMode
 from fleetmpc.protocol.messages import GROUND_STATION_ID
 from fleetmpc.sim.lockstep import build_agents
@@ -360,3 +355,34 @@ def test_winding_down_leaves_the_vehicle_holding_where_it_is() -> None:
     wind_down(link, streamer, engaged=False, settle_s=0.05)
     assert link.hold_point is None and link.command == (0.0, 0.0)
     assert link.hold_requests == 0
+
+
+def test_a_held_vehicle_publishes_where_it_holds(paper) -> None:
+    """Once its autopilot holds it (setpoints stopped, so the fake falls back to HOLD as PX4
+    does), a vehicle's plan is its pose over the whole horizon: its neighbours plan against
+    what it really does, not the motion its agent would have commanded."""
+    hub = MemoryHubs().hub(FLEET)
+    links, _, runners = _fleet(paper, hub)
+    listener = InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=None)
+    target = InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=TARGET_ID)
+    link, runner = links[0], runners[0]
+    period = paper.controller.period_ns
+    stamp = None
+    for k in range(40):  # telemetry every 50 ms; no setpoints reach vehicle 1 after 0.5 s
+        t_ns = k * 50_000_000
+        if t_ns % period == 0:
+            pos, _ = paper.target.state_at(t_ns * 1e-9)
+            target.publish_target(stamp_ns=t_ns, north_m=float(pos[0]), east_m=float(pos[1]))
+        out = runner.tick(link.state())
+        if out is not None:
+            stamp = out.plan.stamp_ns
+            if t_ns < 500_000_000:
+                link.send_setpoint(speed_m_s=out.command[0], yaw_rate_rad_s=out.command[1])
+        link.advance(50_000_000, steps=5)
+    state = link.state()
+    assert state.mode == FlightMode.HOLD
+    plan = listener.latest_plans(stamp, period)[1]
+    np.testing.assert_array_equal(
+        plan.states[:, :2], np.tile([state.north_m, state.east_m], (6, 1))
+    )
+    assert not plan.inputs.any()
