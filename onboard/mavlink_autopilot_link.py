@@ -1,10 +1,11 @@
 """MavlinkAutopilotLink: the AutopilotLink over pymavlink, for PX4 and ArduPilot.
 
 The link detects the autopilot from its HEARTBEAT and uses its semantics (`engage`):
-PX4 — setpoints must already stream (> 2 Hz for >= 1 s: the runner's streamer does it), then
-arm and DO_SET_MODE OFFBOARD (COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6);
-ArduPilot — SET_MESSAGE_INTERVAL for the streams, GUIDED, arm with retries until accepted,
-takeoff. Setpoints are SET_POSITION_TARGET_LOCAL_NED with type_mask 1479 (velocity + yaw rate),
+PX4 — setpoints must already stream (PX4's code needs a recent one, its documentation asks for
+> 2 Hz for 1 s: the runner's streamer gives it 1.5 s), then arm and DO_SET_MODE OFFBOARD
+(COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6); ArduPilot — GUIDED, arm with retries
+until accepted, takeoff. On connecting, SET_MESSAGE_INTERVAL for the streams it reads.
+Setpoints are SET_POSITION_TARGET_LOCAL_NED with type_mask 1479 (velocity + yaw rate),
 frame BODY_NED (8) for PX4 and BODY_OFFSET_NED (9) for ArduPilot, vx = forward speed; a hold is
 type_mask 3576 (position only) in LOCAL_NED, which both autopilots fly with their own position
 controller (`send_position_setpoint`).

@@ -5,9 +5,12 @@ Events a pilot should see (refusals, failsafes) are queued as `Notice`s for the 
 STATUSTEXT.
 
 Profiles:
-- PX4: boots in HOLD. OFFBOARD is denied unless valid setpoints have streamed with no gap longer
-  than `setpoint_max_gap_ns` (i.e. > 2 Hz) for at least `offboard_warmup_ns`; after
-  `offboard_loss_timeout_ns` (COM_OF_LOSS_T) without a valid setpoint the vehicle switches to HOLD.
+- PX4: boots in HOLD. OFFBOARD is available while the last valid setpoint is younger than
+  `offboard_loss_timeout_ns` (COM_OF_LOSS_T), as PX4's commander decides it
+  (`HealthAndArmingChecks/checks/offboardCheck.cpp`: a recent offboard control mode with a control
+  flag set; no warm-up, although PX4's documentation asks for 1 s of setpoints first): one
+  setpoint, then OFFBOARD at once, is accepted. Without a valid setpoint for that long the vehicle
+  switches to HOLD.
   Offboard may be engaged on the ground, and the horizontal (unicycle) plant then follows the
   setpoints at any altitude, so the usual arm -> setpoint -> offboard flow works without a takeoff.
   TAKEOFF climbs to the takeoff altitude and then switches to HOLD.
@@ -101,10 +104,6 @@ class AutopilotConfig:
     """Descent rate of a vehicle disarmed in the air [m/s]."""
     offboard_loss_timeout_ns: int = 1_000_000_000
     """PX4 COM_OF_LOSS_T: OFFBOARD without a valid setpoint for this long switches to HOLD [ns]."""
-    offboard_warmup_ns: int = 1_000_000_000
-    """PX4: setpoints must have streamed this long before OFFBOARD is accepted [ns]."""
-    setpoint_max_gap_ns: int = 500_000_000
-    """A longer gap between valid setpoints breaks the stream (500 ms = 2 Hz) [ns]."""
     guided_timeout_ns: int = 3_000_000_000
     """ArduPilot: a GUIDED velocity target older than this is replaced by zero velocity [ns]."""
     position_ready_ns: int = 4_000_000_000
@@ -130,16 +129,12 @@ class AutopilotConfig:
             raise ConfigError("takeoff_altitude_m", "must not exceed max_takeoff_altitude_m")
         for name in (
             "offboard_loss_timeout_ns",
-            "offboard_warmup_ns",
-            "setpoint_max_gap_ns",
             "guided_timeout_ns",
             "position_ready_ns",
         ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ConfigError(name, f"must be a non-negative integer [ns], got {value!r}")
-        if self.setpoint_max_gap_ns == 0:
-            raise ConfigError("setpoint_max_gap_ns", "must be > 0")
 
 
 @dataclass(frozen=True)
@@ -152,11 +147,10 @@ class Notice:
 
 @dataclass
 class _Stream:
-    """The last valid setpoint and when the current unbroken stream of them began."""
+    """The last valid setpoint and when it came."""
 
     setpoint: SetpointFields | None = None
     last_ns: int = 0
-    start_ns: int = 0
 
 
 class Autopilot:
@@ -208,13 +202,9 @@ class Autopilot:
         return self.px4 or now_ns >= self.config.position_ready_ns
 
     def setpoint_stream_ok(self, now_ns: int) -> bool:
-        """PX4's offboard availability: an unbroken > 2 Hz stream for at least the warm-up time."""
-        s, c = self._stream, self.config
-        return (
-            s.setpoint is not None
-            and now_ns - s.last_ns <= c.setpoint_max_gap_ns
-            and now_ns - s.start_ns >= c.offboard_warmup_ns
-        )
+        """PX4's offboard availability: a valid setpoint younger than COM_OF_LOSS_T."""
+        s = self._stream
+        return s.setpoint is not None and now_ns - s.last_ns < self.config.offboard_loss_timeout_ns
 
     def take_notices(self) -> list[Notice]:
         """Notices queued since the last call, oldest first."""
@@ -234,8 +224,6 @@ class Autopilot:
         if not self.px4 and self.mode != FlightMode.OFFBOARD:
             return None  # ArduPilot reads position targets only in GUIDED
         s = self._stream
-        if s.setpoint is None or now_ns - s.last_ns > self.config.setpoint_max_gap_ns:
-            s.start_ns = now_ns
         s.setpoint, s.last_ns = setpoint, now_ns
         return None
 
@@ -271,9 +259,7 @@ class Autopilot:
                 Severity.WARNING, f"Mode change failed: {mode.name} requires position"
             )
         if self.px4 and mode == FlightMode.OFFBOARD and not self.setpoint_stream_ok(now_ns):
-            return self._refuse(
-                Severity.WARNING, "Offboard denied: no setpoint stream >2 Hz for 1 s"
-            )
+            return self._refuse(Severity.WARNING, "Offboard denied: no recent setpoint")
         self._enter(mode)
         return MavResult.ACCEPTED
 

@@ -76,7 +76,8 @@ async def poll(read, predicate, *, timeout_s: float = 20.0, interval_s: float = 
 
 
 async def mavsdk_flight(port: int, observer: Observer | None = None) -> dict:
-    """Discover, read position, arm, start offboard (denied, then accepted), fly, stop."""
+    """Discover, read position, arm, then MAVSDK's own offboard flow (one setpoint, then
+    `offboard.start()` at once: accepted, as PX4's code accepts it), fly, stop."""
     config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
     out: dict = {}
     async with Mavsdk(config) as drone:
@@ -101,12 +102,10 @@ async def mavsdk_flight(port: int, observer: Observer | None = None) -> dict:
             VelocityBodyYawspeed(FORWARD_M_S, 0.0, 0.0, YAWSPEED_DEG_S)
         )
         try:
-            await offboard.start()  # setpoints have not streamed for 1 s yet
-            out["early_start"] = "accepted"
+            await offboard.start()  # right after the first setpoint
+            out["start"] = "accepted"
         except OffboardError as e:
-            out["early_start"] = e.result
-        await asyncio.sleep(1.5)  # MAVSDK keeps streaming the setpoint at 20 Hz
-        await offboard.start()
+            out["start"] = e.result
         out["mode"] = await poll(telemetry.flight_mode, lambda m: m == FlightMode.OFFBOARD)
         await asyncio.sleep(1.0)  # let the speed settle before measuring
         t0_ms = observer.client.t_ms if observer else 0

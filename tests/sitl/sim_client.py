@@ -187,18 +187,14 @@ def px4_args(client: SimClient, *, speed: float, vehicle: int = 1) -> list[str]:
 
 
 def fly_offboard(client: SimClient, sp: SetpointFields) -> None:
-    """Stream `sp` at 10 Hz: OFFBOARD denied first, accepted after 1 s of stream; then arm."""
+    """Stream `sp` at 10 Hz: OFFBOARD denied before any setpoint, accepted once one is recent
+    (as PX4's commander decides it); then arm."""
     client.wait_type("HEARTBEAT")
     client.sleep_sim(0.2)
     assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.DENIED
     assert any("Offboard denied" in text for _, text in client.texts)
     client.stream(sp, rate_hz=10.0)
-    t_start = client.t_ms
-    client.wait_until_ms(t_start + 500)
-    assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.DENIED, (
-        "0.5 s of stream is too short"
-    )
-    client.wait_until_ms(t_start + 1100)
+    client.wait_until_ms(client.t_ms + 150)  # a setpoint or two
     assert client.set_px4_mode(FlightMode.OFFBOARD) == MavResult.ACCEPTED
     assert client.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
     assert client.mode() == FlightMode.OFFBOARD and client.armed
