@@ -136,9 +136,15 @@ class AutopilotLink(ABC):
 
 
 def open_autopilot_link(
-    url: str, *, system_id: int | None = None, log: Callable[[str], None] | None = None
+    url: str,
+    *,
+    system_id: int | None = None,
+    vehicle_id: int | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> AutopilotLink:
-    """The AutopilotLink a URL names (see the module docstring)."""
+    """The AutopilotLink a URL names (see the module docstring). `system_id`: the autopilot's
+    MAVLink system id to insist on (None: the first autopilot heard); a fake autopilot takes it,
+    else `vehicle_id`."""
     # Both implementations build on this module's interface.
     from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
     from fleetmpc.onboard.mavlink_autopilot_link import MavlinkAutopilotLink
@@ -150,5 +156,5 @@ def open_autopilot_link(
         autopilots = {"px4": Autopilot.PX4, "ardupilot": Autopilot.ARDUPILOTMEGA}
         if kind not in autopilots:
             raise ConfigError("mavlink_url", f"fake://{kind}: known fakes are px4, ardupilot")
-        return FakeAutopilotLink(autopilot=autopilots[kind], system_id=system_id or 1)
+        return FakeAutopilotLink(autopilot=autopilots[kind], system_id=system_id or vehicle_id or 1)
     return MavlinkAutopilotLink(url, system_id=system_id, log=log)

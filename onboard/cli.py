@@ -45,6 +45,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mavlink",
         help="pymavlink URL of the autopilot (default: the vehicle's SITL per the scenario)",
     )
+    parser.add_argument(
+        "--target-system",
+        type=int,
+        metavar="ID",
+        help="fly only the autopilot with this MAVLink system id (default: the first autopilot"
+        " heard on the link, whatever its id)",
+    )
     zenoh = parser.add_mutually_exclusive_group()
     zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
     zenoh.add_argument(
@@ -113,9 +120,14 @@ def run(args: argparse.Namespace) -> int:
     link = bus = streamer = runner = None
     try:
         bus = open_fleet_bus(args, scenario, sender_id=spec.id)
-        link = open_autopilot_link(url, system_id=spec.id, log=_log)
+        link = open_autopilot_link(url, system_id=args.target_system, vehicle_id=spec.id, log=_log)
         state = link.connect(timeout_s=args.connect_timeout)
         _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
+        if state.system_id != spec.id:
+            _log(
+                f"vehicle {spec.id}: its autopilot has system id {state.system_id}, not"
+                f" {spec.id}; flying it as vehicle {spec.id}"
+            )
         streamer = SetpointStreamer(link, period_s=1.0 / (args.setpoint_rate_hz * clock.speed))
         settings = RunnerSettings(
             period_ns=scenario.controller.period_ns,

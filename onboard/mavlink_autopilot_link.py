@@ -81,6 +81,9 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._mavutil = mavutil
         self.url = url
         self._want_system = system_id
+        """The autopilot's system id to insist on; None: the first autopilot heard."""
+        self._heard_systems: set[int] = set()
+        """System ids of every autopilot heartbeat heard on the link."""
         self._log = log or (lambda _text: None)
         try:
             self._conn = mavutil.mavlink_connection(
@@ -163,6 +166,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         st = self.state()
         if msg.get_srcComponent() != 1 or msg.type in (6, 18):  # GCS (6), onboard computer (18)
             return
+        self._heard_systems.add(src)
         if self._want_system is not None and src != self._want_system:
             return
         if st.system_id not in (0, src):
@@ -278,7 +282,16 @@ class MavlinkAutopilotLink(AutopilotLink):
             # Some links (udpout, tcp) stay silent until the client speaks.
             self._send(self._conn.mav.heartbeat_send, 6, 8, 0, 0, 4)
             self.wait_state(newer_than_ns=st.time_boot_ns, timeout_s=0.25)
-        raise AutopilotLinkError(f"no HEARTBEAT and pose from {self.url} in {timeout_s} s")
+        st = self.state()
+        if self._want_system is not None and self._heard_systems - {self._want_system}:
+            heard = ", ".join(str(i) for i in sorted(self._heard_systems))
+            raise AutopilotLinkError(
+                f"no HEARTBEAT from system {self._want_system} on {self.url} in {timeout_s} s;"
+                f" autopilots heard there: system {heard} (leave out --target-system to fly"
+                " the first one heard)"
+            )
+        what = "pose" if st.autopilot is not None else "HEARTBEAT and pose"
+        raise AutopilotLinkError(f"no {what} from {self.url} in {timeout_s} s")
 
     def _request_streams(self, autopilot: Autopilot) -> None:
         """Ask the autopilot for the streams this link reads (`STREAM_INTERVALS_US`):

@@ -241,3 +241,25 @@ def test_fake_flies_the_setpoint_and_fails_safe_to_hold() -> None:
     state = fake.state()
     assert state.mode == FlightMode.HOLD and state.mode_lost
     assert state.north_m == pytest.approx(1.0, abs=0.05)  # 0.5 s flown, 40 ms substeps
+
+
+def test_the_first_autopilot_heard_is_flown_whatever_its_system_id() -> None:
+    """An ArduCopter answers as system 1 by default (MAV_SYSID): a link that insists on no id
+    flies it; one that insists on another id says which autopilots it heard instead."""
+    port = _free_udp_port()
+    ap = ScriptedAutopilot(port, autopilot=Autopilot.ARDUPILOTMEGA)
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}")
+    try:
+        assert link.connect(timeout_s=5.0).system_id == 1
+    finally:
+        link.close()
+        ap.close()
+    port = _free_udp_port()
+    ap = ScriptedAutopilot(port, autopilot=Autopilot.ARDUPILOTMEGA)
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", system_id=2)
+    try:
+        with pytest.raises(AutopilotLinkError, match="no HEARTBEAT from system 2.*heard.*system 1"):
+            link.connect(timeout_s=1.0)
+    finally:
+        link.close()
+        ap.close()
