@@ -18,6 +18,7 @@ stdout, exit 0.
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -75,7 +76,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="setpoint stream rate in simulated time (>= 10)",
     )
     parser.add_argument("--duration", type=float, default=None, help="stop at this fleet time [s]")
-    parser.add_argument("--connect-timeout", type=float, default=20.0, help="[s] wall")
+    parser.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=60.0,
+        help="wall seconds for the autopilot's HEARTBEAT and first pose (default 60: a real"
+        " ArduPilot SITL booting cold reports a position after its estimator has settled)",
+    )
+    parser.add_argument(
+        "--engage-timeout",
+        type=float,
+        default=60.0,
+        help="wall seconds for each engage step (mode, arm, takeoff; default 60: ArduCopter"
+        " refuses to arm until its pre-arm checks pass, some 40 s after a cold boot)",
+    )
     parser.add_argument("--no-engage", action="store_true", help="never switch to offboard")
     parser.add_argument(
         "--record", type=Path, help="write one JSON line per step here (folders are created)"
@@ -93,6 +107,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             "--setpoint-rate-hz", f"must be in [10, 1000], got {args.setpoint_rate_hz}"
         )
+    for name in ("connect_timeout", "engage_timeout"):
+        value = getattr(args, name)
+        if not (value > 0 and math.isfinite(value)):
+            raise ConfigError(f"--{name.replace('_', '-')}", f"must be seconds > 0, got {value}")
     clock = FleetClock(epoch_ns=args.epoch_ns, speed=args.speed, awaiting_epoch=args.wait_epoch)
     url = args.mavlink or mavlink_url(scenario.network, spec)
     agent = Agent(
@@ -132,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         settings = RunnerSettings(
             period_ns=scenario.controller.period_ns,
             engage=not args.no_engage,
+            engage_timeout_s=args.engage_timeout,
             stop_at_fleet_ns=None if args.duration is None else round(args.duration * 1e9),
         )
         runner = FleetRunner(
