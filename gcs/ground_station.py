@@ -47,7 +47,13 @@ from pathlib import Path
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.station import GroundStation, gate_failures
-from fleetmpc.gcs.telemetry import RerunSink, TelemetrySink, add_telemetry_argument, open_sink
+from fleetmpc.gcs.telemetry import (
+    FLUSH_S,
+    RerunSink,
+    TelemetrySink,
+    add_telemetry_argument,
+    open_sink,
+)
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
@@ -57,7 +63,7 @@ from fleetmpc.scenario import flight_time, load_scenario
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
-__all__ = ["FLUSH_S", "SERIES_FLUSH_S", "add_arguments", "run", "series_every"]
+__all__ = ["SERIES_FLUSH_S", "add_arguments", "run", "series_every"]
 
 EXIT_WITHOUT_TEARDOWN = True
 """A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
@@ -70,9 +76,6 @@ _AFTER_END_SIM_S = 0.5
 _END_GRACE_WALL_S = 2.0
 """Wall seconds the ground station waits past that for the telemetry of the last periods, which
 a loaded host delivers late; then it ends with what it has (and the periods gate says so)."""
-FLUSH_S = 4.0
-"""Default seconds of flight between two Rerun logging batches: 20 control periods of the
-paper's 0.2 s (`fleetmpc bench --gcs-logging` compares intervals)."""
 SERIES_FLUSH_S = 4.0
 """Default seconds of flight between two loggings of the time series and the flight_record
 rows."""

@@ -90,6 +90,16 @@ class LiveRows:
     """The ground station's prediction of the target over the horizon (M + 1, 2) North, East
     [m], made at the last row's time (None without a target observation)."""
 
+    @classmethod
+    def blank(cls, periods: int, vehicles: int) -> "LiveRows":
+        """Rows of a run that knows no plan, plan age or setpoint rate (a FlightRecord alone)."""
+        return cls(
+            plans=np.full((periods, vehicles, 1, 2), np.nan),
+            setpoint_rate_hz=np.full((periods, vehicles), np.nan),
+            plan_age_s=np.full((periods, vehicles, max(vehicles - 1, 0)), np.nan),
+            target_prediction=None,
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class RunConstants:

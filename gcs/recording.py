@@ -185,10 +185,10 @@ def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: d
     )
 
 
-def _record_rows(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
-    """Periods start.. of the record as `flight_record` rows (`record_layout`)."""
+def _record_rows(columns: _Slice, rec: FlightRecord) -> None:
+    """The record's periods as `flight_record` rows (`record_layout`)."""
     rows = columns.rows
-    parts = [np.asarray(getattr(rec, name))[start:].reshape(rows, -1) for name in RECORD_ARRAYS]
+    parts = [np.asarray(getattr(rec, name)).reshape(rows, -1) for name in RECORD_ARRAYS]
     parts.append(np.full((rows, 1), rec.min_separation_m))
     packed = np.concatenate(parts, axis=1, dtype=np.float64)
     columns.values("flight_record", RECORD_COLUMN, packed)
@@ -224,27 +224,27 @@ def _norm2(v: np.ndarray) -> np.ndarray:
     return np.hypot(v[..., 0], v[..., 1])
 
 
-def _series(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
-    pos = rec.truth[start:, :, :2]
+def _series(columns: _Slice, rec: FlightRecord) -> None:
+    pos = rec.truth[:, :, :2]
     pairs = _pairs(len(rec.vehicle_ids))
     if len(pairs):
         columns.scalars("series/separation", _norm2(pos[:, pairs[:, 0]] - pos[:, pairs[:, 1]]))
-    centre = np.mean(pos - rec.slot_offsets_world[start:], axis=1)
-    columns.scalars("series/centre_distance", _norm2(centre - rec.target[start:]))
-    columns.scalars("series/formation_error", _norm2(pos - rec.slots[start:]))
-    columns.scalars("series/c_norm", _norm2(rec.c[start:]))
-    columns.scalars("series/solve_time_ms", rec.step_time_ms[start:])
-    k = len(rec.t_s) - start
+    centre = np.mean(pos - rec.slot_offsets_world, axis=1)
+    columns.scalars("series/centre_distance", _norm2(centre - rec.target))
+    columns.scalars("series/formation_error", _norm2(pos - rec.slots))
+    columns.scalars("series/c_norm", _norm2(rec.c))
+    columns.scalars("series/solve_time_ms", rec.step_time_ms)
+    k = len(rec.t_s)
     for name, (p, q) in BETA_SERIES:
         # (K, N, 2 entries) -> (K, entry, vehicle), learned then truth
-        learned = rec.beta[start:, :, p : q + 1].transpose(0, 2, 1).reshape(k, -1)
-        truth = rec.beta_truth[start:, :, p : q + 1].transpose(0, 2, 1).reshape(k, -1)
+        learned = rec.beta[:, :, p : q + 1].transpose(0, 2, 1).reshape(k, -1)
+        truth = rec.beta_truth[:, :, p : q + 1].transpose(0, 2, 1).reshape(k, -1)
         columns.scalars(f"series/beta/{name}", np.concatenate([learned, truth], axis=1))
 
 
-def _live_map(columns: _Slice, live: LiveRows, *, skip: int) -> None:
-    """Plans and the target prediction of a slice's live rows, from row `skip` on."""
-    plans = live.plans[skip:]
+def _live_map(columns: _Slice, live: LiveRows) -> None:
+    """Plans and the target prediction of a slice's live rows."""
+    plans = live.plans
     k = plans.shape[0]
     has = np.isfinite(plans).all(axis=(2, 3))  # (K, N)
     # Rows where no vehicle has a plan are not logged; in the others a vehicle without one has
@@ -258,11 +258,11 @@ def _live_map(columns: _Slice, live: LiveRows, *, skip: int) -> None:
         columns.strips("map/target_prediction", prediction[None, None], rows=np.array([k - 1]))
 
 
-def _live_series(columns: _Slice, live: LiveRows, *, skip: int) -> None:
-    """Setpoint rates and plan ages of a slice's live rows, from row `skip` on."""
-    columns.scalars("series/setpoint_rate", live.setpoint_rate_hz[skip:])
+def _live_series(columns: _Slice, live: LiveRows) -> None:
+    """Setpoint rates and plan ages of a slice's live rows."""
+    columns.scalars("series/setpoint_rate", live.setpoint_rate_hz)
     if live.plan_age_s.shape[2]:
-        columns.scalars("series/plan_age", live.plan_age_s[skip:])
+        columns.scalars("series/plan_age", live.plan_age_s)
 
 
 def log_events(
@@ -282,10 +282,9 @@ def log_events(
 
 
 def _qp_events(
-    rec: FlightRecord, *, t_ns: np.ndarray, start: int, run_start: bool
+    rec: FlightRecord, *, t_ns: np.ndarray, run_start: bool
 ) -> list[tuple[int, str, str]]:
-    """Events of rows start.. of the record (at times t_ns), the run's start first if they
-    begin it."""
+    """Events of the record's rows (at times t_ns), the run's start first if they begin it."""
     events = []
     if run_start:
         events.append(
@@ -295,7 +294,7 @@ def _qp_events(
                 f"run start: scenario {rec.scenario}, UAVs {list(rec.vehicle_ids)}",
             )
         )
-    k_idx, i_idx = np.nonzero(~np.asarray(rec.qp_ok, dtype=bool)[start:])
+    k_idx, i_idx = np.nonzero(~np.asarray(rec.qp_ok, dtype=bool))
     for k, i in zip(k_idx, i_idx, strict=True):
         events.append(
             (
@@ -314,7 +313,7 @@ def log_map(stream: rr.RecordingStream, rec: FlightRecord, live: LiveRows, *, he
     start = 1 if head else 0
     columns = _Slice(stream, sim_time_ns(rec.t_s[start:]))
     _map(columns, rec, start=start)
-    _live_map(columns, live, skip=0)
+    _live_map(columns, live)
 
 
 def log_series(
@@ -324,10 +323,10 @@ def log_series(
     run's start event first when it begins the run)."""
     t_ns = sim_time_ns(rec.t_s)
     columns = _Slice(stream, t_ns)
-    _record_rows(columns, rec, start=0)
-    _series(columns, rec, start=0)
-    _live_series(columns, live, skip=0)
-    log_events(stream, _qp_events(rec, t_ns=t_ns, start=0, run_start=run_start))
+    _record_rows(columns, rec)
+    _series(columns, rec)
+    _live_series(columns, live)
+    log_events(stream, _qp_events(rec, t_ns=t_ns, run_start=run_start))
 
 
 def open_recording(

@@ -28,6 +28,7 @@ from fleetmpc.gcs import blueprint, recording
 from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants
 
 __all__ = [
+    "FLUSH_S",
     "MemorySink",
     "PeriodSample",
     "RerunSink",
@@ -38,6 +39,12 @@ __all__ = [
     "samples_of",
     "write_recording",
 ]
+
+
+FLUSH_S = 4.0
+"""Default seconds of flight between two flushes of a run's sinks (a live ground station's and
+the lockstep simulation's): 20 control periods of the paper's 0.2 s (`fleetmpc bench
+--gcs-logging` compares intervals)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,20 +112,20 @@ def live_rows_of(samples: Sequence[PeriodSample]) -> LiveRows:
     )
 
 
-def samples_of(rec: FlightRecord, live: LiveRows, *, period0: int = 0) -> list[PeriodSample]:
-    """The samples of a record's periods `period0`.. and the live rows of the same periods
-    (the target prediction goes with the last)."""
+def samples_of(rec: FlightRecord, live: LiveRows) -> list[PeriodSample]:
+    """The samples of a record's periods and the live rows of the same periods (the target
+    prediction goes with the last)."""
     k = len(rec.t_s)
     out = []
-    for j in range(period0, k):
+    for j in range(k):
         out.append(
             PeriodSample(
                 t_ns=round(float(rec.t_s[j]) * 1e9),
                 **{name: getattr(rec, name)[j] for name in PERIOD_FIELDS},
                 min_separation_m=rec.min_separation_m,
-                plans=live.plans[j - period0],
-                plan_age_s=live.plan_age_s[j - period0],
-                setpoint_rate_hz=live.setpoint_rate_hz[j - period0],
+                plans=live.plans[j],
+                plan_age_s=live.plan_age_s[j],
+                setpoint_rate_hz=live.setpoint_rate_hz[j],
                 target_prediction=live.target_prediction if j == k - 1 else None,
             )
         )
@@ -299,16 +306,9 @@ def write_recording(
 ) -> str:
     """Write a FlightRecord on its own (no plans, plan ages or setpoint rates) to an `.rrd`
     file; the recording's id."""
-    k, n = rec.truth.shape[:2]
-    blank = LiveRows(
-        plans=np.full((k, n, 1, 2), np.nan),
-        setpoint_rate_hz=np.full((k, n), np.nan),
-        plan_age_s=np.full((k, n, max(n - 1, 0)), np.nan),
-        target_prediction=None,
-    )
     sink = RerunSink(path=path, recording_id=recording_id)
     sink.open(RunConstants.of(rec), run_info or {})
     rid = sink.stream.get_recording_id()
-    sink.log(samples_of(rec, blank))
+    sink.log(samples_of(rec, LiveRows.blank(*rec.truth.shape[:2])))
     sink.close()
     return rid

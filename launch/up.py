@@ -40,8 +40,9 @@ from rich.live import Live
 from rich.table import Table
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.gcs.ground_station import FLUSH_S, SERIES_FLUSH_S
+from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
+from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
 from fleetmpc.scenario import flight_time, load_scenario
 

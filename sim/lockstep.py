@@ -17,17 +17,14 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord, RunConstants
-from fleetmpc.gcs.telemetry import PeriodSample, TelemetrySink, record_of
+from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
 from fleetmpc.onboard.core.agent import Agent, AgentInput, reference_course_rate
 from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.plant import TruthPlant
 
-__all__ = ["FLUSH_S", "build_agents", "run_lockstep"]
-
-FLUSH_S = 4.0
-"""How often [s of flight] the sinks are flushed: as a live ground station's default."""
+__all__ = ["build_agents", "run_lockstep"]
 
 
 def build_agents(scenario: Scenario, *, learning: bool = True) -> list[Agent]:

@@ -7,7 +7,8 @@ import pytest
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs import ground_station
-from fleetmpc.gcs.ground_station import FLUSH_S, SERIES_FLUSH_S, series_every
+from fleetmpc.gcs.ground_station import SERIES_FLUSH_S, series_every
+from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch import up
 from fleetmpc.launch.fleet import FleetOptions, fleet_processes
 from fleetmpc.scenario import load_scenario
