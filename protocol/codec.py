@@ -70,6 +70,7 @@ from fleetmpc.protocol.messages import (
     MAX_NEIGHBOURS,
     MAX_SENDER_ID,
     MIN_SENDER_ID,
+    FieldError,
     FleetEpoch,
     LearnedParams,
     Message,
@@ -81,8 +82,7 @@ from fleetmpc.protocol.messages import (
     StatusMessage,
     TargetObservation,
     VehicleStatus,
-    _FieldError,
-    _mode,
+    vehicle_mode,
 )
 from fleetmpc.protocol.plan import Plan
 
@@ -203,7 +203,7 @@ def _decode_plan(data: bytes, sender: int, seq: int, stamp: int) -> PlanMessage:
     states = _read_f64(data, base, m + 1, 3)
     inputs = _read_f64(data, base + 24 * (m + 1), m, 2)
     status = PlanStatus(
-        mode=_mode("status.mode", mode),
+        mode=vehicle_mode("status.mode", mode),
         qp_fallback=bool(flags & 1),
         learning_on=bool(flags & 2),
         first_c_norm=c_norm,
@@ -227,7 +227,7 @@ def _decode_status(data: bytes, sender: int, seq: int, stamp: int) -> StatusMess
     if any(e != (0, 0) for e in entries[count:]):
         raise _reject(RejectReason.RANGE, "unused neighbour entries must be zero")
     status = VehicleStatus(
-        mode=_mode("status.mode", mode),
+        mode=vehicle_mode("status.mode", mode),
         armed=bool(flags & 1),
         learning_on=bool(flags & 2),
         learning_frozen=bool(flags & 4),
@@ -303,7 +303,7 @@ def decode(payload: bytes, *, expect: MessageKind | None = None) -> Message:
         raise _reject(RejectReason.RANGE, f"timestamp must be >= 0, got {stamp}")
     try:
         return _DECODERS[MessageKind(kind)](data, sender, seq, stamp)
-    except _FieldError as e:
+    except FieldError as e:
         raise _reject(e.reason, str(e)) from None
 
 

@@ -22,6 +22,7 @@ __all__ = [
     "MAX_NEIGHBOURS",
     "MAX_SENDER_ID",
     "MIN_SENDER_ID",
+    "FieldError",
     "FleetEpoch",
     "GROUND_STATION_ID",
     "TARGET_ID",
@@ -36,6 +37,7 @@ __all__ = [
     "TargetObservation",
     "VehicleMode",
     "VehicleStatus",
+    "vehicle_mode",
 ]
 
 MIN_SENDER_ID = 1
@@ -104,7 +106,7 @@ class RejectReason(StrEnum):
     """An unexpected error while handling it: a bug, should stay 0."""
 
 
-class _FieldError(ConfigError):
+class FieldError(ConfigError):
     """ConfigError that also carries the rejection reason `decode` reports."""
 
     def __init__(self, field_name: str, reason: RejectReason, message: str) -> None:
@@ -114,49 +116,50 @@ class _FieldError(ConfigError):
 
 def _int(name: str, value: object, lo: int, hi: int, *, reason=RejectReason.RANGE) -> int:
     if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Integral):
-        raise _FieldError(name, reason, f"must be an integer, got {value!r}")
+        raise FieldError(name, reason, f"must be an integer, got {value!r}")
     v = int(value)
     if not lo <= v <= hi:
-        raise _FieldError(name, reason, f"must be in [{lo}, {hi}], got {v}")
+        raise FieldError(name, reason, f"must be in [{lo}, {hi}], got {v}")
     return v
 
 
 def _float(name: str, value: object, bound: float, *, lo: float | None = None) -> float:
     if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
-        raise _FieldError(name, RejectReason.RANGE, f"must be a number, got {value!r}")
+        raise FieldError(name, RejectReason.RANGE, f"must be a number, got {value!r}")
     x = float(value)
     if not math.isfinite(x):
-        raise _FieldError(name, RejectReason.NON_FINITE, f"must be finite, got {x}")
+        raise FieldError(name, RejectReason.NON_FINITE, f"must be finite, got {x}")
     low = -bound if lo is None else lo
     if not low <= x <= bound:
-        raise _FieldError(name, RejectReason.RANGE, f"must be in [{low}, {bound}], got {x}")
+        raise FieldError(name, RejectReason.RANGE, f"must be in [{low}, {bound}], got {x}")
     return x
 
 
 def _bool(name: str, value: object) -> bool:
     if not isinstance(value, bool | np.bool_):
-        raise _FieldError(name, RejectReason.RANGE, f"must be a bool, got {value!r}")
+        raise FieldError(name, RejectReason.RANGE, f"must be a bool, got {value!r}")
     return bool(value)
 
 
-def _mode(name: str, value: object) -> VehicleMode:
+def vehicle_mode(name: str, value: object) -> VehicleMode:
+    """The VehicleMode of a field's value; a FieldError naming the field if there is none."""
     try:
         return VehicleMode(value)
     except ValueError:
-        raise _FieldError(name, RejectReason.RANGE, f"unknown mode {value!r}") from None
+        raise FieldError(name, RejectReason.RANGE, f"unknown mode {value!r}") from None
 
 
 def _array(name: str, value: object, rows: int, bounds: tuple[float, ...]) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise _FieldError(name, RejectReason.RANGE, "must be an array of numbers") from None
+        raise FieldError(name, RejectReason.RANGE, "must be an array of numbers") from None
     if a.shape != (rows, len(bounds)):
-        raise _FieldError(name, RejectReason.RANGE, f"must have shape {(rows, len(bounds))}")
+        raise FieldError(name, RejectReason.RANGE, f"must have shape {(rows, len(bounds))}")
     if not np.isfinite(a).all():
-        raise _FieldError(name, RejectReason.NON_FINITE, "must be finite")
+        raise FieldError(name, RejectReason.NON_FINITE, "must be finite")
     if (np.abs(a) > np.asarray(bounds)).any():
-        raise _FieldError(name, RejectReason.RANGE, f"columns must stay within +-{bounds}")
+        raise FieldError(name, RejectReason.RANGE, f"columns must stay within +-{bounds}")
     return a
 
 
@@ -176,7 +179,7 @@ class PlanStatus:
     """QP solve time [us]."""
 
     def __post_init__(self) -> None:
-        _mode("status.mode", self.mode)
+        vehicle_mode("status.mode", self.mode)
         _bool("status.qp_fallback", self.qp_fallback)
         _bool("status.learning_on", self.learning_on)
         _float("status.first_c_norm", self.first_c_norm, MAX_DISTANCE_M, lo=0.0)
@@ -198,15 +201,15 @@ class PlanMessage:
         _int("seq", self.seq, 0, _U32)
         p = self.plan
         if not isinstance(p, Plan):
-            raise _FieldError("plan", RejectReason.RANGE, f"must be a Plan, got {p!r}")
+            raise FieldError("plan", RejectReason.RANGE, f"must be a Plan, got {p!r}")
         if not isinstance(self.status, PlanStatus):
-            raise _FieldError("status", RejectReason.RANGE, "must be a PlanStatus")
+            raise FieldError("status", RejectReason.RANGE, "must be a PlanStatus")
         _int("plan.vehicle_id", p.vehicle_id, MIN_SENDER_ID, MAX_SENDER_ID)
         _int("plan.stamp_ns", p.stamp_ns, 0, _I64_MAX)
         _int("plan.period_ns", p.period_ns, 1, MAX_PERIOD_NS)
         inputs_shape = np.shape(p.inputs)
         if len(inputs_shape) != 2 or inputs_shape[1] != 2:
-            raise _FieldError("plan.inputs", RejectReason.RANGE, "must have shape (M, 2)")
+            raise FieldError("plan.inputs", RejectReason.RANGE, "must have shape (M, 2)")
         m = inputs_shape[0]
         _int("plan.horizon", m, 1, MAX_HORIZON)
         pos, yaw = MAX_ABS_POSITION_M, MAX_ABS_YAW_RAD
@@ -295,22 +298,22 @@ class VehicleStatus:
     """Setpoints sent to the autopilot per simulated second, over the last period."""
 
     def __post_init__(self) -> None:
-        _mode("status.mode", self.mode)
+        vehicle_mode("status.mode", self.mode)
         for name in ("armed", "learning_on", "learning_frozen"):
             _bool(f"status.{name}", getattr(self, name))
         if not isinstance(self.beta, LearnedParams):
-            raise _FieldError("status.beta", RejectReason.RANGE, "must be a LearnedParams")
+            raise FieldError("status.beta", RejectReason.RANGE, "must be a LearnedParams")
         _float("status.slot_error_m", self.slot_error_m, MAX_DISTANCE_M, lo=0.0)
         ages = tuple(self.neighbour_plan_ages)
         object.__setattr__(self, "neighbour_plan_ages", ages)
         if len(ages) > MAX_NEIGHBOURS or not all(isinstance(a, NeighbourPlanAge) for a in ages):
-            raise _FieldError(
+            raise FieldError(
                 "status.neighbour_plan_ages",
                 RejectReason.RANGE,
                 f"must be at most {MAX_NEIGHBOURS} NeighbourPlanAge entries",
             )
         if len({a.vehicle_id for a in ages}) != len(ages):
-            raise _FieldError(
+            raise FieldError(
                 "status.neighbour_plan_ages", RejectReason.RANGE, "neighbour ids must be distinct"
             )
         _int("status.qp_fallbacks", self.qp_fallbacks, 0, _U32)
@@ -336,7 +339,7 @@ class StatusMessage:
     def __post_init__(self) -> None:
         _header_fields(self.sender_id, self.seq, self.stamp_ns)
         if not isinstance(self.status, VehicleStatus):
-            raise _FieldError("status", RejectReason.RANGE, "must be a VehicleStatus")
+            raise FieldError("status", RejectReason.RANGE, "must be a VehicleStatus")
 
 
 @dataclass(frozen=True)
@@ -368,7 +371,7 @@ class TargetObservation:
         if self.velocity_m_s is not None:
             v = self.velocity_m_s
             if isinstance(v, str) or not hasattr(v, "__len__") or len(v) != 2:
-                raise _FieldError("velocity_m_s", RejectReason.RANGE, "must be (north, east)")
+                raise FieldError("velocity_m_s", RejectReason.RANGE, "must be (north, east)")
             vel = tuple(_float(f"velocity_m_s[{i}]", x, MAX_ABS_SPEED_M_S) for i, x in enumerate(v))
             object.__setattr__(self, "velocity_m_s", vel)
 
