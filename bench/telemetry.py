@@ -35,6 +35,7 @@ from fleetmpc.gcs.telemetry import RerunSink
 from fleetmpc.protocol.messages import (
     TARGET_ID,
     LearnedParams,
+    NeighbourPlanAge,
     PlanMessage,
     PlanStatus,
     StatusMessage,
@@ -45,7 +46,7 @@ from fleetmpc.protocol.plan import Plan
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 
-__all__ = ["TARGET_FRACTION", "PeriodMessages", "period_messages", "run"]
+__all__ = ["TARGET_FRACTION", "PeriodMessages", "period_messages", "receive_period", "run"]
 
 TARGET_FRACTION = 0.10
 """Logging per vehicle-period at most this fraction of the agent step median."""
@@ -65,8 +66,18 @@ class PeriodMessages:
     """The target's observation (its true position)."""
 
 
-def period_messages(rec: FlightRecord, k: int, *, period_ns: int, horizon: int) -> PeriodMessages:
-    """The messages of period `k` of `rec`, as a live fleet that flew exactly `rec` sends them."""
+def period_messages(
+    rec: FlightRecord,
+    k: int,
+    *,
+    period_ns: int,
+    horizon: int,
+    plan_age_ns: int | None = None,
+    setpoint_rate_hz: float = 0.0,
+) -> PeriodMessages:
+    """The messages of period `k` of `rec`, as a live fleet that flew exactly `rec` sends them;
+    each status reports every neighbour's plan `plan_age_ns` old (None: no ages) and the
+    setpoint rate `setpoint_rate_hz`."""
     stamp = k * period_ns
     poses, plans, statuses = [], [], []
     for i, vid in enumerate(rec.vehicle_ids):
@@ -84,10 +95,15 @@ def period_messages(rec: FlightRecord, k: int, *, period_ns: int, horizon: int) 
             solve_time_us=round(rec.step_time_ms[k, i] * 1e3),
         )
         plans.append(PlanMessage(seq=k, plan=plan, status=status))
-        beta = LearnedParams(*map(float, rec.beta[k, i]))
-        statuses.append(
-            StatusMessage(sender_id=vid, seq=k, stamp_ns=stamp, status=VehicleStatus(beta=beta))
+        ages = ()
+        if plan_age_ns is not None:
+            ages = tuple(NeighbourPlanAge(o, plan_age_ns) for o in rec.vehicle_ids if o != vid)
+        vehicle = VehicleStatus(
+            beta=LearnedParams(*map(float, rec.beta[k, i])),
+            neighbour_plan_ages=ages,
+            setpoint_rate_hz=setpoint_rate_hz,
         )
+        statuses.append(StatusMessage(sender_id=vid, seq=k, stamp_ns=stamp, status=vehicle))
     north, east = map(float, rec.target[k])
     target = TargetObservation(
         sender_id=TARGET_ID, seq=k, stamp_ns=stamp, north_m=north, east_m=east
@@ -95,11 +111,11 @@ def period_messages(rec: FlightRecord, k: int, *, period_ns: int, horizon: int) 
     return PeriodMessages(poses=poses, plans=plans, statuses=statuses, target=target)
 
 
-def _receive(gs: GroundStation, rec: FlightRecord, k: int) -> None:
-    """What the ground station receives in period k of a run that flew `rec`."""
-    msgs = period_messages(
-        rec, k, period_ns=gs.live.period_ns, horizon=gs.scenario.controller.horizon
-    )
+def receive_period(gs: GroundStation, rec: FlightRecord, k: int, **status) -> None:
+    """What the ground station receives in period k of a run that flew `rec` (`status`: the
+    plan ages and setpoint rate the statuses report, see `period_messages`)."""
+    horizon = gs.scenario.controller.horizon
+    msgs = period_messages(rec, k, period_ns=gs.live.period_ns, horizon=horizon, **status)
     for pose in msgs.poses:
         gs.live.add_pose(*pose)
     for message in (*msgs.plans, *msgs.statuses, msgs.target):
@@ -113,7 +129,7 @@ def _feed(gs: GroundStation, rec: FlightRecord, *, periods_per_flush: int) -> li
     in the last."""
     flush_ms = []
     for k in range(len(rec.t_s)):
-        _receive(gs, rec, k)
+        receive_period(gs, rec, k)
         last = k == len(rec.t_s) - 1
         if last or (k + 1) % periods_per_flush == 0:
             t0 = time.perf_counter()

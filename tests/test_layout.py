@@ -1,10 +1,8 @@
 """The layers hold: import-linter's contracts (pyproject.toml) pass on the tree and catch a
 module that breaks them."""
 
-import shutil
 import subprocess
 import sys
-import tomllib
 import zipfile
 from pathlib import Path
 
@@ -16,19 +14,12 @@ LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
 
 def _package_copy(tmp_path: Path) -> Path:
     """A copy of the package as one folder (tmp/fleetmpc), as pyproject's package-dir maps it."""
-    mapping = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
-        "package-dir"
-    ]
-    package = tmp_path / "fleetmpc"
-    shutil.copytree(ROOT / "fleetmpc", package, ignore=shutil.ignore_patterns("__pycache__"))
-    for name, folder in mapping.items():
-        if name != "fleetmpc":
-            shutil.copytree(
-                ROOT / folder,
-                package / name.removeprefix("fleetmpc."),
-                ignore=shutil.ignore_patterns("__pycache__"),
-            )
-    return package
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        from import_view import make_view
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    return make_view(tmp_path, copy=True)
 
 
 def _lint_imports(where: Path) -> subprocess.CompletedProcess:

@@ -16,19 +16,30 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def make_view(view: Path) -> None:
-    """(Re)create VIEW/fleetmpc from pyproject.toml's package-dir mapping."""
+def make_view(view: Path, *, copy: bool = False) -> Path:
+    """(Re)create VIEW/fleetmpc from pyproject.toml's package-dir mapping, of links (or, with
+    `copy`, of copies that can be changed without touching the tree); the package's folder."""
     mapping = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
         "package-dir"
     ]
     package = view / "fleetmpc"
     shutil.rmtree(view, ignore_errors=True)
     package.mkdir(parents=True)
-    for source in sorted((ROOT / mapping["fleetmpc"]).glob("*.py")):
-        (package / source.name).symlink_to(source)
-    for name, folder in mapping.items():
-        if name != "fleetmpc":
-            (package / name.removeprefix("fleetmpc.")).symlink_to(ROOT / folder)
+    root_files = sorted((ROOT / mapping["fleetmpc"]).glob("*.py"))
+    parts = [(source, package / source.name) for source in root_files]
+    parts += [
+        (ROOT / folder, package / name.removeprefix("fleetmpc."))
+        for name, folder in mapping.items()
+        if name != "fleetmpc"
+    ]
+    for source, target in parts:
+        if not copy:
+            target.symlink_to(source)
+        elif source.is_dir():
+            shutil.copytree(source, target, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(source, target)
+    return package
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from fleetmpc.bench.telemetry import period_messages
+from fleetmpc.bench.telemetry import period_messages, receive_period
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.record import LiveRows, RunConstants
@@ -108,14 +108,8 @@ def test_a_record_logged_in_slices_reads_back_whole(lockstep, tmp_path) -> None:
     path = tmp_path / "sliced.rrd"
     sink = RerunSink(path=path, series_every=2)
     sink.open(RunConstants.of(lockstep), {})
-    k, n = lockstep.truth.shape[:2]
-    blank = LiveRows(
-        plans=np.full((k, n, 1, 2), np.nan),
-        setpoint_rate_hz=np.full((k, n), np.nan),
-        plan_age_s=np.full((k, n, n - 1), np.nan),
-        target_prediction=None,
-    )
-    samples = samples_of(lockstep, blank)
+    k = len(lockstep.t_s)
+    samples = samples_of(lockstep, LiveRows.blank(*lockstep.truth.shape[:2]))
     for start, end in ((0, 7), (7, 8), (8, k)):
         sink.log(samples[start:end])
         sink.flush()
@@ -208,17 +202,9 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     path = tmp_path / "live.rrd"
     gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
     gs.open_sinks([RerunSink(path=path, series_every=series_every)])
-    ages = {vid: [o for o in paper.vehicle_ids if o != vid] for vid in paper.vehicle_ids}
     for k in range(len(lockstep.t_s)):
-        msgs = period_messages(lockstep, k, period_ns=gs.live.period_ns, horizon=5)
-        for pose in msgs.poses:
-            gs.live.add_pose(*pose)
-        for m in msgs.statuses:  # each vehicle sees its neighbours' plans 50 ms old
-            seen = tuple(NeighbourPlanAge(o, 50_000_000) for o in ages[m.sender_id])
-            status = dataclasses.replace(m.status, neighbour_plan_ages=seen, setpoint_rate_hz=20.0)
-            gs.inbox.put(dataclasses.replace(m, status=status))
-        for message in (*msgs.plans, msgs.target):
-            gs.inbox.put(message)
+        # Each vehicle sees its neighbours' plans 50 ms old.
+        receive_period(gs, lockstep, k, plan_age_ns=50_000_000, setpoint_rate_hz=20.0)
         if k % 7 == 6:
             gs.flush()
     gs.flush(final=True)

@@ -3,19 +3,16 @@
 The live side is a `GroundStation` fed what a fleet that flew the lockstep run would send it
 (`fleetmpc.bench.telemetry.period_messages`), flushed as it flushes in flight."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 import rerun as rr
 
-from fleetmpc.bench.telemetry import period_messages
+from fleetmpc.bench.telemetry import receive_period
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
 from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import MemorySink, RerunSink, open_sink
-from fleetmpc.protocol.messages import NeighbourPlanAge
 from fleetmpc.sim.lockstep import run_lockstep
 
 DURATION_S = 10.0
@@ -44,17 +41,8 @@ def recordings(paper, tmp_path_factory):
     gs = GroundStation(paper, speed=1.0, duration_s=DURATION_S)
     gs.open_sinks([RerunSink(path=live_rrd)])
     for k in range(len(rec.t_s)):
-        msgs = period_messages(rec, k, period_ns=gs.live.period_ns, horizon=5)
-        for pose in msgs.poses:
-            gs.live.add_pose(*pose)
-        for m in msgs.statuses:  # each vehicle sees its neighbours' plans one period old
-            seen = tuple(
-                NeighbourPlanAge(o, 200_000_000) for o in paper.vehicle_ids if o != m.sender_id
-            )
-            status = dataclasses.replace(m.status, neighbour_plan_ages=seen, setpoint_rate_hz=5.0)
-            gs.inbox.put(dataclasses.replace(m, status=status))
-        for message in (*msgs.plans, msgs.target):
-            gs.inbox.put(message)
+        # Each vehicle sees its neighbours' plans one period old.
+        receive_period(gs, rec, k, plan_age_ns=200_000_000, setpoint_rate_hz=5.0)
         if k % 20 == 19:
             gs.flush()
     gs.flush(final=True)
