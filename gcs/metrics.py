@@ -16,6 +16,7 @@ __all__ = [
     "corner_indices",
     "corner_recovery_s",
     "pair_indices",
+    "plan_age_summary",
     "target_prediction_rms_m",
     "yaw_rate_reversals_per_vehicle_min",
 ]
@@ -94,6 +95,23 @@ def compute_metrics(rec: FlightRecord) -> dict:
         "target_prediction_rms_m": target_prediction_rms_m(rec),
         "corner_recovery_s": corner_recovery_s(rec),
         "corners": len(corner_indices(rec.target_velocity)),
+        "plan_age_s": plan_age_summary(rec),
+        **({} if rec.network is None else {"network": rec.network}),
+    }
+
+
+def plan_age_summary(rec: FlightRecord) -> dict | None:
+    """Median, p99 and largest age of the neighbours' plans as the agents used them, and the
+    share of (period, vehicle, neighbour) with no plan at all [s]; None when not recorded."""
+    if rec.plan_age_s is None or rec.plan_age_s.size == 0:
+        return None
+    ages = np.asarray(rec.plan_age_s, dtype=float)
+    known = ages[np.isfinite(ages)]
+    return {
+        "median": float(np.median(known)) if known.size else None,
+        "p99": float(np.percentile(known, 99)) if known.size else None,
+        "max": float(known.max()) if known.size else None,
+        "missing_fraction": float(1.0 - known.size / ages.size),
     }
 
 
@@ -195,6 +213,7 @@ def format_summary(metrics: dict) -> str:
         ("QP fallbacks", str(metrics["qp_fallbacks"])),
     ]
     rows += _manoeuvre_rows(metrics)
+    rows += _network_rows(metrics)
     st = metrics["step_time_ms"]
     if st["median"] is not None:
         rows.append(("agent step", f"median {st['median']:.3f} ms, p99 {st['p99']:.3f} ms"))
@@ -212,6 +231,39 @@ def format_summary(metrics: dict) -> str:
         )
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def _network_rows(metrics: dict) -> list[tuple[str, str]]:
+    """Rows of the plan ages the agents used and of what the plan bus did (a lockstep run's)."""
+    rows = []
+    ages = metrics.get("plan_age_s")
+    if ages is not None and ages["max"] is not None:
+        rows.append(
+            (
+                "neighbour plan age",
+                f"median {ages['median']:.2f} s, p99 {ages['p99']:.2f} s, max {ages['max']:.2f} s,"
+                f" none {100 * ages['missing_fraction']:.1f} %",
+            )
+        )
+    network = metrics.get("network")
+    if network is None:
+        return rows
+    for fault in network["faults"]:
+        rows.append(("fault injected", fault))
+    injected = network.get("injected")
+    if injected:
+        done = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in injected.items() if v)
+        rows.append(("faults did", done or "nothing"))
+    got = network["received"]
+    rows.append(
+        (
+            "plan bus received",
+            f"{got['published']} plans sent, {got['accepted']} messages accepted (plans and"
+            f" target observations); dropped as duplicates {got['duplicates']}, out of order"
+            f" {got['out_of_order']}",
+        )
+    )
+    return rows
 
 
 def _manoeuvre_rows(metrics: dict) -> list[tuple[str, str]]:

@@ -69,6 +69,12 @@ class FlightRecord:
     each period (K, 2) [m]; nan while it has no target; None when the run did not record it."""
     prediction_horizon_periods: int = 0
     """How many periods ahead `target_prediction` looks (the controller's horizon M)."""
+    plan_age_s: np.ndarray | None = None
+    """Age of each other vehicle's plan as vehicle i saw it (K, N, N - 1) [s], the others in
+    fleet order; nan where it had none; None when the run did not record it."""
+    network: dict | None = None
+    """What the plan bus did: the faults injected, what the receivers counted; None when the
+    run did not say."""
 
 
 @dataclass(frozen=True, eq=False)

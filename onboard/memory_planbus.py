@@ -9,6 +9,7 @@ Delivery is synchronous, or queued until `MemoryHub.flush` for a lockstep simula
 import threading
 from collections.abc import Callable
 
+from fleetmpc.onboard.faults import FaultLayer
 from fleetmpc.onboard.planbus import PlanBus
 from fleetmpc.protocol.keys import validate_fleet
 from fleetmpc.protocol.messages import Message
@@ -106,8 +107,9 @@ class InMemoryPlanBus(PlanBus):
         fleet: str,
         vehicle_id: int | None,
         on_accept: Callable[[Message], None] | None = None,
+        faults: FaultLayer | None = None,
     ) -> None:
-        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
+        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept, faults=faults)
         self._hub = hub
         hub.attach(self._subscriptions(), self, self._deliver)
 

@@ -16,7 +16,9 @@ restarted (accepted and counted). Nothing raises into the caller's loop; transpo
 run on other threads, so the receive state is guarded by a lock. Staleness is the caller's call:
 `latest_plans(now_ns, max_age_ns)` returns what is fresh enough and nothing else. A ground
 station that must see every message, not just the latest, passes `on_accept`: it is called with
-each accepted message, on the transport's thread, outside the bus's lock.
+each accepted message, on the transport's thread, outside the bus's lock. A bus given a
+`fleetmpc.onboard.faults.FaultLayer` passes every arriving payload through it first (injected
+network faults); payloads it holds back reach the receive rules when the bus is next read.
 """
 
 import numbers
@@ -25,7 +27,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.protocol.codec import DecodeError, decode, encode
@@ -54,6 +56,9 @@ from fleetmpc.protocol.messages import (
     VehicleStatus,
 )
 from fleetmpc.protocol.plan import Plan
+
+if TYPE_CHECKING:
+    from fleetmpc.onboard.faults import FaultLayer
 
 __all__ = [
     "BusCounters",
@@ -240,10 +245,13 @@ class PlanBus(ABC):
         fleet: str,
         vehicle_id: int | None,
         on_accept: Callable[[Message], None] | None = None,
+        faults: "FaultLayer | None" = None,
     ) -> None:
         self._fleet = validate_fleet(fleet)
         self._vehicle_id = _check_vehicle_id(vehicle_id)
         self._inbox = _Inbox(fleet=self._fleet, vehicle_id=self._vehicle_id, on_accept=on_accept)
+        self.faults = faults
+        """The injected faults payloads pass through on arrival (None: none)."""
         self._send_lock = threading.Lock()
         self._seq = dict.fromkeys(MessageKind, 0)
         self._keys: dict[MessageKind, str] = {}
@@ -268,8 +276,19 @@ class PlanBus(ABC):
         """Release the transport; called once."""
 
     def _deliver(self, key: str, payload: bytes) -> None:
-        """Hand a payload that arrived on `key` to the receive rules (any thread)."""
-        self._inbox.receive(key, payload)
+        """Hand a payload that arrived on `key` to the receive rules (any thread), through the
+        injected faults if there are any."""
+        if self.faults is None:
+            self._inbox.receive(key, payload)
+            return
+        for k, p in self.faults.arrive(key, payload):
+            self._inbox.receive(k, p)
+
+    def _release_held(self) -> None:
+        """Hand the payloads the injected faults held back and are now due to the receive rules."""
+        if self.faults is not None:
+            for k, p in self.faults.release():
+                self._inbox.receive(k, p)
 
     def _subscriptions(self) -> tuple[str, ...]:
         f = self._fleet
@@ -357,11 +376,13 @@ class PlanBus(ABC):
 
     def latest_epoch(self) -> FleetEpoch | None:
         """The newest epoch announcement (any sender), or None before the first."""
+        self._release_held()
         announced = self._inbox.latest(MessageKind.FLEET_EPOCH, 0, 0)
         return max(announced.values(), key=lambda m: (m.seq, -m.sender_id), default=None)
 
     def latest_plan_messages(self, now_ns: int, max_age_ns: int) -> dict[int, PlanMessage]:
         """Latest accepted plan message per neighbour, if |now_ns - stamp| <= max_age_ns."""
+        self._release_held()
         return self._inbox.latest(MessageKind.PLAN, now_ns, max_age_ns)
 
     def latest_plans(self, now_ns: int, max_age_ns: int) -> dict[int, Plan]:
@@ -374,10 +395,12 @@ class PlanBus(ABC):
 
     def latest_statuses(self, now_ns: int, max_age_ns: int) -> dict[int, StatusMessage]:
         """Latest accepted status per vehicle id, with the same age rule as `latest_plans`."""
+        self._release_held()
         return self._inbox.latest(MessageKind.STATUS, now_ns, max_age_ns)
 
     def latest_target(self, now_ns: int, max_age_ns: int) -> TargetObservation | None:
         """The newest target observation (any sender) within `max_age_ns`, or None."""
+        self._release_held()
         fresh = self._inbox.latest(MessageKind.TARGET_OBSERVATION, now_ns, max_age_ns)
         return max(fresh.values(), key=lambda m: (m.stamp_ns, -m.sender_id), default=None)
 

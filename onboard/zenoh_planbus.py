@@ -12,6 +12,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from fleetmpc.onboard.faults import FaultLayer
 from fleetmpc.onboard.planbus import PlanBus, PlanBusError
 from fleetmpc.protocol.messages import Message
 from fleetmpc.protocol.zenoh_config import ZenohOptions
@@ -29,8 +30,9 @@ class ZenohPlanBus(PlanBus):
         fleet: str,
         vehicle_id: int | None,
         on_accept: Callable[[Message], None] | None = None,
+        faults: FaultLayer | None = None,
     ) -> None:
-        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept)
+        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept, faults=faults)
         self.options = options
         config = options.to_config()
         zenoh.init_log_from_env_or("error")

@@ -1,8 +1,12 @@
 """In-process lockstep simulation: every agent and truth plant advance together on integer ticks.
 
 Each period every agent steps on its own noisy measurement, the latest target observation and the
-neighbours' plans of the previous period (Dunbar & Murray's assumed trajectories), then the plants
-fly the commands for one period of plant ticks. Deterministic for a seed.
+neighbours' plans as its plan bus has them (Dunbar & Murray's assumed trajectories), then
+publishes its plan, and the plants fly the commands for one period of plant ticks. The plans
+travel through the in-memory plan bus (`fleetmpc.onboard.memory_planbus`), encoded and decoded as
+on the wire, each bus behind its vehicle's `fleetmpc.onboard.faults.FaultLayer` when the run has
+faults: without faults every plan arrives at the next period, as a perfect network would deliver
+it. Deterministic for a seed.
 
 Each period becomes a `PeriodSample` (`fleetmpc.gcs.telemetry`), as a live ground station makes
 them; the run's FlightRecord stacks them, and any telemetry sinks given (a Rerun recording, a
@@ -21,6 +25,10 @@ from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_
 from fleetmpc.onboard.core.agent import Agent, AgentInput, reference_course_rate
 from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
+from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
+from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
+from fleetmpc.onboard.runner import RunnerSettings
+from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.plant import TruthPlant
 
@@ -52,9 +60,10 @@ def run_lockstep(
     progress: Callable[[float, float], None] | None = None,
     sinks: Sequence[TelemetrySink] = (),
     run_info: dict | None = None,
+    faults: FaultSchedule | None = None,
 ) -> FlightRecord:
     """Fly the scenario in lockstep and return its record; the sinks (opened with `run_info`,
-    closed at the end) get every period's sample."""
+    closed at the end) get every period's sample; `faults` are injected into the plan bus."""
     sc = scenario
     duration_s = sc.duration_s if duration_s is None else duration_s
     seed = sc.seed if seed is None else seed
@@ -93,14 +102,31 @@ def run_lockstep(
     if sinks:
         ground_target = TargetEstimator(observation_std_m=sc.target.observation_noise_m)
     others = [[j for j in range(n) if j != i] for i in range(n)]
+    now_ns = 0
+    hub = MemoryHub(sc.name, deliver_immediately=False)
+    buses = [
+        InMemoryPlanBus(
+            hub,
+            fleet=sc.name,
+            vehicle_id=vid,
+            faults=None
+            if faults is None
+            else FaultLayer(faults, vehicle_id=vid, clock=lambda: now_ns, seed=seed),
+        )
+        for vid in ids
+    ]
+    runner = RunnerSettings(period_ns=period_ns)  # (the plan and target ages a runner accepts)
+    target_bus = InMemoryPlanBus(hub, fleet=sc.name, vehicle_id=TARGET_ID)
+    """The target's observations reach the agents on the plan bus too, as in a live fleet."""
+    seen_target_ns = [-1] * n
+    """The stamp of the newest target observation each agent has fused."""
     setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
     samples: list[PeriodSample] = []
     predictions: list[np.ndarray] = []
-    plans: dict[int, object] = {}
     min_sep = np.inf
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
     for k in range(periods):
-        t_ns = k * period_ns
+        t_ns = now_ns = k * period_ns
         t_s = t_ns * 1e-9
         tgt_pos, tgt_vel = sc.target.state_at(t_s)
         obs = None
@@ -109,13 +135,25 @@ def run_lockstep(
             next_obs_ns += obs_period_ns
             if ground_target is not None:
                 ground_target.observe(t_ns, obs)
+            target_bus.publish_target(
+                stamp_ns=t_ns,
+                north_m=float(obs[0]),
+                east_m=float(obs[1]),
+                noise_std_m=float(sc.target.observation_noise_m),
+            )
+            hub.flush()
         outs = []
         for i, (agent, plant) in enumerate(zip(agents, plants, strict=True)):
+            seen = buses[i].latest_target(t_ns, runner.target_max_age_ns)
+            fresh = seen is not None and seen.stamp_ns > seen_target_ns[i]
+            if fresh:
+                seen_target_ns[i] = seen.stamp_ns
             inp = AgentInput(
                 stamp_ns=t_ns,
                 measurement=plant.measure(rngs[i]),
-                target_observation=obs,
-                neighbour_plans={vid: p for vid, p in plans.items() if vid != agent.vehicle_id},
+                target_observation=np.array((seen.north_m, seen.east_m)) if fresh else None,
+                target_stamp_ns=seen.stamp_ns if fresh else None,
+                neighbour_plans=buses[i].latest_plans(t_ns, runner.plan_max_age_ns),
             )
             t0 = time.perf_counter_ns()
             out = agent.step(inp)
@@ -164,7 +202,9 @@ def run_lockstep(
             sink.log([sample])
             if (k + 1) % flush_every == 0:
                 sink.flush()
-        plans = {o.plan.vehicle_id: o.plan for o, _ in outs}
+        for bus, (out, _) in zip(buses, outs, strict=True):
+            bus.publish_plan(out.plan)
+        hub.flush()
         if k == periods - 1:
             break
         for (out, _), plant in zip(outs, plants, strict=True):
@@ -180,9 +220,35 @@ def run_lockstep(
             progress((k + 1) * period_ns * 1e-9, duration_s)
     for sink in sinks:
         sink.close()
+    network = _network_report(buses, faults)
+    for bus in (*buses, target_bus):
+        bus.close()
     return record_of(
         constants,
         samples,
         target_prediction=np.array(predictions),
         prediction_horizon_periods=sc.controller.horizon,
+        plan_age_s=np.array([s.plan_age_s for s in samples]),
+        network=network,
     )
+
+
+def _network_report(buses: list[InMemoryPlanBus], faults: FaultSchedule | None) -> dict:
+    """What the plan bus did: the faults injected and what the receivers counted."""
+    counters = [bus.counters() for bus in buses]
+    report = {
+        "faults": [] if faults is None else [f.describe() for f in faults.faults],
+        "received": {
+            "published": sum(c.published for c in counters),
+            "accepted": sum(c.accepted for c in counters),
+            "duplicates": sum(c.duplicates for c in counters),
+            "out_of_order": sum(c.out_of_order for c in counters),
+        },
+    }
+    if faults is not None:
+        injected: dict[str, int] = {}
+        for bus in buses:
+            for name, count in bus.faults.counts.items():
+                injected[name] = injected.get(name, 0) + count
+        report["injected"] = injected
+    return report

@@ -12,6 +12,7 @@ from fleetmpc.gcs.figures import write_figures
 from fleetmpc.gcs.metrics import compute_metrics, format_summary
 from fleetmpc.gcs.progress import ProgressBar
 from fleetmpc.gcs.telemetry import add_telemetry_argument, open_sink
+from fleetmpc.onboard.faults import load_faults
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 
@@ -37,6 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="write the run as a Rerun recording (`fleetmpc report` reads it); the same as"
         " --telemetry rrd:FILE",
     )
+    parser.add_argument(
+        "--faults",
+        metavar="FILE",
+        help="inject the network faults of a fault file (TOML, see faults/README.md) into the"
+        " plan bus",
+    )
     add_telemetry_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -50,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
         print("WARNING: this scenario is infeasible; the run will show it:")
         for p in report.problems:
             print(f"  - {p}")
+    faults = None
+    if args.faults is not None:
+        faults = load_faults(args.faults, vehicle_ids=sc.vehicle_ids)
     duration = sc.duration_s if args.duration is None else args.duration
     urls = ([f"rrd:{args.rrd}"] if args.rrd else []) + list(args.telemetry)
     sinks = [open_sink(url) for url in urls]
@@ -68,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
             progress=bar,
             sinks=sinks,
             run_info={**run_info, "source": "lockstep"},
+            faults=faults,
         )
     finally:
         if bar is not None:

@@ -59,11 +59,11 @@ def test_round_trip_is_bit_exact(run, rrd):
     back = read_recording(path)
     assert back.recording_id == rid == "test-run"
     assert back.run_info == {"learning": True}
-    # A recording holds what a live ground station sees; the agents' own target predictions are
-    # not in it (lockstep records only).
+    # A recording holds what a live ground station sees; the agents' own target predictions and
+    # plan ages are not in it (lockstep records only).
     assert back.record.target_prediction is None
     assert back.record.prediction_horizon_periods == 0
-    agents_only = {"target_prediction", "prediction_horizon_periods"}
+    agents_only = {"target_prediction", "prediction_horizon_periods", "plan_age_s", "network"}
     for field in dataclasses.fields(FlightRecord):
         if field.name in agents_only:
             continue
@@ -80,6 +80,9 @@ def test_round_trip_is_bit_exact(run, rrd):
         assert again[key] == pytest.approx(direct[key], abs=1e-9), key
     direct.pop("target_prediction_rms_m")
     assert again.pop("target_prediction_rms_m") is None
+    for key in ("plan_age_s", "network"):  # (the plan bus's own view: see above)
+        direct.pop(key)
+        again.pop(key, None)
     assert again == direct  # float64 is stored as float64: the round trip is exact
 
 
@@ -191,6 +194,9 @@ def test_sim_rrd_then_report_regenerates_figures_and_metrics(tmp_path, capsys):
     reported = json.loads((out / METRICS_FILE).read_text())
     assert reported.pop("target_prediction_rms_m") is None  # the agents' predictions: sim only
     assert direct.pop("target_prediction_rms_m") > 0
+    # The plan bus's own view (plan ages as the agents used them, its counters): sim only.
+    assert reported.pop("plan_age_s") is None and direct.pop("plan_age_s")["max"] > 0
+    assert "network" not in reported and direct.pop("network")["received"]["accepted"] > 0
     assert {k: reported[k] for k in direct} == direct
 
 

@@ -77,12 +77,13 @@ def record_arrays(rec: FlightRecord) -> dict[str, np.ndarray]:
     """The numeric fields of a record as arrays, by field name.
 
     Its arrays, its numbers (as 0-d arrays) and its vehicle ids; not its scenario name, not its
-    wall-clock fields, and not an optional field the run left as None.
+    wall-clock fields, not its network report (counts, checked by the fault tests) and not an
+    optional field the run left as None.
     """
     out: dict[str, np.ndarray] = {}
     for f in dataclasses.fields(rec):
         value = getattr(rec, f.name)
-        if f.name in WALL_CLOCK_FIELDS or value is None or isinstance(value, str):
+        if f.name in WALL_CLOCK_FIELDS or value is None or isinstance(value, str | dict):
             continue
         array = np.asarray(value)
         if array.dtype.kind not in "biuf":
