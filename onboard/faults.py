@@ -27,10 +27,13 @@ What each kind does to a message arriving at a vehicle it hits, while it is acti
   dropped (vehicles listed in no group form one more group together). `vehicles` does not apply.
 
 A held message is delivered when the bus is next read at or after its release time (an agent
-reads every period). Each layer draws from its own random stream, seeded by the schedule's seed
-and its vehicle id, so a faulty run is reproducible whatever order the messages arrive in.
+reads every period). The random numbers that decide a message's fate come from the schedule's
+seed, the receiving vehicle's id and the message itself (its key, sequence number and stamp), so
+a faulty run is reproducible, and the same message meets the same fate whatever order the
+messages arrive in.
 """
 
+import hashlib
 import heapq
 import math
 import threading
@@ -87,8 +90,11 @@ class Fault:
     groups: tuple[tuple[int, ...], ...] = ()
 
     def active(self, t_ns: int) -> bool:
-        t = t_ns * 1e-9
-        return self.start_s <= t < self.start_s + self.duration_s
+        """True at fleet time t_ns inside [start, start + duration) (whole nanoseconds)."""
+        start_ns = round(self.start_s * 1e9)
+        return start_ns <= t_ns and (
+            math.isinf(self.duration_s) or t_ns < start_ns + round(self.duration_s * 1e9)
+        )
 
     def hits(self, vehicle_id: int | None) -> bool:
         return vehicle_id is not None and (self.vehicles is None or vehicle_id in self.vehicles)
@@ -133,7 +139,7 @@ def _fault(table: Any, field: str, fleet: Sequence[int]) -> Fault:
     if not isinstance(table, dict):
         raise ConfigError(field, f"must be a table, got {table!r}")
     kind = table.get("kind")
-    if kind not in _KEYS:
+    if not isinstance(kind, str) or kind not in _KEYS:
         raise ConfigError(f"{field}.kind", f"must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
     known = _COMMON | _KEYS[kind]
     if kind == "partition":
@@ -197,6 +203,8 @@ def load_faults(path: str | Path, *, vehicle_ids: Sequence[int]) -> FaultSchedul
         doc = tomllib.loads(path.read_text())
     except OSError as e:
         raise ConfigError("--faults", f"cannot read {path}: {e.strerror or e}") from None
+    except UnicodeDecodeError:
+        raise ConfigError("--faults", f"{path} is not UTF-8 text") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("--faults", f"{path} is not valid TOML: {e}") from None
     try:
@@ -229,7 +237,8 @@ class FaultLayer:
         self._faults = schedule.faults
         self._clock = clock
         base = schedule.seed if schedule.seed is not None else seed
-        self._rng = np.random.default_rng((base, vehicle_id))
+        self._key = f"{base}/{vehicle_id}".encode()
+        """Keys the per-payload random numbers: another seed or vehicle, other draws."""
         self._lock = threading.Lock()
         self._held: list[tuple[int, int, str, bytes]] = []
         self._order = 0
@@ -249,7 +258,7 @@ class FaultLayer:
                 return i
         return -1
 
-    def _cut(self, fault: Fault, sender: int | None) -> str | None:
+    def _cut(self, fault: Fault, sender: int | None, draw: float) -> str | None:
         """Why `fault` stops a payload from `sender` reaching this vehicle, if it does."""
         if fault.kind == "blackout" and (fault.hits(self.vehicle_id) or fault.hits(sender)):
             return "blacked_out"
@@ -259,13 +268,16 @@ class FaultLayer:
             and self._group(fault, sender) != self._group(fault, self.vehicle_id)
         ):
             return "partitioned"
-        if (
-            fault.kind == "loss"
-            and fault.hits(self.vehicle_id)
-            and self._rng.random() < fault.probability
-        ):
+        if fault.kind == "loss" and fault.hits(self.vehicle_id) and draw < fault.probability:
             return "lost"
         return None
+
+    def _draws(self, key: str, payload: bytes, count: int) -> list[float]:
+        """`count` uniform numbers in [0, 1) for one payload, from the layer's seed and the
+        payload itself (its key, sequence number and stamp): the same message meets the same
+        fate whatever order the messages arrive in."""
+        digest = hashlib.blake2b(key.encode() + payload, key=self._key, digest_size=8).digest()
+        return np.random.default_rng(int.from_bytes(digest)).random(count).tolist()
 
     def arrive(self, key: str, payload: bytes) -> list[tuple[str, bytes]]:
         """The payloads to deliver now for one that arrived (none, it, or it twice)."""
@@ -276,25 +288,29 @@ class FaultLayer:
         if not active:
             return [(key, payload)]
         sender = _sender(key)
+        cuts, effects = self._draws(key, payload, 2 * len(active)), []
         with self._lock:
-            hold_ns, copies = 0, 1
-            for fault in active:
-                cut = self._cut(fault, sender)
+            for fault, draw in zip(active, cuts, strict=False):
+                cut = self._cut(fault, sender, draw)
                 if cut is not None:
                     self.counts[cut] += 1
                     return []
+            hold_ns, copies = 0, 1
+            for fault, draw in zip(active, cuts[len(active) :], strict=True):
                 if not fault.hits(self.vehicle_id):
                     continue
                 if fault.kind == "delay":
-                    jitter = fault.jitter_s * (2.0 * self._rng.random() - 1.0)
+                    jitter = fault.jitter_s * (2.0 * draw - 1.0)
                     hold_ns += max(0, round((fault.delay_s + jitter) * 1e9))
-                    self.counts["delayed"] += 1
-                elif fault.kind == "reorder" and self._rng.random() < fault.probability:
-                    hold_ns += round(REORDER_HOLD_S * self._rng.random() * 1e9)
-                    self.counts["reordered"] += 1
-                elif fault.kind == "duplicate" and self._rng.random() < fault.probability:
+                    effects.append("delayed")
+                elif fault.kind == "reorder" and draw < fault.probability:
+                    hold_ns += round(REORDER_HOLD_S * draw / fault.probability * 1e9)
+                    effects.append("reordered")
+                elif fault.kind == "duplicate" and draw < fault.probability:
                     copies = 2
-                    self.counts["duplicated"] += 1
+                    effects.append("duplicated")
+            for effect in effects:
+                self.counts[effect] += 1
             if hold_ns == 0:
                 return [(key, payload)] * copies
             for _ in range(copies):

@@ -511,3 +511,52 @@ def test_a_duplicated_plan_is_counted_as_a_duplicate_by_the_bus() -> None:
         assert receiver.faults.counts["duplicated"] == 1
         b = bystander.counters()  # a bus without faults sees the plan once
         assert (b.received, b.accepted, b.duplicates) == (1, 1, 0)
+
+
+def test_a_kind_that_is_not_a_string_names_the_field():
+    for kind in (["loss"], {"a": 1}):
+        with pytest.raises(ConfigError) as e:
+            parse_faults({"faults": [{"kind": kind}]}, vehicle_ids=[1])
+        assert e.value.field == "faults[0].kind"
+
+
+def test_a_fault_file_that_is_not_text_names_the_option(tmp_path):
+    path = tmp_path / "binary.toml"
+    path.write_bytes(b"\xff\xfe")
+    with pytest.raises(ConfigError) as e:
+        load_faults(path, vehicle_ids=[1])
+    assert e.value.field == "--faults"
+
+
+def test_a_payload_cut_by_a_later_fault_counts_only_as_cut():
+    schedule = parse_faults(
+        {"faults": [{"kind": "delay", "delay_s": 0.3}, {"kind": "loss", "probability": 1.0}]},
+        vehicle_ids=[1, 2],
+    )
+    layer = FaultLayer(schedule, vehicle_id=1, clock=lambda: 0, seed=0)
+    assert layer.arrive(plan_key("t", 2), b"x") == []
+    assert layer.counts["lost"] == 1 and layer.counts["delayed"] == 0 and layer.held == 0
+
+
+def test_a_window_ends_on_its_nanosecond():
+    fault = parse_faults(
+        {"faults": [{"kind": "loss", "probability": 1.0, "start_s": 4.4, "duration_s": 11.8}]},
+        vehicle_ids=[1],
+    ).faults[0]
+    assert fault.active(4_400_000_000) and fault.active(16_199_999_999)
+    assert not fault.active(16_200_000_000) and not fault.active(4_399_999_999)
+
+
+def test_a_message_meets_the_same_fate_whatever_the_arrival_order():
+    schedule = parse_faults(
+        {"faults": [{"kind": "loss", "probability": 0.5}], "seed": 7}, vehicle_ids=[1, 2, 3]
+    )
+    payloads = [(plan_key("t", v), bytes([v, seq])) for seq in range(40) for v in (2, 3)]
+
+    def kept(order):
+        layer = FaultLayer(schedule, vehicle_id=1, clock=lambda: 0, seed=0)
+        return {p for k, p in order if layer.arrive(k, p)}
+
+    forward = kept(payloads)
+    assert 0 < len(forward) < len(payloads)
+    assert kept(list(reversed(payloads))) == forward
