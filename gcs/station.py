@@ -211,7 +211,12 @@ class GroundStation:
                 "link_age_s": None if link.last_wall_s is None else now - link.last_wall_s,
                 "qp_fallbacks": st.status.qp_fallbacks if st else 0,
             }
-        return {"phase": phase, "fleet_s": self.fleet_s(), "vehicles": vehicles}
+        return {
+            "phase": phase,
+            "fleet_s": self.fleet_s(),
+            "epoch_ns": self.epoch_ns,
+            "vehicles": vehicles,
+        }
 
     def metrics(self) -> dict | None:
         periods = min(self.live.complete_periods(), self.periods)

@@ -44,6 +44,8 @@ from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
+from fleetmpc.launch.process_faults import ProcessFaults
+from fleetmpc.onboard.faults import FaultSchedule, load_faults
 from fleetmpc.scenario import flight_time, load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -99,6 +101,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also gate the run on its formation: separation and centre-distance errors at most"
         " M metres (as `fleetmpc compose` does with 0.1); default: the safety gate only",
     )
+    parser.add_argument(
+        "--faults",
+        type=Path,
+        metavar="FILE",
+        help="inject the faults of a fault file: network faults into every agent's plan bus,"
+        " process faults (freeze, kill, restart a named process) at their fleet times"
+        " (faults/README.md)",
+    )
+    parser.add_argument(
+        "--agent-records",
+        action="store_true",
+        help="each agent writes one JSON line per step to RUN_DIR/agents/agent-<id>.jsonl"
+        " (pose, command, neighbour plan ages, mode, ...)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no status table")
 
 
@@ -108,6 +124,8 @@ class _Child:
     proc: subprocess.Popen
     log: Path
     expected_exit: bool = False
+    exit_handled: bool = False
+    """Its exit is not a failure of the run: a fault killed it, or it was restarted."""
 
 
 def _tail(path: Path, lines: int = _TAIL_LINES) -> str:
@@ -128,9 +146,10 @@ class Fleet:
         self.children: list[_Child] = []
         self.stage_s: dict[str, float] = {}
 
-    def start(self, spec: ProcessSpec) -> _Child:
+    def start(self, spec: ProcessSpec, *, again: bool = False) -> _Child:
+        """Start a process; `again`: a restart, whose output goes on in the same log."""
         log = self.logs / f"{spec.name}.log"
-        with open(log, "w") as out:
+        with open(log, "a" if again else "w") as out:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "fleetmpc.cli", *spec.argv],
                 stdout=out,
@@ -144,7 +163,14 @@ class Fleet:
         return child
 
     def get(self, name: str) -> _Child:
-        return next(c for c in self.children if c.spec.name == name)
+        """The newest process called `name` (a restarted one replaces its first)."""
+        return [c for c in self.children if c.spec.name == name][-1]
+
+    def restart(self, name: str) -> _Child:
+        """Start the process called `name` again (its old one's exit is then handled)."""
+        old = self.get(name)
+        old.exit_handled = True
+        return self.start(old.spec, again=True)
 
     def wait_for_text(self, child: _Child, text: str, *, timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
@@ -159,7 +185,9 @@ class Fleet:
         """The first child that exited when it should not have."""
         for c in self.children:
             rc = c.proc.poll()
-            if rc is not None and c.spec.role != "gcs" and (rc != 0 or not c.expected_exit):
+            if c.exit_handled or rc is None or c.spec.role == "gcs":
+                continue
+            if rc != 0 or not c.expected_exit:
                 return c
         return None
 
@@ -317,6 +345,37 @@ def _gcs_options(args: argparse.Namespace) -> list[str]:
     return options
 
 
+def _epoch_of(status_file: Path) -> int | None:
+    """The fleet epoch in the ground station's status file, None before it has one."""
+    try:
+        return json.loads(status_file.read_text()).get("epoch_ns")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _process_faults(schedule: FaultSchedule, fleet: Fleet, *, speed: float) -> ProcessFaults:
+    """The driver of the schedule's process faults on `fleet`: a killed process's exit is
+    handled (not a failure), a restart starts its spec again."""
+
+    def signal_process(name: str, signum: int) -> None:
+        child = fleet.get(name)
+        if signum == signal.SIGKILL:
+            child.exit_handled = True
+        if child.proc.poll() is None:
+            child.proc.send_signal(signum)
+
+    def start_process(name: str) -> None:
+        fleet.restart(name)
+
+    return ProcessFaults(
+        tuple(f for f in schedule.faults if not f.network),
+        signal_process=signal_process,
+        start_process=start_process,
+        log=lambda text: print(f"fleetmpc up: fault at {text}", flush=True),
+        speed=speed,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
@@ -327,6 +386,7 @@ def run(args: argparse.Namespace) -> int:
     status_file = run_dir / "status.json"
     viewer = args.viewer or _default_viewer()
     fleet = Fleet(run_dir)
+    status_file.unlink(missing_ok=True)  # (a run dir used again: not the last run's epoch)
     specs = fleet_processes(
         scenario,
         FleetOptions(
@@ -337,11 +397,24 @@ def run(args: argparse.Namespace) -> int:
             metrics=str(metrics),
             status_file=str(status_file),
             viewer=viewer,
+            agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
         ),
     )
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
     gcs_argv += gcs_options
     specs = [s if s.role != "gcs" else ProcessSpec(s.name, tuple(gcs_argv), s.role) for s in specs]
+    faults = None
+    if args.faults is not None:
+        schedule = load_faults(
+            args.faults, vehicle_ids=scenario.vehicle_ids, processes=[s.name for s in specs]
+        )
+        if any(f.network for f in schedule.faults):
+            extra = ("--faults", str(args.faults.resolve()))
+            specs = [
+                ProcessSpec(s.name, (*s.argv, *extra), s.role) if s.role == "agent" else s
+                for s in specs
+            ]
+        faults = _process_faults(schedule, fleet, speed=args.speed)
     interrupted = threading.Event()
     previous = {
         s: signal.signal(s, lambda *_: interrupted.set()) for s in (signal.SIGINT, signal.SIGTERM)
@@ -354,33 +427,57 @@ def run(args: argparse.Namespace) -> int:
     )
     failure: _ProcessFailed | None = None
     rc = None
+    gcs_lost = False
+    router_restarts = 0
     try:
         for spec in specs:
             child = fleet.start(spec)
             if spec.role == "router":
                 fleet.wait_for_text(child, "listening", timeout_s=15.0)
-        gcs = fleet.get("gcs")
         wall_limit = time.monotonic() + args.engage_timeout + duration / args.speed + 60.0
         while not interrupted.is_set():
+            if faults is not None:
+                if faults.epoch_ns is None:
+                    faults.epoch_ns = _epoch_of(status_file)
+                faults.poll()
+            gcs = fleet.get("gcs")
             rc = gcs.proc.poll()
-            if rc is not None:
+            if rc is not None and not gcs.exit_handled:
                 break
+            if gcs.exit_handled and not gcs_lost:
+                gcs_lost = True
+                print("fleetmpc up: the ground station is gone; the fleet flies on", flush=True)
+            if gcs_lost and (faults.fleet_s() or 0.0) >= duration + 1.0:
+                break
+            router = fleet.get("zenoh-router")
+            code = router.proc.poll()
+            if code is not None and not router.exit_handled:
+                # A service, not a reason to land the fleet: the agents rejoin it.
+                router_restarts += 1
+                print(f"fleetmpc up: zenoh-router exited (status {code}); restarting it")
+                fleet.restart("zenoh-router")
             bad = fleet.failed()
             if bad is not None:
                 raise _ProcessFailed(bad)
             if time.monotonic() > wall_limit:
                 raise _ProcessFailed(gcs, "did not finish in time")
             view.update()
-            interrupted.wait(0.5)
+            interrupted.wait(0.1 if faults is not None and faults.pending else 0.5)
     except _ProcessFailed as e:
         failure = e
     finally:
         view.close()
+        if faults is not None:
+            faults.release()
         t_stop = time.monotonic()
         codes = fleet.stop()
         stop_s = time.monotonic() - t_stop
         for s, handler in previous.items():
             signal.signal(s, handler)
+    if faults is not None and faults.done:
+        print("fleetmpc up: faults injected:\n" + "\n".join(f"  {d}" for d in faults.done))
+    if router_restarts:
+        print(f"fleetmpc up: zenoh-router restarted {router_restarts} time(s) after it exited")
     if failure is not None:
         print(f"fleetmpc up: FAILED: {failure}; the tail of its log:", file=sys.stderr)
         print(_tail(failure.child.log), file=sys.stderr)
@@ -398,6 +495,9 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if interrupted.is_set() and rc is None:
         return 130
+    if gcs_lost:
+        print("fleetmpc up: no metrics: a fault killed the ground station", flush=True)
+        return 0
     if codes.get("gcs") != 0:
         print(f"fleetmpc up: ground station reported a broken gate:\n{_tail(gcs.log, 5)}")
         return 1

@@ -22,12 +22,14 @@ import math
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.core.agent import Agent
+from fleetmpc.onboard.faults import FaultLayer, load_faults
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
@@ -92,6 +94,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-engage", action="store_true", help="never switch to offboard")
     parser.add_argument(
+        "--no-reengage",
+        action="store_true",
+        help="never take the vehicle back after the autopilot left offboard/guided (default: take"
+        " it back when the agent's own setpoint gap of 0.5 s or more caused it, never after a"
+        " pilot's or a ground station's mode change)",
+    )
+    parser.add_argument(
+        "--faults",
+        type=Path,
+        metavar="FILE",
+        help="inject the network faults of a fault file into this agent's plan bus (faults/)",
+    )
+    parser.add_argument(
         "--record", type=Path, help="write one JSON line per step here (folders are created)"
     )
 
@@ -111,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, name)
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"--{name.replace('_', '-')}", f"must be seconds > 0, got {value}")
+    faults = None
+    if args.faults is not None:
+        faults = load_faults(args.faults, vehicle_ids=scenario.vehicle_ids, network_only=True)
     clock = FleetClock(epoch_ns=args.epoch_ns, speed=args.speed, awaiting_epoch=args.wait_epoch)
     url = args.mavlink or mavlink_url(scenario.network, spec)
     agent = Agent(
@@ -138,6 +156,13 @@ def run(args: argparse.Namespace) -> int:
     link = bus = streamer = runner = None
     try:
         bus = open_fleet_bus(args, scenario, sender_id=spec.id)
+        if faults is not None:
+            bus.faults = FaultLayer(
+                faults,
+                vehicle_id=spec.id,
+                clock=lambda: clock.fleet_ns(time.time_ns()),
+                seed=scenario.seed,
+            )
         link = open_autopilot_link(url, system_id=args.target_system, vehicle_id=spec.id, log=_log)
         state = link.connect(timeout_s=args.connect_timeout)
         _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
@@ -151,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
             period_ns=scenario.controller.period_ns,
             engage=not args.no_engage,
             engage_timeout_s=args.engage_timeout,
+            reengage_after_gap_s=None if args.no_reengage else 0.5,
             stop_at_fleet_ns=None if args.duration is None else round(args.duration * 1e9),
         )
         runner = FleetRunner(

@@ -59,7 +59,9 @@ __all__ = [
     "parse_faults",
 ]
 
-FAULT_KINDS = ("loss", "delay", "duplicate", "reorder", "blackout", "partition")
+NETWORK_KINDS = ("loss", "delay", "duplicate", "reorder", "blackout", "partition")
+PROCESS_KINDS = ("freeze", "kill", "restart")
+FAULT_KINDS = NETWORK_KINDS + PROCESS_KINDS
 
 REORDER_HOLD_S = 0.5
 """Longest hold of a reordered message [s]: long enough for a plan at 5 Hz to be overtaken."""
@@ -71,6 +73,9 @@ _KEYS = {
     "reorder": {"probability"},
     "blackout": set(),
     "partition": {"groups"},
+    "freeze": {"process"},
+    "kill": {"process"},
+    "restart": {"process"},
 }
 _COMMON = {"kind", "start_s", "duration_s", "vehicles"}
 
@@ -88,6 +93,13 @@ class Fault:
     delay_s: float = 0.0
     jitter_s: float = 0.0
     groups: tuple[tuple[int, ...], ...] = ()
+    process: str = ""
+    """The process a process fault hits (a name of `fleetmpc up`'s process list)."""
+
+    @property
+    def network(self) -> bool:
+        """True for a fault of the plan bus (not of a process)."""
+        return self.kind in NETWORK_KINDS
 
     def active(self, t_ns: int) -> bool:
         """True at fleet time t_ns inside [start, start + duration) (whole nanoseconds)."""
@@ -110,9 +122,16 @@ class Fault:
             "reorder": f"{self.probability:.0%} reordered",
             "blackout": "blackout",
             "partition": f"partition {[list(g) for g in self.groups]}",
+            "freeze": "frozen (SIGSTOP)",
+            "kill": "killed (SIGKILL)",
+            "restart": "killed, then restarted",
         }[self.kind]
         if self.kind == "partition":
             who = "the fleet"
+        if not self.network:
+            who = self.process
+            if self.kind == "kill":
+                return f"{who} {what} at {self.start_s:g} s"
         return f"{what} for {who}, {self.start_s:g} s to {end}"
 
 
@@ -135,15 +154,17 @@ def _vehicle_list(field: str, value: Any, fleet: Sequence[int]) -> tuple[int, ..
     return tuple(value)
 
 
-def _fault(table: Any, field: str, fleet: Sequence[int]) -> Fault:
+def _fault(table: Any, field: str, fleet: Sequence[int], processes: Sequence[str] | None) -> Fault:
     if not isinstance(table, dict):
         raise ConfigError(field, f"must be a table, got {table!r}")
     kind = table.get("kind")
     if not isinstance(kind, str) or kind not in _KEYS:
         raise ConfigError(f"{field}.kind", f"must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
     known = _COMMON | _KEYS[kind]
-    if kind == "partition":
+    if kind == "partition" or kind in PROCESS_KINDS:
         known = known - {"vehicles"}
+    if kind == "kill":
+        known = known - {"duration_s"}
     unknown = sorted(set(table) - known)
     if unknown:
         raise ConfigError(
@@ -178,11 +199,35 @@ def _fault(table: Any, field: str, fleet: Sequence[int]) -> Fault:
                 raise ConfigError(f"{field}.groups[{i}]", f"repeats vehicle {min(seen & set(g))}")
             seen |= set(g)
         args["groups"] = tuple(parsed)
+    if kind in PROCESS_KINDS:
+        if processes is None:
+            raise ConfigError(
+                f"{field}.kind",
+                f"{kind} is a process fault: only a live fleet (fleetmpc up) has it",
+            )
+        name = table.get("process")
+        if name not in processes:
+            raise ConfigError(
+                f"{field}.process",
+                f"must be one of the fleet's processes, got {name!r}"
+                f" (known: {', '.join(processes)})",
+            )
+        if kind != "kill" and "duration_s" not in table:
+            raise ConfigError(f"{field}.duration_s", f"a {kind} fault needs it (seconds > 0)")
+        args["process"] = name
     return Fault(**args)
 
 
-def parse_faults(doc: dict[str, Any], *, vehicle_ids: Sequence[int]) -> FaultSchedule:
-    """Validate a parsed fault file against the scenario's vehicle ids."""
+def parse_faults(
+    doc: dict[str, Any],
+    *,
+    vehicle_ids: Sequence[int],
+    processes: Sequence[str] | None = None,
+    network_only: bool = False,
+) -> FaultSchedule:
+    """Validate a parsed fault file against the scenario's vehicle ids and, for a live fleet,
+    its process names (without them a process fault is refused). `network_only`: leave the
+    process faults out unread (an agent, given the file its launcher checked)."""
     unknown = sorted(set(doc) - {"seed", "faults"})
     if unknown:
         raise ConfigError(unknown[0], "unknown top-level key (known: faults, seed)")
@@ -192,12 +237,18 @@ def parse_faults(doc: dict[str, Any], *, vehicle_ids: Sequence[int]) -> FaultSch
     tables = doc.get("faults")
     if not isinstance(tables, list) or not tables:
         raise ConfigError("faults", "must be a non-empty array of tables ([[faults]])")
-    faults = tuple(_fault(t, f"faults[{i}]", vehicle_ids) for i, t in enumerate(tables))
+    faults = tuple(_fault(t, f"faults[{i}]", vehicle_ids, processes) for i, t in enumerate(tables))
     return FaultSchedule(faults=faults, seed=seed)
 
 
-def load_faults(path: str | Path, *, vehicle_ids: Sequence[int]) -> FaultSchedule:
-    """Read and validate a fault file; errors name the file and the field."""
+def load_faults(
+    path: str | Path,
+    *,
+    vehicle_ids: Sequence[int],
+    processes: Sequence[str] | None = None,
+    network_only: bool = False,
+) -> FaultSchedule:
+    """Read and validate a fault file (`parse_faults`); errors name the file and the field."""
     path = Path(path)
     try:
         doc = tomllib.loads(path.read_text())
@@ -208,7 +259,9 @@ def load_faults(path: str | Path, *, vehicle_ids: Sequence[int]) -> FaultSchedul
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("--faults", f"{path} is not valid TOML: {e}") from None
     try:
-        return parse_faults(doc, vehicle_ids=vehicle_ids)
+        return parse_faults(
+            doc, vehicle_ids=vehicle_ids, processes=processes, network_only=network_only
+        )
     except ConfigError as e:
         raise ConfigError(f"{path}: {e.field}", str(e).split(": ", 1)[1]) from None
 
@@ -234,7 +287,7 @@ class FaultLayer:
         seed: int,
     ) -> None:
         self.vehicle_id = vehicle_id
-        self._faults = schedule.faults
+        self._faults = tuple(f for f in schedule.faults if f.network)
         self._clock = clock
         base = schedule.seed if schedule.seed is not None else seed
         self._key = f"{base}/{vehicle_id}".encode()

@@ -190,7 +190,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         now = self.state()
         if now.mode_lost and not was_lost:
             name = mode.name if mode is not None else "an unknown mode"
-            self._log(f"mode lost: the autopilot switched to {name}; not re-engaging")
+            self._log(f"mode lost: the autopilot switched to {name}")
 
     # -- send -----------------------------------------------------------------------------------
     def _target(self) -> int:

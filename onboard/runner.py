@@ -78,6 +78,11 @@ class RunnerSettings:
     """Autopilot time of zero setpoints before engaging (PX4 needs >= 1 s) [ns]."""
     engage_timeout_s: float = 10.0
     """Wall time to keep asking the autopilot to engage [s]."""
+    reengage_after_gap_s: float | None = 0.5
+    """Take the vehicle back when the autopilot left offboard/guided within a few seconds of a
+    gap of at least this much fleet time in the agent's own setpoint stream (the agent froze or
+    stalled: the autopilot's failsafe is the agent's doing) [s]; None: never. A mode change
+    while the stream was whole is a pilot's or a ground station's, and is never undone."""
     stop_at_fleet_ns: int | None = None
     """Stop once fleet time reaches this [ns] (None: run until stopped)."""
     extra: dict = field(default_factory=dict)
@@ -90,6 +95,11 @@ class RunnerSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 0:
                 raise ConfigError(name, f"must be an integer >= 0, got {value!r}")
+
+
+_OWN_GAP_WINDOW_S = 5.0
+"""How far back (fleet time) a setpoint gap counts as the cause of a lost mode [s]: PX4 leaves
+offboard 1 s (COM_OF_LOSS_T) and ArduCopter's guided mode 3 s (GUID_TIMEOUT) into a gap."""
 
 
 def _hold_plan(plan: Plan, state: LinkState) -> Plan:
@@ -156,6 +166,8 @@ class FleetRunner:
         self.epoch_received_wall_ns: int | None = None
         self._streamer: SetpointStreamer | None = None
         self._other_epoch_reported = False
+        self.reengaged = 0
+        """Times the vehicle was taken back after the agent's own setpoint gap."""
 
     # -- the fleet epoch ------------------------------------------------------------------------
     def poll_epoch(self) -> None:
@@ -200,7 +212,7 @@ class FleetRunner:
         if not self.sync.clock.ready:
             self.poll_epoch()
         self.sync.update(time_boot_ns=state.time_boot_ns, received_wall_ns=state.received_ns)
-        if state.mode_lost and not self._mode_lost_reported:
+        if state.mode_lost and not self._mode_lost_reported and not self._own_gap_s():
             self._mode_lost_reported = True
             mode = state.mode.name if state.mode is not None else "unknown"
             self._log(f"vehicle {self.agent.vehicle_id}: mode lost ({mode}); not re-engaging")
@@ -328,6 +340,40 @@ class FleetRunner:
             "setpoint_rate_hz": self.setpoint_rate_hz(),
         }
 
+    # -- taking the vehicle back ----------------------------------------------------------------
+    def _own_gap_s(self) -> float | None:
+        """The agent's own recent setpoint gap [s of fleet time] if it is one that re-engaging
+        allows for (`RunnerSettings.reengage_after_gap_s`), else None."""
+        limit_s, streamer = self.settings.reengage_after_gap_s, self._streamer
+        if limit_s is None or streamer is None or not self.engaged:
+            return None
+        speed = self.sync.clock.speed
+        window_ns = round(_OWN_GAP_WINDOW_S * 1e9 / speed)
+        gap_s = streamer.longest_gap_ns(window_ns=window_ns) * 1e-9 * speed
+        return gap_s if gap_s >= limit_s else None
+
+    def _take_back(self, state: LinkState, streamer: SetpointStreamer) -> LinkState:
+        """Re-engage after the autopilot's failsafe if the agent's own setpoint gap caused it;
+        the vehicle holds where it is meanwhile. Returns the link's state after it."""
+        gap_s = self._own_gap_s()
+        if gap_s is None:
+            return state
+        mode = state.mode.name if state.mode is not None else "unknown"
+        self._log(
+            f"vehicle {self.agent.vehicle_id}: mode lost ({mode}) after a {gap_s:.1f} s gap in"
+            " its own setpoints; taking it back"
+        )
+        streamer.hold_position(north_m=state.north_m, east_m=state.east_m)
+        ok = self.link.engage(timeout_s=self.settings.engage_timeout_s)
+        self.reengaged += int(ok)
+        self._log(
+            f"vehicle {self.agent.vehicle_id}: "
+            + ("re-engaged" if ok else "could not re-engage; flying nothing")
+        )
+        if not ok:
+            self.engaged = False
+        return self.link.state()
+
     # -- the loop -------------------------------------------------------------------------------
     def run(self, stop: threading.Event, streamer: SetpointStreamer) -> None:
         """Step until `stop` is set, fleet time reaches `stop_at_fleet_ns` or `failure` is set.
@@ -359,6 +405,8 @@ class FleetRunner:
                     + ("engaged" if self.engaged else "could not engage; flying nothing")
                 )
                 state = self.link.state()
+            if state.mode_lost and self.engaged:
+                state = self._take_back(state, streamer)
             out = self.tick(state)
             if out is not None:
                 streamer.set_command(
@@ -384,6 +432,8 @@ class FleetRunner:
             "step_errors": self.step_errors,
             "qp_fallbacks": self.agent.fallbacks,
             "engaged": self.engaged,
+            "reengaged": self.reengaged,
+            "resumes": self.agent.resumes,
             "mode_lost": st.mode_lost,
             "mode": st.mode.name if st.mode is not None else None,
             "clock_offset_ns": self.sync.offset_ns,

@@ -68,6 +68,19 @@ class SetpointStreamer:
         with self._lock:
             self._hold = (float(north_m), float(east_m))
 
+    def longest_gap_ns(self, *, window_ns: int) -> int:
+        """The longest time between consecutive sends over the last `window_ns` of the
+        streamer's clock, counting the time since the last send [ns] (0 before any send)."""
+        times = self.send_times_ns
+        end = len(times)
+        if end == 0:
+            return 0
+        now = self._now()
+        start = max(0, bisect.bisect_right(times, now - window_ns, 0, end) - 1)
+        recent = times[start:end]
+        gaps = [b - a for a, b in zip(recent, recent[1:], strict=False)]
+        return max([now - recent[-1], *gaps])
+
     def rate_hz(self, *, window_ns: int) -> float:
         """Setpoints sent per second of the streamer's clock over its last `window_ns`."""
         if window_ns <= 0:

@@ -36,6 +36,9 @@ import zenoh
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 
+RECONNECT_RETRY = '{"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}'
+"""Zenoh's connect/retry: how often a member tries its router again once it is lost."""
+
 __all__ = [
     "DEFAULT_HOST",
     "DEFAULT_PORT",
@@ -130,6 +133,9 @@ class ZenohOptions:
         conf.insert_json5("connect/endpoints", _json_list(self.connect))
         # Explicitly empty: zenoh's peer default listens on tcp/[::]:0, every interface.
         conf.insert_json5("listen/endpoints", _json_list(self.listen))
+        # Retry a lost router every half second at most (zenoh's default backs off to 4 s):
+        # a restarted router is rejoined within a period or two.
+        conf.insert_json5("connect/retry", RECONNECT_RETRY)
         return disable_scouting(conf)
 
     @classmethod

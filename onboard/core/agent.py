@@ -157,6 +157,9 @@ class Agent:
         self._last_plan: Plan | None = None
         self.fallbacks = 0
         self.steps = 0
+        self.resumes = 0
+        """Steps that came after missed periods (the state filter restarted)."""
+        self._last_stamp_ns: int | None = None
 
     # -- pieces of a period ---------------------------------------------------------------------
     # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
@@ -226,8 +229,21 @@ class Agent:
             else np.asarray(inp.applied_input, float)
         )
         y = None if inp.measurement is None else np.asarray(inp.measurement, float)
+        resumed = (
+            self._last_stamp_ns is not None
+            and inp.stamp_ns - self._last_stamp_ns > 1.5 * s.period_ns
+        )
+        self._last_stamp_ns = inp.stamp_ns
         if y is not None and all(map(math.isfinite, y.tolist())):
-            self.dekf.step(y, applied)
+            if resumed and self.dekf.initialized:
+                # Periods were missed (the agent was late or frozen): what the vehicle did
+                # meanwhile is not one period of the last command, so the filter restarts at
+                # the measurement, learning nothing from the gap, and the old plan is dropped.
+                self.dekf.reset(y)
+                self._last_plan = None
+                self.resumes += 1
+            else:
+                self.dekf.step(y, applied)
         elif self.dekf.initialized:
             self.dekf.propagate(applied)
         if inp.target_observation is not None:

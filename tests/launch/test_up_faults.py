@@ -1,0 +1,102 @@
+"""`fleetmpc up --faults`: the live fleet through the process faults of faults/live/.
+
+Each test flies the paper fleet (on free ports, at x4 unless it says) through one fault file
+and checks what a live fleet must do through it: no process crashes, `up` ends well and says
+what it injected, the separation holds, and the fleet is back in formation after the fault
+(formation RMS of the last 10 s at most 1.5 times a fault-free run's; `BASELINE_RMS_M` is the
+fault-free figure measured here, with margin for the run-to-run spread of a live fleet).
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+from helpers import live_processes_naming, scenario_on_free_ports
+from test_up import Up
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = ROOT / "scenarios" / "paper.toml"
+FAULTS = ROOT / "faults" / "live"
+BASELINE_RMS_M = 0.08
+"""A fault-free live paper run's formation RMS (0.06-0.07 m at x1 and x4), rounded up."""
+
+
+@pytest.fixture
+def fly(tmp_path):
+    runs: list[Up] = []
+
+    def run(name: str, *extra: str) -> tuple[Up, int, dict | None]:
+        scenario = scenario_on_free_ports(PAPER, tmp_path / "paper-up.toml")
+        run_dir = tmp_path / name
+        up = Up(scenario, run_dir, "--faults", str(FAULTS / f"{name}.toml"), *extra)
+        runs.append(up)
+        rc = up.wait(timeout_s=180.0)
+        assert live_processes_naming(str(scenario)) == [], "processes left running"
+        metrics = run_dir / "metrics.json"
+        return up, rc, json.loads(metrics.read_text()) if metrics.is_file() else None
+
+    yield run
+    for up in runs:
+        up.kill_all()
+
+
+def _formation_back(m: dict) -> None:
+    assert m["min_separation_m"] >= 2.0, m
+    assert m["periods_recorded"] == m["periods_expected"], m
+    assert m["formation_rms_m"] <= 1.5 * BASELINE_RMS_M, m
+
+
+def test_a_frozen_agent_takes_its_vehicle_back(fly):
+    up, rc, m = fly("freeze-agent")
+    text = up.text()
+    assert rc == 0, text
+    assert "agent-2 frozen" in text and "agent-2 resumed" in text
+    log = (up.run_dir / "logs" / "agent-2.log").read_text()
+    assert "gap in its own setpoints; taking it back" in log and "re-engaged" in log, log
+    summary = json.loads(log.strip().splitlines()[-1])
+    assert summary["reengaged"] == 1 and summary["resumes"] >= 1, summary
+    _formation_back(m)
+
+
+def test_a_restarted_router_is_rejoined(fly):
+    # At x1: a router takes wall time to start, which at x4 is four times the fleet time (a
+    # 3 s outage becomes 6 s, long enough for the neighbours' plan-age margins to push the
+    # formation apart; docs/design.md, "Injected faults").
+    up, rc, m = fly("restart-router", "--agent-records", "--speed", "1")
+    assert rc == 0, up.text()
+    assert "zenoh-router killed" in up.text() and "zenoh-router restarted" in up.text()
+    _formation_back(m)
+    # Every agent hears both others again (plans younger than 0.5 s) within 2 s of the restart.
+    for vid in (1, 2, 3):
+        rows = [
+            json.loads(line)
+            for line in (up.run_dir / "agents" / f"agent-{vid}.jsonl").read_text().splitlines()
+        ]
+        after = [r for r in rows if r["stamp_ns"] >= 13e9]
+        fresh = [
+            r["stamp_ns"] * 1e-9
+            for r in after
+            if len(r["neighbour_ages_s"]) == 2
+            and all(a is not None and a < 0.5 for a in r["neighbour_ages_s"].values())
+        ]
+        assert fresh and fresh[0] <= 15.0, (vid, fresh[:3])
+
+
+def test_the_fleet_flies_on_without_its_ground_station(fly):
+    up, rc, m = fly("kill-ground-station")
+    text = up.text()
+    assert rc == 0, text
+    assert "the ground station is gone; the fleet flies on" in text
+    assert "no metrics: a fault killed the ground station" in text
+    for vid in (1, 2, 3):
+        log = (up.run_dir / "logs" / f"agent-{vid}.log").read_text()
+        summary = json.loads(log.strip().splitlines()[-1])
+        assert summary["steps"] >= 140 and summary["failure"] is None, summary
+
+
+def test_a_killed_agent_leaves_its_vehicle_holding_and_the_others_clear(fly):
+    up, rc, m = fly("kill-agent")
+    assert rc == 0, up.text()
+    assert "agent-2 killed" in up.text()
+    assert m["min_separation_m"] >= 2.0, m
+    assert m["periods_recorded"] == m["periods_expected"], m
