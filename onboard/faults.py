@@ -237,7 +237,11 @@ def parse_faults(
     tables = doc.get("faults")
     if not isinstance(tables, list) or not tables:
         raise ConfigError("faults", "must be a non-empty array of tables ([[faults]])")
-    faults = tuple(_fault(t, f"faults[{i}]", vehicle_ids, processes) for i, t in enumerate(tables))
+    faults = tuple(
+        _fault(t, f"faults[{i}]", vehicle_ids, processes)
+        for i, t in enumerate(tables)
+        if not (network_only and isinstance(t, dict) and t.get("kind") in PROCESS_KINDS)
+    )
     return FaultSchedule(faults=faults, seed=seed)
 
 

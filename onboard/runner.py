@@ -95,6 +95,9 @@ class RunnerSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 0:
                 raise ConfigError(name, f"must be an integer >= 0, got {value!r}")
+        gap = self.reengage_after_gap_s
+        if gap is not None and not (isinstance(gap, int | float) and 0 < gap < math.inf):
+            raise ConfigError("reengage_after_gap_s", f"must be None or seconds > 0, got {gap!r}")
 
 
 _OWN_GAP_WINDOW_S = 5.0
@@ -212,7 +215,7 @@ class FleetRunner:
         if not self.sync.clock.ready:
             self.poll_epoch()
         self.sync.update(time_boot_ns=state.time_boot_ns, received_wall_ns=state.received_ns)
-        if state.mode_lost and not self._mode_lost_reported and not self._own_gap_s():
+        if state.mode_lost and not self._mode_lost_reported and self._own_gap_s() is None:
             self._mode_lost_reported = True
             mode = state.mode.name if state.mode is not None else "unknown"
             self._log(f"vehicle {self.agent.vehicle_id}: mode lost ({mode}); not re-engaging")

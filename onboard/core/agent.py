@@ -160,6 +160,8 @@ class Agent:
         self.resumes = 0
         """Steps that came after missed periods (the state filter restarted)."""
         self._last_stamp_ns: int | None = None
+        self._resuming = False
+        """Periods were missed and no measurement has come since."""
 
     # -- pieces of a period ---------------------------------------------------------------------
     # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
@@ -229,13 +231,14 @@ class Agent:
             else np.asarray(inp.applied_input, float)
         )
         y = None if inp.measurement is None else np.asarray(inp.measurement, float)
-        resumed = (
+        if (
             self._last_stamp_ns is not None
             and inp.stamp_ns - self._last_stamp_ns > 1.5 * s.period_ns
-        )
+        ):
+            self._resuming = True  # (until a measurement comes)
         self._last_stamp_ns = inp.stamp_ns
         if y is not None and all(map(math.isfinite, y.tolist())):
-            if resumed and self.dekf.initialized:
+            if self._resuming and self.dekf.initialized:
                 # Periods were missed (the agent was late or frozen): what the vehicle did
                 # meanwhile is not one period of the last command, so the filter restarts at
                 # the measurement, learning nothing from the gap, and the old plan is dropped.
@@ -244,6 +247,7 @@ class Agent:
                 self.resumes += 1
             else:
                 self.dekf.step(y, applied)
+            self._resuming = False
         elif self.dekf.initialized:
             self.dekf.propagate(applied)
         if inp.target_observation is not None:
