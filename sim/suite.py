@@ -40,6 +40,7 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.sim import fault_matrix
 from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = [
@@ -347,6 +348,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, metavar="S", help="simulated seconds (default: each scenario's)"
     )
+    parser.add_argument(
+        "--faults",
+        metavar="FAULT_DIR",
+        help="fly the fault matrix instead: every fault file of FAULT_DIR against"
+        " --fault-scenario files (default: paper.toml and grid9.toml), each beside its run"
+        " without faults",
+    )
+    parser.add_argument(
+        "--fault-scenario",
+        dest="fault_scenarios",
+        action="append",
+        metavar="FILE",
+        help="a scenario for the fault matrix (repeatable)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no line per finished run")
 
 
@@ -363,6 +378,10 @@ def _progress(done: int, total: int, row: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.faults is not None:
+        if args.json == DEFAULT_JSON:
+            args.json = DEFAULT_JSON.with_name("faults.json")
+        return fault_matrix.run(args)
     folder = Path(args.dir)
     if not folder.is_dir():
         raise ConfigError("DIR", f"not a folder: {folder}")

@@ -5,6 +5,7 @@ For every case: the separation holds at plant rate, the run reports what it inje
 is at most 1.5 times that of the same run without faults.
 """
 
+import json
 import math
 from pathlib import Path
 
@@ -98,3 +99,23 @@ def test_sim_takes_a_fault_file_and_names_a_bad_field(tmp_path, capsys):
     assert (
         f"{bad}: faults[0].probability: must be in [0.0, 1.0], got 1.5" in capsys.readouterr().err
     )
+
+
+def test_the_fault_matrix_command_prints_its_table(tmp_path, capsys):
+    from fleetmpc.cli import main
+
+    cases = tmp_path / "faults"
+    cases.mkdir()
+    for name in ("loss30", "blackout"):
+        (cases / f"{name}.toml").write_text((ROOT / "faults" / f"{name}.toml").read_text())
+    paper = str(ROOT / "scenarios" / "paper.toml")
+    out_json = tmp_path / "faults.json"
+    args = ["suite", "--faults", str(cases), "--fault-scenario", paper, "--json", str(out_json)]
+    assert main(args) == 1  # the blackout misses the formation gate (see above)
+    out = capsys.readouterr().out
+    assert "gates missed: formation" in out
+    rows = {r["faults"]: r for r in json.loads(out_json.read_text())["rows"]}
+    assert rows["loss30"]["gates_failed"] == [] and rows["loss30"]["ratio"] <= 1.5
+    assert rows["blackout"]["gates_failed"] == ["formation"]
+    assert rows["blackout"]["min_separation_m"] >= 2.0
+    assert 0.0 < rows["blackout"]["recovery_s"] < 20.0
