@@ -98,7 +98,12 @@ class FleetClock:
     """
 
     def __init__(
-        self, *, epoch_ns: int | None = None, speed: float = 1.0, awaiting_epoch: bool = False
+        self,
+        *,
+        epoch_ns: int | None = None,
+        speed: float = 1.0,
+        awaiting_epoch: bool = False,
+        host_offset_ns: int = 0,
     ) -> None:
         if not (
             isinstance(speed, int | float)
@@ -110,10 +115,15 @@ class FleetClock:
             raise ConfigError("epoch_ns", f"must be an integer, got {epoch_ns!r}")
         if awaiting_epoch and epoch_ns is not None:
             raise ConfigError("epoch_ns", "give an epoch or wait for one, not both")
+        if isinstance(host_offset_ns, bool) or not isinstance(host_offset_ns, int):
+            raise ConfigError("host_offset_ns", f"must be an integer, got {host_offset_ns!r}")
         self._speed = float(speed)
         self._lock = threading.Lock()
         self._epoch_ns = epoch_ns
         self._awaiting = awaiting_epoch
+        self.host_offset_ns = host_offset_ns
+        """How far this host's clock reads ahead of the fleet's [ns] (0 on a synchronized host;
+        set to inject a clock offset)."""
 
     @property
     def speed(self) -> float:
@@ -166,7 +176,7 @@ class FleetClock:
             return None
         if epoch is None:
             return 0
-        return round((wall_ns - epoch) * self._speed)
+        return round((wall_ns + self.host_offset_ns - epoch) * self._speed)
 
 
 class ClockSync:

@@ -408,12 +408,16 @@ def run(args: argparse.Namespace) -> int:
         schedule = load_faults(
             args.faults, vehicle_ids=scenario.vehicle_ids, processes=[s.name for s in specs]
         )
+        extra: dict[str, tuple[str, ...]] = {}
         if any(f.network for f in schedule.faults):
-            extra = ("--faults", str(args.faults.resolve()))
-            specs = [
-                ProcessSpec(s.name, (*s.argv, *extra), s.role) if s.role == "agent" else s
-                for s in specs
-            ]
+            for s in specs:
+                if s.role == "agent":
+                    extra[s.name] = ("--faults", str(args.faults.resolve()))
+        for f in schedule.faults:
+            if f.kind == "clock_offset":  # (at launch: the process starts with it)
+                extra[f.process] = (*extra.get(f.process, ()), "--clock-offset", f"{f.offset_s:g}")
+                print(f"fleetmpc up: fault: {f.describe()}", flush=True)
+        specs = [ProcessSpec(s.name, (*s.argv, *extra.get(s.name, ())), s.role) for s in specs]
         faults = _process_faults(schedule, fleet, speed=args.speed)
     interrupted = threading.Event()
     previous = {

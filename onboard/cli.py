@@ -101,6 +101,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " pilot's or a ground station's mode change)",
     )
     parser.add_argument(
+        "--clock-offset",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="pretend this host's clock reads S seconds ahead of the fleet's (a fault to inject;"
+        " default 0)",
+    )
+    parser.add_argument(
         "--faults",
         type=Path,
         metavar="FILE",
@@ -129,7 +137,16 @@ def run(args: argparse.Namespace) -> int:
     faults = None
     if args.faults is not None:
         faults = load_faults(args.faults, vehicle_ids=scenario.vehicle_ids, network_only=True)
-    clock = FleetClock(epoch_ns=args.epoch_ns, speed=args.speed, awaiting_epoch=args.wait_epoch)
+    if not (math.isfinite(args.clock_offset) and abs(args.clock_offset) <= 60.0):
+        raise ConfigError(
+            "--clock-offset", f"must be seconds in [-60, 60], got {args.clock_offset}"
+        )
+    clock = FleetClock(
+        epoch_ns=args.epoch_ns,
+        speed=args.speed,
+        awaiting_epoch=args.wait_epoch,
+        host_offset_ns=round(args.clock_offset * 1e9),
+    )
     url = args.mavlink or mavlink_url(scenario.network, spec)
     agent = Agent(
         spec.id,

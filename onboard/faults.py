@@ -60,7 +60,7 @@ __all__ = [
 ]
 
 NETWORK_KINDS = ("loss", "delay", "duplicate", "reorder", "blackout", "partition")
-PROCESS_KINDS = ("freeze", "kill", "restart")
+PROCESS_KINDS = ("freeze", "kill", "restart", "clock_offset")
 FAULT_KINDS = NETWORK_KINDS + PROCESS_KINDS
 
 REORDER_HOLD_S = 0.5
@@ -76,6 +76,7 @@ _KEYS = {
     "freeze": {"process"},
     "kill": {"process"},
     "restart": {"process"},
+    "clock_offset": {"process", "offset_s"},
 }
 _COMMON = {"kind", "start_s", "duration_s", "vehicles"}
 
@@ -95,6 +96,8 @@ class Fault:
     groups: tuple[tuple[int, ...], ...] = ()
     process: str = ""
     """The process a process fault hits (a name of `fleetmpc up`'s process list)."""
+    offset_s: float = 0.0
+    """clock_offset: how far the process's clock reads ahead of the fleet's [s] (host time)."""
 
     @property
     def network(self) -> bool:
@@ -125,6 +128,7 @@ class Fault:
             "freeze": "frozen (SIGSTOP)",
             "kill": "killed (SIGKILL)",
             "restart": "killed, then restarted",
+            "clock_offset": f"clock {self.offset_s * 1e3:+g} ms",
         }[self.kind]
         if self.kind == "partition":
             who = "the fleet"
@@ -132,6 +136,8 @@ class Fault:
             who = self.process
             if self.kind == "kill":
                 return f"{who} {what} at {self.start_s:g} s"
+            if self.kind == "clock_offset":
+                return f"{who} {what}, the whole run"
         return f"{what} for {who}, {self.start_s:g} s to {end}"
 
 
@@ -165,6 +171,8 @@ def _fault(table: Any, field: str, fleet: Sequence[int], processes: Sequence[str
         known = known - {"vehicles"}
     if kind == "kill":
         known = known - {"duration_s"}
+    if kind == "clock_offset":
+        known = known - {"duration_s", "start_s"}
     unknown = sorted(set(table) - known)
     if unknown:
         raise ConfigError(
@@ -212,8 +220,14 @@ def _fault(table: Any, field: str, fleet: Sequence[int], processes: Sequence[str
                 f"must be one of the fleet's processes, got {name!r}"
                 f" (known: {', '.join(processes)})",
             )
-        if kind != "kill" and "duration_s" not in table:
+        if kind in ("freeze", "restart") and "duration_s" not in table:
             raise ConfigError(f"{field}.duration_s", f"a {kind} fault needs it (seconds > 0)")
+        if kind == "clock_offset":
+            if not name.startswith("agent-"):
+                raise ConfigError(f"{field}.process", f"a clock offset is an agent's, got {name!r}")
+            if "offset_s" not in table:
+                raise ConfigError(f"{field}.offset_s", "a clock_offset fault needs it (seconds)")
+            args["offset_s"] = in_range(f"{field}.offset_s", table["offset_s"], -60.0, 60.0)
         args["process"] = name
     return Fault(**args)
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from fleetmpc.clock import Clock, ManualClock, RealTimeClock
+from fleetmpc.clock import Clock, FleetClock, ManualClock, RealTimeClock
 from fleetmpc.errors import ConfigError
 
 
@@ -29,3 +29,10 @@ def test_real_time_clock_is_integer_monotonic_and_scaled(speed):
 def test_bad_speeds_are_refused(speed):
     with pytest.raises(ConfigError, match="speed"):
         RealTimeClock(speed=speed)
+
+
+def test_a_host_offset_moves_fleet_time_by_the_offset_times_the_speed():
+    clock = FleetClock(epoch_ns=1_000, speed=4.0, host_offset_ns=300)
+    assert clock.fleet_ns(2_000) == round((2_000 + 300 - 1_000) * 4.0)
+    with pytest.raises(ConfigError, match="host_offset_ns"):
+        FleetClock(host_offset_ns=0.5)

@@ -77,7 +77,7 @@ class Neighbourhood:
         for nid in self.neighbour_ids:
             plan = neighbour_plans.get(nid)
             age = ages.get(nid, math.inf)
-            if plan is None or age > s.plan_forget_s or age < -s.period_s:
+            if plan is None or abs(age) > s.plan_forget_s:
                 inflations.append(math.inf)
                 continue
             inflations.append(s.speed_max_m_s * max(0.0, age - s.period_s))

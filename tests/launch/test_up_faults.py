@@ -100,3 +100,23 @@ def test_a_killed_agent_leaves_its_vehicle_holding_and_the_others_clear(fly):
     assert "agent-2 killed" in up.text()
     assert m["min_separation_m"] >= 2.0, m
     assert m["periods_recorded"] == m["periods_expected"], m
+
+
+def test_an_agent_whose_clock_runs_fast_is_still_avoided_and_flown_with(fly):
+    up, rc, m = fly("clock-offset", "--agent-records")
+    assert rc == 0, up.text()
+    assert "agent-2 clock +300 ms, the whole run" in up.text()
+    # Not back in formation: agent 2 flies to where the target will be 1.2 s of fleet time
+    # later (docs/design.md, "Injected faults"); the fleet keeps its distance from it.
+    assert m["min_separation_m"] >= 2.0, m
+    assert m["periods_recorded"] == m["periods_expected"], m
+    # Agent 2's plans are stamped 0.3 s x 4 (its fleet time runs ahead) in the others' future:
+    # they still fly with it (its formation term counts) rather than ignoring it.
+    rows = [
+        json.loads(line)
+        for line in (up.run_dir / "agents" / "agent-1.jsonl").read_text().splitlines()
+    ]
+    flying = [r for r in rows if r["stamp_ns"] >= 5e9]
+    ages = [r["neighbour_ages_s"]["2"] for r in flying if r["neighbour_ages_s"].get("2")]
+    assert ages and min(ages) < -0.5, ages[:5]
+    assert all(r["formation_terms"] == 2 for r in flying[-50:])

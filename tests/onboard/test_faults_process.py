@@ -239,3 +239,19 @@ def test_a_process_fault_describes_the_process_it_hits() -> None:
     assert restart.describe() == "killed, then restarted for zenoh-router, 10 s to 13 s"
     for f in (kill, freeze, restart):
         assert "vehicle" not in f.describe()
+
+
+def test_a_clock_offset_is_an_agents_and_needs_its_offset():
+    fault = live({"kind": "clock_offset", "process": "agent-2", "offset_s": 0.3}).faults[0]
+    assert fault.offset_s == 0.3 and not fault.network
+    assert fault.describe() == "agent-2 clock +300 ms, the whole run"
+    for table, field in (
+        ({"kind": "clock_offset", "process": "gcs", "offset_s": 0.3}, "faults[0].process"),
+        ({"kind": "clock_offset", "process": "agent-1"}, "faults[0].offset_s"),
+        ({"kind": "clock_offset", "process": "agent-1", "offset_s": 99.0}, "faults[0].offset_s"),
+        ({"kind": "clock_offset", "process": "agent-1", "offset_s": 0.1, "start_s": 1.0},
+         "faults[0].start_s"),
+    ):  # fmt: skip
+        with pytest.raises(ConfigError) as e:
+            live(table)
+        assert e.value.field == field
