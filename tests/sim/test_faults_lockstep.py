@@ -119,3 +119,18 @@ def test_the_fault_matrix_command_prints_its_table(tmp_path, capsys):
     assert rows["blackout"]["gates_failed"] == ["formation"]
     assert rows["blackout"]["min_separation_m"] >= 2.0
     assert 0.0 < rows["blackout"]["recovery_s"] < 20.0
+
+
+def test_every_other_agent_sees_a_silent_vehicle_go_stale_within_half_a_second():
+    faults = load_faults(ROOT / "faults" / "blackout.toml", vehicle_ids=PAPER.vehicle_ids)
+    rec = run_lockstep(PAPER, faults=faults, duration_s=12.0)
+    tau = PAPER.controller.period_s
+    k = int(round(10.4 / tau))  # 0.4 s into vehicle 2's blackout
+    # plan_age_s[k, i] lists the others of vehicle i in fleet order: vehicle 2 is the first
+    # other of vehicle 1 and of vehicle 3. Its last plan heard is the one of 9.8 s; at 10.4 s it
+    # is older than two periods, the age at which a neighbour gets the whole distance.
+    seen_by_1, seen_by_3 = rec.plan_age_s[k, 0, 0], rec.plan_age_s[k, 2, 1]
+    assert seen_by_1 == pytest.approx(0.6) and seen_by_3 == pytest.approx(0.6)
+    assert seen_by_1 > 2 * tau
+    assert rec.plan_age_s[k - 3, 0, 0] == pytest.approx(tau)  # 9.8 s: heard as usual
+    assert rec.plan_age_s[k, 0, 1] == pytest.approx(tau)  # vehicle 3 still heard by 1
