@@ -81,11 +81,85 @@ class Network:
         """PX4: the offboard-API UDP port vehicle `vehicle_id` streams to (agents listen here)."""
         return _derived_port("network.offboard_base_port", self.offboard_base_port, vehicle_id - 1)
 
+    def offboard_local_port(self, vehicle_id: int) -> int:
+        """PX4: the UDP port vehicle `vehicle_id`'s SITL binds its offboard link to (PX4's
+        14580 + i - 1 on PX4's default network, moved with `offboard_base_port`)."""
+        moved = self.offboard_base_port - Network.offboard_base_port
+        return _derived_port(
+            "network.offboard_base_port", PX4_OFFBOARD_LOCAL_BASE_PORT + moved, vehicle_id - 1
+        )
+
+    def gcs_local_port(self, vehicle_id: int) -> int:
+        """The UDP port vehicle `vehicle_id`'s SITL binds its ground-station link to (PX4's
+        18570 + i - 1 on PX4's default network, moved with `gcs_port`)."""
+        moved = self.gcs_port - Network.gcs_port
+        return _derived_port("network.gcs_port", PX4_GCS_LOCAL_BASE_PORT + moved, vehicle_id - 1)
+
+    def ports(self, vehicles: "tuple[VehicleSpec, ...]") -> list[tuple[str, int, str, str]]:
+        """Every port a fleet of `vehicles` binds or streams to on `host`, as (protocol, port,
+        whose, the field it derives from)."""
+        out = [
+            ("udp", self.gcs_port, "the ground station", "network.gcs_port"),
+            ("tcp", self.zenoh_port, "the Zenoh router", "network.zenoh_port"),
+        ]
+        for v in vehicles:
+            if v.autopilot == "ardupilot":
+                out.append(
+                    (
+                        "tcp",
+                        self.ardupilot_tcp_port(v.id),
+                        f"vehicle {v.id}'s ArduPilot link",
+                        "network.ardupilot_tcp_base_port",
+                    )
+                )
+            else:
+                out.append(
+                    (
+                        "udp",
+                        self.offboard_port(v.id),
+                        f"vehicle {v.id}'s offboard link",
+                        "network.offboard_base_port",
+                    )
+                )
+                out.append(
+                    (
+                        "udp",
+                        self.offboard_local_port(v.id),
+                        f"vehicle {v.id}'s SITL offboard port",
+                        "network.offboard_base_port",
+                    )
+                )
+            out.append(
+                (
+                    "udp",
+                    self.gcs_local_port(v.id),
+                    f"vehicle {v.id}'s SITL ground-station port",
+                    "network.gcs_port",
+                )
+            )
+        return out
+
     def ardupilot_tcp_port(self, vehicle_id: int) -> int:
         """ArduPilot: the TCP port vehicle `vehicle_id`'s SITL serves (agents connect here)."""
         return _derived_port(
             "network.ardupilot_tcp_base_port", self.ardupilot_tcp_base_port, 10 * (vehicle_id - 1)
         )
+
+
+PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
+"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
+PX4_GCS_LOCAL_BASE_PORT = 18570
+"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1), on PX4's default network."""
+
+
+def _check_ports(network: Network, vehicles: "tuple[VehicleSpec, ...]") -> None:
+    """Refuse a fleet two of whose processes would use the same port (naming the field)."""
+    seen: dict[tuple[str, int], str] = {}
+    for proto, port, whose, field in network.ports(vehicles):
+        other = seen.get((proto, port))
+        if other is not None:
+            raise ConfigError(field, f"{proto.upper()} port {port} of {whose} is already {other}'s")
+        seen[(proto, port)] = whose
 
 
 def _derived_port(field: str, base: int, step: int) -> int:
@@ -307,9 +381,10 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
                 )
     site = _build(Site, doc.get("site", {}), "site")
     network = _build(Network, doc.get("network", {}), "network")
-    for v in vehicles:  # every vehicle's default ports exist
+    for v in vehicles:  # every vehicle's default ports exist (either profile can fly it)
         network.offboard_port(v.id)
         network.ardupilot_tcp_port(v.id)
+    _check_ports(network, tuple(vehicles))
     return Scenario(
         name=name,
         description=str(doc.get("description", "")),

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
-from fleetmpc.scenario import Network, Scenario, load_scenario
+from fleetmpc.scenario import Scenario, load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
@@ -29,11 +29,6 @@ __all__ = ["add_arguments", "build_config", "run"]
 
 EXIT_WITHOUT_TEARDOWN = True
 """A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
-
-PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
-"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
-PX4_GCS_LOCAL_BASE_PORT = 18570
-"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1), on PX4's default network."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -101,16 +96,12 @@ class _Defaults:
 
 
 def _default_ports(scenario: Scenario, vehicle_id: int, offset: int) -> _Defaults:
-    n, px4 = scenario.network, Network()
-    i = vehicle_id - 1
-    # The bound ports move with the ports streamed to (PX4's defaults for PX4's network).
-    offboard_moved = n.offboard_base_port - px4.offboard_base_port
-    gcs_moved = n.gcs_port - px4.gcs_port
+    n = scenario.network
     return _Defaults(
         offboard_port=n.offboard_port(vehicle_id) + offset,
-        offboard_local_port=PX4_OFFBOARD_LOCAL_BASE_PORT + offboard_moved + i + offset,
+        offboard_local_port=n.offboard_local_port(vehicle_id) + offset,
         gcs_port=n.gcs_port + offset,
-        gcs_local_port=PX4_GCS_LOCAL_BASE_PORT + gcs_moved + i + offset,
+        gcs_local_port=n.gcs_local_port(vehicle_id) + offset,
         tcp_port=n.ardupilot_tcp_port(vehicle_id) + offset,
     )
 

@@ -17,8 +17,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetmpc.scenario import Network
-from fleetmpc.sitl.cli import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT
+from fleetmpc.scenario import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT, Network
 
 __all__ = [
     "ROOT",
@@ -85,18 +84,24 @@ def _ephemeral_floor() -> int:
 
 
 def free_port_block(
-    offsets: Iterable[int] = (0,), *, kinds: Sequence[int] = (socket.SOCK_DGRAM,)
+    offsets: Iterable[int] = (0,),
+    *,
+    kinds: Sequence[int] = (socket.SOCK_DGRAM,),
+    avoid: Iterable[int] = (),
 ) -> int:
-    """A base port b such that b + o is free for every offset o and every socket kind.
+    """A base port b such that b + o is free for every offset o and every socket kind, and
+    none of them is in `avoid` (ports already handed out for something else).
 
     Picked at random below the kernel's ephemeral range, so ports handed out to other sockets
     bound to port 0 (a colleague's test, a SITL's "any port") cannot take it in the meantime.
     """
-    offsets = tuple(offsets)
+    offsets, avoid = tuple(offsets), set(avoid)
     top = _ephemeral_floor() - max(offsets) - 1
     for _ in range(500):
         base = random.randrange(10000, top)
-        if all(port_is_free(base + o, kind) for o in offsets for kind in kinds):
+        if avoid.isdisjoint(base + o for o in offsets) and all(
+            port_is_free(base + o, kind) for o in offsets for kind in kinds
+        ):
             return base
     raise AssertionError(f"no free block of ports at offsets {offsets}")
 
@@ -139,11 +144,15 @@ def scenario_on_free_ports(source: Path, dest: Path) -> Path:
     offboard_bound = PX4_OFFBOARD_LOCAL_BASE_PORT - px4.offboard_base_port
     gcs_bound = PX4_GCS_LOCAL_BASE_PORT - px4.gcs_port
     udp, tcp = (socket.SOCK_DGRAM,), (socket.SOCK_STREAM,)
+    offboard_offsets = [*range(n), *(offboard_bound + i for i in range(n))]
+    offboard = free_port_block(offboard_offsets, kinds=udp)
     network = {
-        "offboard_base_port": free_port_block(
-            [*range(n), *(offboard_bound + i for i in range(n))], kinds=udp
+        "offboard_base_port": offboard,
+        "gcs_port": free_port_block(
+            [0, *(gcs_bound + i for i in range(n))],
+            kinds=udp,
+            avoid=[offboard + o for o in offboard_offsets],
         ),
-        "gcs_port": free_port_block([0, *(gcs_bound + i for i in range(n))], kinds=udp),
         "ardupilot_tcp_base_port": free_port_block([10 * i for i in range(n)], kinds=tcp),
         "zenoh_port": free_port_block(range(n + 2), kinds=tcp),
     }

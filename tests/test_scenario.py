@@ -123,3 +123,25 @@ def test_mixed_autopilots_is_the_paper_fleet_with_an_ardupilot_vehicle(paper):
         assert (a.id, a.initial, a.slot_m, a.truth) == (b.id, b.initial, b.slot_m, b.truth)
     for field in ("seed", "duration_s", "controller", "learning", "formation", "target"):
         assert getattr(mixed, field) == getattr(paper, field), field
+
+
+def test_a_fleet_whose_ports_collide_is_refused_naming_the_field():
+    from fleetmpc.scenario import parse_scenario
+
+    vehicles = [
+        {"id": i, "initial": [0.0, 5.0 * i, 0.0], "slot_m": [0.0, 5.0 * i]} for i in range(1, 12)
+    ]
+    doc = {"name": "eleven", "vehicles": vehicles}
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(doc)  # vehicle 11's offboard port would be 14540 + 10 = 14550
+    assert e.value.field == "network.offboard_base_port"
+    assert "UDP port 14550 of vehicle 11's offboard link is already the ground station's" in str(
+        e.value
+    )
+    moved = {**doc, "network": {"gcs_port": 14650}}
+    assert len(parse_scenario(moved).vehicles) == 11
+    ardupilot = [{**v, "autopilot": "ardupilot"} for v in vehicles[:2]]
+    clash = {"name": "clash", "vehicles": ardupilot, "network": {"zenoh_port": 5770}}
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(clash)
+    assert e.value.field == "network.ardupilot_tcp_base_port"
