@@ -5,6 +5,7 @@ the run, the telemetry sinks it feeds, its status snapshots and metrics, and the
 logging benchmark feed it directly.
 """
 
+import contextlib
 import math
 import queue
 import time
@@ -19,6 +20,7 @@ from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
+    LandedState,
     ModeFlag,
     Severity,
     mode_from_custom,
@@ -43,10 +45,20 @@ class VehicleLink:
     messages: int = 0
     lost_reported: bool = False
     clock: ClockSync | None = None
+    landed_state: LandedState | None = None
+    """EXTENDED_SYS_STATE's landed state (None: not reported)."""
 
     @property
     def engaged(self) -> bool:
-        return self.armed and self.mode == FlightMode.OFFBOARD
+        """Armed, in offboard/guided, and able to fly the agent's setpoints: ArduCopter reads
+        no guided target until its takeoff is over, so it must report itself in the air (when it
+        reports a landed state at all); PX4 flies offboard setpoints from the ground, but not
+        through a takeoff."""
+        if not (self.armed and self.mode == FlightMode.OFFBOARD):
+            return False
+        if self.autopilot == Autopilot.ARDUPILOTMEGA:
+            return self.landed_state in (None, LandedState.IN_AIR)
+        return self.landed_state != LandedState.TAKEOFF
 
 
 class GroundStation:
@@ -109,6 +121,9 @@ class GroundStation:
                 name = mode.name if mode is not None else f"custom mode {msg.custom_mode}"
                 self._event("INFO", f"UAV {vid}: {name}, {'armed' if armed else 'disarmed'}")
             link.autopilot, link.mode, link.armed = autopilot, mode, armed
+        elif kind == "EXTENDED_SYS_STATE":
+            with contextlib.suppress(ValueError):
+                link.landed_state = LandedState(msg.landed_state)
         elif kind == "STATUSTEXT":
             level = "WARN" if msg.severity <= Severity.WARNING else "INFO"
             self._event(level, f"UAV {vid}: {msg.text}")

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode
+from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode, LandedState
 
 __all__ = [
     "AutopilotLink",
@@ -70,6 +70,8 @@ class LinkState:
     """Messages dropped because a field failed validation."""
     last_text: str = ""
     """Last STATUSTEXT from the autopilot."""
+    landed_state: LandedState | None = None
+    """EXTENDED_SYS_STATE's landed state (None: not reported)."""
 
     @property
     def has_pose(self) -> bool:

@@ -25,6 +25,7 @@ from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, L
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
+    LandedState,
     MavResult,
     ModeFlag,
     Px4MainMode,
@@ -46,6 +47,7 @@ STREAM_INTERVALS_US = {
     30: 33_333,  # ATTITUDE: the yaw, with it
     33: -1,  # GLOBAL_POSITION_INT: not read here (the ground station has a link of its own)
     74: -1,  # VFR_HUD: not read here
+    245: 200_000,  # EXTENDED_SYS_STATE: the landed state (a takeoff's end), at 5 Hz
 }
 """SET_MESSAGE_INTERVAL requests [us] a link makes when it connects (-1: stop the stream). A
 PX4 "onboard" link streams about 150 messages per second of autopilot time by default, half of
@@ -157,6 +159,11 @@ class MavlinkAutopilotLink(AutopilotLink):
                 with self._cond:
                     self._acks[int(msg.command)] = int(msg.result)
                     self._cond.notify_all()
+        elif kind == "EXTENDED_SYS_STATE":
+            try:
+                self._update(landed_state=LandedState(msg.landed_state))
+            except ValueError:
+                self._update(rejected=st.rejected + 1)
         elif kind == "STATUSTEXT":
             text = str(getattr(msg, "text", ""))[:50]
             self._update(last_text=text)
@@ -308,6 +315,7 @@ class MavlinkAutopilotLink(AutopilotLink):
                 self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
                 and self._retry(400, (1.0,), timeout_s=timeout_s)
                 and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
+                and self._wait_airborne(timeout_s=timeout_s)
             )
         else:
             ok = self._retry(400, (1.0,), timeout_s=timeout_s) and self._set_mode(
@@ -316,6 +324,29 @@ class MavlinkAutopilotLink(AutopilotLink):
         if ok:
             self._update(engaged=True, mode_lost=False)
         return ok
+
+    def _wait_airborne(self, *, timeout_s: float) -> bool:
+        """Until the takeoff is over: ArduCopter reads no GUIDED target while it climbs
+        (its landed state is TAKEOFF), so the vehicle is not the agent's until then. An
+        autopilot that reports no landed state within a second is taken at its word."""
+        deadline = time.monotonic() + timeout_s
+        quiet_until = time.monotonic() + 1.0
+        with self._cond:
+            while not self._stop.is_set():
+                st = self._state
+                if st.landed_state == LandedState.IN_AIR:
+                    return True
+                if st.landed_state is None and time.monotonic() >= quiet_until:
+                    return True
+                if not st.armed or (st.mode is not None and st.mode != FlightMode.OFFBOARD):
+                    self._log("the takeoff ended before the vehicle was airborne")
+                    return False
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self._log(f"not airborne {timeout_s:g} s after the takeoff command")
+                    return False
+                self._cond.wait(min(left, 0.1))
+        return False
 
     def hold(self) -> bool:
         self._update(engaged=False)

@@ -180,3 +180,21 @@ def test_a_dead_sitl_is_named_and_up_fails(scenario, launch, tmp_path):
     assert rc == 1, text
     assert "FAILED: sitl-2" in text, text
     assert live_processes_naming(str(scenario)) == []
+
+
+def test_up_flies_the_mixed_fleet_at_x1_within_the_gates(launch, tmp_path):
+    """The ArduPilot-profile vehicle's takeoff takes 6.7 s of fleet time: at x1 it used to be
+    still climbing, flying none of its setpoints, when the fleet epoch came (its agent learned an
+    effectiveness of 0.5 from it, and it flew 1 m off its slot)."""
+    mixed = scenario_on_free_ports(
+        ROOT / "scenarios" / "mixed-autopilots.toml", tmp_path / "m.toml"
+    )
+    metrics = tmp_path / "metrics.json"
+    up = launch(mixed, tmp_path / "run", "--speed", "1", "--metrics", str(metrics))
+    assert up.wait(timeout_s=180.0) == 0, up.text()
+    m = json.loads(metrics.read_text())
+    assert all(e <= 0.1 for e in m["separation_error_m"]), m["separation_error_m"]
+    assert m["centre_distance_error_m"] <= 0.1, m
+    assert m["min_separation_m"] >= 2.0, m
+    log = (tmp_path / "run" / "logs" / "agent-2.log").read_text()
+    assert "vehicle 2: engaged" in log
