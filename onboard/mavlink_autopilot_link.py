@@ -195,7 +195,11 @@ class MavlinkAutopilotLink(AutopilotLink):
             heartbeats=st.heartbeats + 1,
         )
         now = self.state()
-        if now.mode_lost and not was_lost:
+        if now.engaged and st.armed and not armed and not now.mode_lost:
+            # (the mode may stay GUIDED: ArduCopter's auto-disarm on the ground, a crash)
+            self._update(mode_lost=True)
+            self._log("mode lost: the autopilot disarmed")
+        elif now.mode_lost and not was_lost:
             name = mode.name if mode is not None else "an unknown mode"
             self._log(f"mode lost: the autopilot switched to {name}")
 

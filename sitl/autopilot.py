@@ -17,7 +17,8 @@ Profiles:
 - ArduPilot (Copter): boots in STABILIZE. Arming and the modes that need a position are refused
   until the position estimate is ready (`position_ready_ns` after boot). GUIDED targets are used
   only once airborne and the takeoff (the takeoff command comes first) is complete; after
-  `guided_timeout_ns` without a new one the vehicle holds position (mode stays GUIDED).
+  `guided_timeout_ns` without a new one the vehicle holds position (mode stays GUIDED). Armed on
+  the ground without a takeoff for `disarm_delay_ns` (DISARM_DELAY), it disarms itself.
 Position control. A flying vehicle that is not given a velocity demand holds its position, as a
 real autopilot's position controller does against the wind: in HOLD, during a takeoff climb or a
 landing, in GUIDED without a fresh target, and in OFFBOARD/GUIDED on a position setpoint (which
@@ -108,6 +109,9 @@ class AutopilotConfig:
     """ArduPilot: a GUIDED velocity target older than this is replaced by zero velocity [ns]."""
     position_ready_ns: int = 4_000_000_000
     """ArduPilot: time after boot at which the position estimate becomes ready [ns]."""
+    disarm_delay_ns: int = 10_000_000_000
+    """ArduPilot DISARM_DELAY: armed on the ground without taking off for this long, the vehicle
+    disarms itself [ns] (ArduCopter's default 10 s; 0: never)."""
     yaw_gain_1_s: float = 2.0
     """Yaw rate per radian of heading error when a setpoint carries a yaw [1/s]."""
 
@@ -131,6 +135,7 @@ class AutopilotConfig:
             "offboard_loss_timeout_ns",
             "guided_timeout_ns",
             "position_ready_ns",
+            "disarm_delay_ns",
         ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
@@ -167,6 +172,8 @@ class Autopilot:
         self._stream = _Stream()
         self._notices: list[Notice] = []
         self._hold_point: tuple[float, float] | None = None
+        self._grounded_since_ns: int | None = None
+        """ArduPilot: since when the vehicle is armed on the ground, not taking off."""
         self.holding: tuple[float, float] | None = None
         """The (North, East) point the position controller flies to this tick; None while a
         velocity demand is flown or the vehicle cannot fly horizontally (set by `step`)."""
@@ -310,6 +317,7 @@ class Autopilot:
             )
         if not self.px4 and self._takeoff_target_m is not None:
             fresh = None  # ArduPilot finishes its takeoff before it reads GUIDED targets
+        self._auto_disarm(now_ns)
         demand = self._decode(fresh, heading_rad)
         self._climb(demand, tick_ns * 1e-9)
         horizontal = self.armed and (self.px4 or not self.landed)
@@ -398,6 +406,19 @@ class Autopilot:
         if not self.px4 and mode == FlightMode.OFFBOARD:
             self._stream.setpoint = None  # GUIDED starts by holding position
         self.mode = mode
+
+    def _auto_disarm(self, now_ns: int) -> None:
+        """ArduPilot: disarm a vehicle left armed on the ground (DISARM_DELAY)."""
+        delay = self.config.disarm_delay_ns
+        waiting = self.armed and self.landed and self._takeoff_target_m is None
+        if self.px4 or not delay or not waiting:
+            self._grounded_since_ns = None
+            return
+        if self._grounded_since_ns is None:
+            self._grounded_since_ns = now_ns
+        elif now_ns - self._grounded_since_ns >= delay:
+            self._grounded_since_ns = None
+            self._disarm(f"Auto disarmed: on the ground {delay * 1e-9:g} s without a takeoff")
 
     def _disarm(self, text: str) -> None:
         self.armed = False

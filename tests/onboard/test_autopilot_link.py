@@ -263,3 +263,17 @@ def test_the_first_autopilot_heard_is_flown_whatever_its_system_id() -> None:
     finally:
         link.close()
         ap.close()
+
+
+def test_a_disarm_by_the_autopilot_is_reported_by_name_within_a_second(pair) -> None:
+    link, ap = pair
+    said: list[str] = []
+    link._log = said.append  # (the fixture's link logs nowhere)
+    link.connect(timeout_s=5.0)
+    assert link.engage(timeout_s=5.0)
+    ap.armed = False  # ArduCopter's auto-disarm on the ground; the mode stays GUIDED
+    t0 = time.monotonic()
+    while not link.state().mode_lost and time.monotonic() - t0 < 2.0:
+        time.sleep(0.02)
+    assert link.state().mode_lost and time.monotonic() - t0 < 1.0
+    assert "mode lost: the autopilot disarmed" in said

@@ -307,3 +307,30 @@ def test_no_command_sequence_exceeds_the_limits(profile, script):
             assert math.isfinite(speed) and math.isfinite(yaw_rate)
             assert ap.altitude_m >= 0.0 and math.isfinite(ap.altitude_m)
             assert all(len(n.text) <= 50 for n in ap.take_notices())
+
+
+def test_ardupilot_disarms_itself_left_armed_on_the_ground():
+    """DISARM_DELAY: 10 s armed on the ground without a takeoff, and the vehicle disarms."""
+    sim = Sim(profile=Profile.ARDUPILOT, position_ready_ns=0)
+    sim.ap.set_mode(FlightMode.OFFBOARD, sim.now)
+    sim.ap.arm(sim.now)
+    sim.texts()
+    sim.run(9900 * MS, setpoint=FORWARD)
+    assert sim.ap.armed
+    sim.run(200 * MS)
+    assert not sim.ap.armed and sim.ap.mode == FlightMode.OFFBOARD  # the mode stays GUIDED
+    assert any("Auto disarmed" in t for t in sim.texts())
+
+
+def test_ardupilot_does_not_disarm_once_it_takes_off_and_px4_never_does():
+    ardu = Sim(profile=Profile.ARDUPILOT, position_ready_ns=0, takeoff_altitude_m=3.0)
+    ardu.ap.set_mode(FlightMode.OFFBOARD, ardu.now)
+    ardu.ap.arm(ardu.now)
+    ardu.run(5 * S)
+    assert ardu.ap.takeoff(ardu.now) == MavResult.ACCEPTED
+    ardu.run(20 * S)
+    assert ardu.ap.armed and ardu.ap.landed_state == LandedState.IN_AIR
+    px4 = Sim(position_ready_ns=0)
+    px4.ap.arm(px4.now)
+    px4.run(20 * S)
+    assert px4.ap.armed
