@@ -110,6 +110,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " (faults/README.md)",
     )
     parser.add_argument(
+        "--mavlink",
+        action="append",
+        default=[],
+        metavar="ID=URL",
+        help="fly vehicle ID on the autopilot at URL (a real PX4 or ArduPilot, or their SITL:"
+        " docs/real-autopilots.md) instead of starting its simulated vehicle; repeatable",
+    )
+    parser.add_argument(
         "--agent-records",
         action="store_true",
         help="each agent writes one JSON line per step to RUN_DIR/agents/agent-<id>.jsonl"
@@ -345,6 +353,28 @@ def _gcs_options(args: argparse.Namespace) -> list[str]:
     return options
 
 
+def _vehicle_of(spec: ProcessSpec) -> int:
+    """The vehicle id of a SITL's or an agent's process."""
+    return int(spec.argv[spec.argv.index("--vehicle") + 1])
+
+
+def _external_autopilots(items: list[str], scenario) -> dict[int, str]:
+    """`--mavlink ID=URL` options as {vehicle id: URL}; errors name the option."""
+    out: dict[int, str] = {}
+    for item in items:
+        vid, sep, url = item.partition("=")
+        if not sep or not url or not vid.strip().isdigit():
+            raise ConfigError(
+                "--mavlink", f"must be ID=URL (e.g. 2=tcp:127.0.0.1:5770), got {item!r}"
+            )
+        if int(vid) not in scenario.vehicle_ids:
+            raise ConfigError(
+                "--mavlink", f"vehicle {vid} is not in the scenario (ids: {scenario.vehicle_ids})"
+            )
+        out[int(vid)] = url
+    return out
+
+
 def _epoch_of(status_file: Path) -> int | None:
     """The fleet epoch in the ground station's status file, None before it has one."""
     try:
@@ -400,6 +430,14 @@ def run(args: argparse.Namespace) -> int:
             agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
         ),
     )
+    external = _external_autopilots(args.mavlink, scenario)
+    specs = [
+        ProcessSpec(s.name, (*s.argv, "--mavlink", external[_vehicle_of(s)]), s.role)
+        if s.role == "agent" and _vehicle_of(s) in external
+        else s
+        for s in specs
+        if not (s.role == "sitl" and _vehicle_of(s) in external)
+    ]
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
     gcs_argv += gcs_options
     specs = [s if s.role != "gcs" else ProcessSpec(s.name, tuple(gcs_argv), s.role) for s in specs]

@@ -143,10 +143,12 @@ def open_autopilot_link(
     system_id: int | None = None,
     vehicle_id: int | None = None,
     log: Callable[[str], None] | None = None,
+    home_deg: tuple[float, float] | None = None,
 ) -> AutopilotLink:
     """The AutopilotLink a URL names (see the module docstring). `system_id`: the autopilot's
     MAVLink system id to insist on (None: the first autopilot heard); a fake autopilot takes it,
-    else `vehicle_id`."""
+    else `vehicle_id`. `home_deg`: the scenario's origin (latitude, longitude), against which a
+    MAVLink link places the vehicle whatever its autopilot's own local origin."""
     # Both implementations build on this module's interface.
     from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
     from fleetmpc.onboard.mavlink_autopilot_link import MavlinkAutopilotLink
@@ -159,4 +161,4 @@ def open_autopilot_link(
         if kind not in autopilots:
             raise ConfigError("mavlink_url", f"fake://{kind}: known fakes are px4, ardupilot")
         return FakeAutopilotLink(autopilot=autopilots[kind], system_id=system_id or vehicle_id or 1)
-    return MavlinkAutopilotLink(url, system_id=system_id, log=log)
+    return MavlinkAutopilotLink(url, system_id=system_id, log=log, home_deg=home_deg)

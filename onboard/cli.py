@@ -180,7 +180,13 @@ def run(args: argparse.Namespace) -> int:
                 clock=lambda: clock.fleet_ns(time.time_ns()),
                 seed=scenario.seed,
             )
-        link = open_autopilot_link(url, system_id=args.target_system, vehicle_id=spec.id, log=_log)
+        link = open_autopilot_link(
+            url,
+            system_id=args.target_system,
+            vehicle_id=spec.id,
+            log=_log,
+            home_deg=(scenario.site.home_lat_deg, scenario.site.home_lon_deg),
+        )
         state = link.connect(timeout_s=args.connect_timeout)
         _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
         if state.system_id != spec.id:

@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 
 from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, LinkState
+from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
@@ -45,7 +46,7 @@ __all__ = ["MavlinkAutopilotLink"]
 STREAM_INTERVALS_US = {
     32: 33_333,  # LOCAL_POSITION_NED: the pose, at 30 Hz (PX4's onboard-link rate)
     30: 33_333,  # ATTITUDE: the yaw, with it
-    33: -1,  # GLOBAL_POSITION_INT: not read here (the ground station has a link of its own)
+    33: -1,  # GLOBAL_POSITION_INT: 5 Hz (GLOBAL_FIX_INTERVAL_US) given a home, else not read
     74: -1,  # VFR_HUD: not read here
     245: 200_000,  # EXTENDED_SYS_STATE: the landed state (a takeoff's end), at 5 Hz
 }
@@ -53,6 +54,47 @@ STREAM_INTERVALS_US = {
 PX4 "onboard" link streams about 150 messages per second of autopilot time by default, half of
 them ones the agent does not read; every one costs the agent a parse and the autopilot a send,
 four times as many per wall second at x4."""
+
+GLOBAL_FIX_INTERVAL_US = 200_000
+"""GLOBAL_POSITION_INT's interval on a link given the scenario's home (5 Hz): it places the
+autopilot's local origin."""
+
+_ORIGIN_SAMPLES = 25
+"""Global fixes averaged into the local origin's place (5 s at 5 Hz): a fix is quantized to
+1e-7 degrees, about a centimetre."""
+_ORIGIN_MAX_DT_NS = 100_000_000
+"""A global fix and a local position further apart in time than this are not compared [ns]."""
+
+
+class _OriginShift:
+    """Where an autopilot's local origin (LOCAL_POSITION_NED's) lies in the scenario's frame,
+    from global fixes placed against the scenario's home: the mean of (global - local) over
+    recent pairs, the local position carried to the fix's time with its velocity. A real
+    autopilot's local origin is where its estimator started, not the scenario's origin."""
+
+    def __init__(self) -> None:
+        self._last_local: tuple[int, float, float, float, float] | None = None
+        self._samples: list[tuple[float, float]] = []
+        self.value: tuple[float, float] | None = None
+
+    def local(self, t_ns: int, x: float, y: float, vx: float, vy: float) -> None:
+        self._last_local = (t_ns, float(x), float(y), float(vx), float(vy))
+
+    def global_fix(self, t_ns: int, north: float, east: float) -> None:
+        if self._last_local is None:
+            return
+        t_l, x, y, vx, vy = self._last_local
+        dt_ns = t_ns - t_l
+        if abs(dt_ns) > _ORIGIN_MAX_DT_NS:
+            return
+        dt = dt_ns * 1e-9
+        self._samples = [
+            *self._samples[-(_ORIGIN_SAMPLES - 1) :],
+            (north - x - vx * dt, east - y - vy * dt),
+        ]
+        n = len(self._samples)
+        self.value = (sum(s[0] for s in self._samples) / n, sum(s[1] for s in self._samples) / n)
+
 
 _MAX_POSITION_M = 1e6
 _MAX_BOOT_MS = 2**32 - 1
@@ -74,9 +116,14 @@ class MavlinkAutopilotLink(AutopilotLink):
         source_component: int = 190,
         log: Callable[[str], None] | None = None,
         now_ns: Callable[[], int] = time.time_ns,
+        home_deg: tuple[float, float] | None = None,
     ) -> None:
         super().__init__()
         self._now_ns = now_ns
+        self._home_deg = home_deg
+        self._origin = _OriginShift() if home_deg is not None else None
+        """Where the autopilot's local origin lies in the scenario's frame (None: taken to be
+        the scenario's origin, when no home is given)."""
         os.environ["MAVLINK20"] = "1"
         from pymavlink import mavutil
 
@@ -128,15 +175,21 @@ class MavlinkAutopilotLink(AutopilotLink):
             return
         if kind == "LOCAL_POSITION_NED":
             if not (
-                _finite(msg.x, msg.y, msg.z, bound=_MAX_POSITION_M)
+                _finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, bound=_MAX_POSITION_M)
                 and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
             ):
                 self._update(rejected=st.rejected + 1)
                 return
             t_ns = int(msg.time_boot_ms) * 1_000_000
+            shift = (0.0, 0.0)
+            if self._origin is not None:
+                self._origin.local(t_ns, msg.x, msg.y, msg.vx, msg.vy)
+                shift = self._origin.value
+                if shift is None:
+                    return  # (no pose until the origin is known)
             self._update(
-                north_m=float(msg.x),
-                east_m=float(msg.y),
+                north_m=float(msg.x) + shift[0],
+                east_m=float(msg.y) + shift[1],
                 down_m=float(msg.z),
                 position_boot_ns=t_ns,
                 time_boot_ns=max(t_ns, st.time_boot_ns),
@@ -159,6 +212,15 @@ class MavlinkAutopilotLink(AutopilotLink):
                 with self._cond:
                     self._acks[int(msg.command)] = int(msg.result)
                     self._cond.notify_all()
+        elif kind == "GLOBAL_POSITION_INT" and self._home_deg is not None:
+            lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+            if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and msg.lat != 0):
+                self._update(rejected=st.rejected + 1)
+                return
+            north, east = ned_from_geodetic(
+                lat, lon, home_lat_deg=self._home_deg[0], home_lon_deg=self._home_deg[1]
+            )
+            self._origin.global_fix(int(msg.time_boot_ms) * 1_000_000, north, east)
         elif kind == "EXTENDED_SYS_STATE":
             try:
                 self._update(landed_state=LandedState(msg.landed_state))
@@ -229,7 +291,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         if not _finite(north_m, east_m, down_m, bound=_MAX_POSITION_M):
             self.send_setpoint(speed_m_s=0.0, yaw_rate_rad_s=0.0)
             return
-        self._send_fields(encode_position_setpoint(north_m, east_m, down_m))
+        shift = (0.0, 0.0) if self._origin is None else self._origin.value or (0.0, 0.0)
+        self._send_fields(encode_position_setpoint(north_m - shift[0], east_m - shift[1], down_m))
 
     def _send_fields(self, sp: SetpointFields) -> None:
         target = self._target()
@@ -308,6 +371,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         """Ask the autopilot for the streams this link reads (`STREAM_INTERVALS_US`):
         ArduPilot streams nothing until asked, PX4 streams more than the agent reads."""
         for msg_id, interval_us in STREAM_INTERVALS_US.items():
+            if msg_id == 33 and self._home_deg is not None:
+                interval_us = GLOBAL_FIX_INTERVAL_US
             if interval_us < 0 and autopilot == Autopilot.ARDUPILOTMEGA:
                 continue  # (nothing to stop: it streams only what it is asked for)
             self._command(511, (float(msg_id), float(interval_us)), timeout_s=1.0)

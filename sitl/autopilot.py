@@ -112,6 +112,9 @@ class AutopilotConfig:
     disarm_delay_ns: int = 10_000_000_000
     """ArduPilot DISARM_DELAY: armed on the ground without taking off for this long, the vehicle
     disarms itself [ns] (ArduCopter's default 10 s; 0: never)."""
+    local_origin_m: tuple[float, float] = (0.0, 0.0)
+    """Where the vehicle's local frame (LOCAL_POSITION_NED, position targets) has its origin in
+    the scenario's frame (North, East) [m]: a real autopilot's estimator starts where it boots."""
     yaw_gain_1_s: float = 2.0
     """Yaw rate per radian of heading error when a setpoint carries a yaw [1/s]."""
 
@@ -327,7 +330,8 @@ class Autopilot:
             return 0.0, 0.0
         if isinstance(demand, PositionDemand):
             self._hold_point = None
-            self.holding = (demand.north_m, demand.east_m)
+            on, oe = c.local_origin_m
+            self.holding = (demand.north_m + on, demand.east_m + oe)
             return 0.0, 0.0
         if demand is None:
             if self._hold_point is None and position_m is not None:

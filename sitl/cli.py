@@ -124,6 +124,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         offboard_loss_timeout_ns=_ns("--com-of-loss-t", args.com_of_loss_t, lo=0.05, hi=60.0),
         guided_timeout_ns=_ns("--guided-timeout", args.guided_timeout, lo=0.05, hi=60.0),
         position_ready_ns=_ns("--position-ready", args.position_ready, lo=0.0, hi=600.0),
+        local_origin_m=(spec.initial[0], spec.initial[1]),  # (where it boots)
     )
     common = dict(
         vehicle=spec,

@@ -148,6 +148,8 @@ class Identity:
     system_id: int
     autopilot: Autopilot
     site: Site
+    local_origin_m: tuple[float, float] = (0.0, 0.0)
+    """Origin of LOCAL_POSITION_NED in the scenario's frame (where the vehicle booted) [m]."""
 
 
 @dataclass(frozen=True)
@@ -260,8 +262,8 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
     if msg_id == M.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
         return mav.local_position_ned_encode(
             t_ms,
-            snap.north_m,
-            snap.east_m,
+            snap.north_m - ident.local_origin_m[0],
+            snap.east_m - ident.local_origin_m[1],
             -snap.altitude_m,
             snap.vel_north_m_s,
             snap.vel_east_m_s,

@@ -126,6 +126,7 @@ class VehicleServer:
             system_id=v.id,
             autopilot=AutopilotType.PX4 if px4 else AutopilotType.ARDUPILOTMEGA,
             site=config.site,
+            local_origin_m=config.autopilot.local_origin_m,
         )
         self.encoder = MavlinkEncoder(system_id=v.id)
         self.stats = DecodeStats()

@@ -277,3 +277,22 @@ def test_a_disarm_by_the_autopilot_is_reported_by_name_within_a_second(pair) -> 
         time.sleep(0.02)
     assert link.state().mode_lost and time.monotonic() - t0 < 1.0
     assert "mode lost: the autopilot disarmed" in said
+
+
+def test_the_local_origin_is_placed_from_global_fixes() -> None:
+    """An autopilot whose local frame starts where it booted, 12 m East of the scenario's
+    origin: its global fixes, placed against the scenario's home, put it where it is."""
+    from fleetmpc.onboard.mavlink_autopilot_link import _OriginShift
+
+    origin = _OriginShift()
+    origin.global_fix(0, 0.0, 12.0)  # no local position yet: not compared
+    assert origin.value is None
+    for k in range(30):
+        t = k * 200_000_000
+        local_x, local_y = 0.5 * k * 0.2, 0.0  # flying North at 0.5 m/s
+        origin.local(t, local_x, local_y, 0.5, 0.0)
+        noise = 0.01 * (-1) ** k  # a fix is quantized to about a centimetre
+        origin.global_fix(t + 40_000_000, local_x + 0.5 * 0.04 + noise, 12.0 + local_y - noise)
+    assert origin.value == (pytest.approx(0.0, abs=0.005), pytest.approx(12.0, abs=0.005))
+    origin.global_fix(30 * 200_000_000 + 10**9, 99.0, 99.0)  # a fix a second off: not compared
+    assert origin.value == (pytest.approx(0.0, abs=0.005), pytest.approx(12.0, abs=0.005))
