@@ -36,6 +36,7 @@ short, 2 on a configuration or start-up error (e.g. a vehicle never engaged).
 """
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -159,6 +160,31 @@ def _viewer(text: str) -> tuple[bool, str | None]:
     )
 
 
+GCS_STREAMS_US = {33: 200_000, 245: 1_000_000}
+"""SET_MESSAGE_INTERVAL asked of a silent vehicle [us]: GLOBAL_POSITION_INT at 5 Hz (its place
+on the map) and EXTENDED_SYS_STATE at 1 Hz (is it in the air); HEARTBEAT and STATUSTEXT come
+unasked."""
+GCS_DATA_STREAMS_HZ = {6: 5, 2: 1}
+"""REQUEST_DATA_STREAM for autopilots that know only that (MAV_DATA_STREAM POSITION at 5 Hz,
+EXTENDED_STATUS at 1 Hz)."""
+
+
+def _ask_for_streams(mav, vehicle_id: int) -> None:
+    """Ask vehicle `vehicle_id` for the messages the ground station reads, on this link (a real
+    ArduPilot streams nothing to a ground station until asked). A UDP server link writes to every
+    vehicle it hears; the commands' target system picks the one."""
+    messages = [
+        mav.mav.command_long_encode(vehicle_id, 1, 511, 0, msg_id, interval, 0, 0, 0, 0, 0)
+        for msg_id, interval in GCS_STREAMS_US.items()
+    ] + [
+        mav.mav.request_data_stream_encode(vehicle_id, 1, stream, rate, 1)
+        for stream, rate in GCS_DATA_STREAMS_HZ.items()
+    ]
+    for message in messages:
+        with contextlib.suppress(OSError):
+            mav.write(message.pack(mav.mav))
+
+
 def _log(text: str) -> None:
     print(f"fleetmpc gcs: {text}", file=sys.stderr, flush=True)
 
@@ -232,6 +258,8 @@ def run(args: argparse.Namespace) -> int:
             if now >= next_status:
                 gs.drain_bus()
                 gs.check_links(time.time())
+                for vid in gs.links_to_ask(time.time()):
+                    _ask_for_streams(mav, vid)
                 if args.status_file is not None:
                     phase = "waiting" if gs.epoch_ns is None else "flying"
                     _write_json(args.status_file, gs.status_snapshot(phase))

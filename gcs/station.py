@@ -30,6 +30,10 @@ from fleetmpc.scenario import Scenario
 
 __all__ = ["GroundStation", "VehicleLink", "gate_failures"]
 
+STREAMS_SILENT_WALL_S = 2.0
+"""Wall seconds a heard vehicle may send no position before the ground station asks it for its
+streams (and between two askings)."""
+
 _LINK_LOST_WALL_S = 3.0
 """Wall seconds without MAVLink from a vehicle before the ground station says so."""
 
@@ -47,6 +51,10 @@ class VehicleLink:
     clock: ClockSync | None = None
     landed_state: LandedState | None = None
     """EXTENDED_SYS_STATE's landed state (None: not reported)."""
+    last_position_wall_s: float | None = None
+    """When its last GLOBAL_POSITION_INT came [wall s]."""
+    streams_asked_wall_s: float | None = None
+    """When it was last asked for its streams [wall s]."""
 
     @property
     def engaged(self) -> bool:
@@ -57,7 +65,7 @@ class VehicleLink:
         if not (self.armed and self.mode == FlightMode.OFFBOARD):
             return False
         if self.autopilot == Autopilot.ARDUPILOTMEGA:
-            return self.landed_state in (None, LandedState.IN_AIR)
+            return self.landed_state == LandedState.IN_AIR
         return self.landed_state != LandedState.TAKEOFF
 
 
@@ -127,7 +135,10 @@ class GroundStation:
         elif kind == "STATUSTEXT":
             level = "WARN" if msg.severity <= Severity.WARNING else "INFO"
             self._event(level, f"UAV {vid}: {msg.text}")
-        elif kind == "GLOBAL_POSITION_INT" and link.clock is not None:
+        elif kind == "GLOBAL_POSITION_INT":
+            link.last_position_wall_s = received_ns * 1e-9
+            if link.clock is None:
+                return  # (before the epoch: no fleet time to put it at)
             link.clock.update(
                 time_boot_ns=msg.time_boot_ms * 1_000_000, received_wall_ns=received_ns
             )
@@ -144,6 +155,27 @@ class GroundStation:
     def _event(self, level: str, text: str) -> None:
         t = self.fleet_s()
         self._events.append((max(0, round((t or 0.0) * 1e9)), level, text))
+
+    def links_to_ask(self, now_wall_s: float) -> list[int]:
+        """The ids of every vehicle heard but sending no position for
+        `STREAMS_SILENT_WALL_S` (or, an ArduPilot, no landed state), each at most once per that
+        time: a real ArduPilot streams nothing to a ground station until asked (its SRn_ rates
+        are 0)."""
+        out = []
+        for vid, link in self.links.items():
+            heard = link.last_wall_s is not None
+            fresh = link.last_position_wall_s is not None and (
+                now_wall_s - link.last_position_wall_s < STREAMS_SILENT_WALL_S
+            )
+            asked = link.streams_asked_wall_s is not None and (
+                now_wall_s - link.streams_asked_wall_s < STREAMS_SILENT_WALL_S
+            )
+            # (an ArduPilot that reports no landed state cannot be counted as engaged)
+            blind = link.autopilot == Autopilot.ARDUPILOTMEGA and link.landed_state is None
+            if heard and (blind or not fresh) and not asked:
+                link.streams_asked_wall_s = now_wall_s
+                out.append(vid)
+        return out
 
     def check_links(self, now_wall_s: float) -> None:
         for vid, link in self.links.items():

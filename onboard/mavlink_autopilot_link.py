@@ -257,7 +257,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             heartbeats=st.heartbeats + 1,
         )
         now = self.state()
-        if now.engaged and st.armed and not armed and not now.mode_lost:
+        if now.engaged and st.armed and not armed:
             # (the mode may stay GUIDED: ArduCopter's auto-disarm on the ground, a crash)
             self._update(mode_lost=True)
             self._log("mode lost: the autopilot disarmed")

@@ -138,7 +138,9 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
     gcs_link = ()
     if gcs_port:
         gcs_local = pick("--gcs-local-port", args.gcs_local_port, d.gcs_local_port, allow_zero=True)
-        gcs_link = (UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(PX4_GCS_RATES_HZ)),)
+        # PX4 streams to a ground station by default; ArduPilot only what it is asked for.
+        rates = PX4_GCS_RATES_HZ if profile == Profile.PX4 else {}
+        gcs_link = (UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(rates)),)
     if profile == Profile.ARDUPILOT:
         return ServerConfig(
             **common,

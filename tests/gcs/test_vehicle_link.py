@@ -15,7 +15,7 @@ def test_an_ardupilot_vehicle_is_engaged_once_its_takeoff_is_over():
     assert not _link(ap, LandedState.ON_GROUND).engaged  # GUIDED and armed, takeoff not begun
     assert not _link(ap, LandedState.TAKEOFF).engaged  # climbing: flies no guided target
     assert _link(ap, LandedState.IN_AIR).engaged
-    assert _link(ap, None).engaged  # reports no landed state: taken at its word
+    assert not _link(ap, None).engaged  # no landed state yet: it is asked for one
     assert not _link(ap, LandedState.IN_AIR, armed=False).engaged
 
 
@@ -24,3 +24,29 @@ def test_a_px4_vehicle_flies_offboard_from_the_ground_but_not_through_a_takeoff(
     assert _link(px4, LandedState.ON_GROUND).engaged
     assert _link(px4, LandedState.IN_AIR).engaged
     assert not _link(px4, LandedState.TAKEOFF).engaged
+
+
+def test_a_vehicle_heard_without_positions_is_asked_for_its_streams():
+    from pathlib import Path
+
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from fleetmpc.gcs.station import STREAMS_SILENT_WALL_S, GroundStation
+    from fleetmpc.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[2]
+    gs = GroundStation(load_scenario(root / "scenarios" / "paper.toml"), speed=1.0, duration_s=5.0)
+    mav = mavlink.MAVLink(None, srcSystem=2, srcComponent=1)
+    beat = mav.heartbeat_encode(2, int(Autopilot.ARDUPILOTMEGA), 0, 0, 4)
+    beat.pack(mav)  # (sets its source ids)
+    gs.on_mavlink(beat, received_ns=0)
+    assert gs.links_to_ask(1.0) == [2]  # heard, no position, no landed state: asked
+    assert gs.links_to_ask(1.0 + 0.5 * STREAMS_SILENT_WALL_S) == []  # not again so soon
+    state = mav.extended_sys_state_encode(0, int(LandedState.IN_AIR))
+    state.pack(mav)
+    gs.on_mavlink(state, received_ns=3 * 10**9)
+    fix = mav.global_position_int_encode(3000, 473977420, 85455940, 0, 0, 0, 0, 0, 0)
+    fix.pack(mav)
+    gs.on_mavlink(fix, received_ns=3 * 10**9)
+    assert gs.links_to_ask(3.5) == []  # positions and a landed state come: nothing to ask
+    assert gs.links_to_ask(3.0 + STREAMS_SILENT_WALL_S + 0.1) == [2]  # they stopped

@@ -271,12 +271,15 @@ def test_a_disarm_by_the_autopilot_is_reported_by_name_within_a_second(pair) -> 
     link._log = said.append  # (the fixture's link logs nowhere)
     link.connect(timeout_s=5.0)
     assert link.engage(timeout_s=5.0)
+    deadline = time.monotonic() + 2.0
+    while not link.state().armed and time.monotonic() < deadline:
+        time.sleep(0.02)
     ap.armed = False  # ArduCopter's auto-disarm on the ground; the mode stays GUIDED
     t0 = time.monotonic()
-    while not link.state().mode_lost and time.monotonic() - t0 < 2.0:
+    while "mode lost: the autopilot disarmed" not in said and time.monotonic() - t0 < 2.0:
         time.sleep(0.02)
-    assert link.state().mode_lost and time.monotonic() - t0 < 1.0
-    assert "mode lost: the autopilot disarmed" in said
+    assert "mode lost: the autopilot disarmed" in said and time.monotonic() - t0 < 1.0
+    assert link.state().mode_lost
 
 
 def test_the_local_origin_is_placed_from_global_fixes() -> None:

@@ -81,7 +81,8 @@ class GroundStationPeer:
 
     A SITL streams its ground-station link to the configured port and to every peer that sent it
     a valid message in the last 10 s of simulated time, so a HEARTBEAT every half second keeps
-    this socket in the stream.
+    this socket in the stream; with it go requests for the position, attitude and status streams
+    (an ArduPilot-profile SITL streams nothing else unasked).
     """
 
     def __init__(self, scenario: Scenario) -> None:
@@ -113,8 +114,18 @@ class GroundStationPeer:
             hello = self.mav.heartbeat_encode(
                 M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE
             ).pack(self.mav)
+            # An ArduPilot streams to a ground station only what it is asked for.
+            asks = [
+                self.mav.request_data_stream_encode(0, 0, stream, 10, 1).pack(self.mav)
+                for stream in (
+                    M.MAV_DATA_STREAM_POSITION,
+                    M.MAV_DATA_STREAM_EXTRA1,
+                    M.MAV_DATA_STREAM_EXTENDED_STATUS,
+                )
+            ]
             for address in self.sitls:
-                self.sock.sendto(hello, address)
+                for data in (hello, *asks):
+                    self.sock.sendto(data, address)
             self._next_hello = now + 0.5
         while True:
             try:

@@ -64,8 +64,9 @@ def test_default_ports_follow_px4_and_ardupilot_sitl(start_sitl):
     assert px4.stop() == 0 and apm.stop() == 0
 
 
-def test_ardupilot_streams_to_the_ground_station_unasked(start_sitl):
-    """As ArduPilot SITL's ``--out udp:HOST:14550``: telemetry flows without a request."""
+def test_ardupilot_streams_to_the_ground_station_only_what_it_is_asked_for(start_sitl):
+    """As a real ArduPilot with SRn_ rates of 0 on its ground-station port: HEARTBEATs only,
+    until a ground station sets message intervals."""
     gcs = SimClient.listen_udp(target_system=3)
     try:
         sitl, ready = start_sitl(
@@ -74,11 +75,19 @@ def test_ardupilot_streams_to_the_ground_station_unasked(start_sitl):
             scenario=IDEAL_SCENARIO.parent / "three.toml",
         )  # fmt: skip
         assert f"-> 127.0.0.1:{gcs.port}" in ready["endpoints"]
-        heartbeat = gcs.wait(
-            lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1,
-            what="a HEARTBEAT",
-        )
+        kinds = set()
+        for _ in range(5):  # five HEARTBEATs (1 Hz of vehicle time): nothing else comes
+            heartbeat = gcs.wait(
+                lambda m: (
+                    kinds.add(m.get_type())
+                    or (m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1)
+                ),
+                what="a HEARTBEAT",
+            )
         assert heartbeat.autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
+        assert not kinds & {"GLOBAL_POSITION_INT", "ATTITUDE"}, kinds
+        assert gcs.command(511, 33, 200_000) == M.MAV_RESULT_ACCEPTED
+        gcs.conn.mav.request_data_stream_send(3, 1, M.MAV_DATA_STREAM_EXTRA1, 5, 1)
         seen = set()
         gcs.wait(
             lambda m: seen.add(m.get_type()) or {"GLOBAL_POSITION_INT", "ATTITUDE"} <= seen,
