@@ -28,6 +28,9 @@ __all__ = [
     "load_scenario",
     "mavlink_url",
     "parse_scenario",
+    "toml_files",
+    "PX4_GCS_LOCAL_BASE_PORT",
+    "PX4_OFFBOARD_LOCAL_BASE_PORT",
 ]
 
 AUTOPILOTS = ("px4", "ardupilot")
@@ -400,6 +403,17 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
         network=network,
         source=source,
     )
+
+
+def toml_files(folder: Path, *, field: str, what: str) -> list[Path]:
+    """The ``*.toml`` files of a folder, sorted; a missing or empty folder is an error naming
+    `field` (the option that gave it)."""
+    if not folder.is_dir():
+        raise ConfigError(field, f"not a folder: {folder}")
+    files = sorted(folder.glob("*.toml"))
+    if not files:
+        raise ConfigError(field, f"no {what} (*.toml) in {folder}")
+    return files
 
 
 def load_scenario(path: str | Path) -> Scenario:

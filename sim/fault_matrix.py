@@ -19,10 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.onboard.faults import FaultSchedule, load_faults
-from fleetmpc.scenario import load_scenario
+from fleetmpc.scenario import load_scenario, toml_files
 from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["DEFAULT_SCENARIOS", "FORMATION_FACTOR", "RECOVERED_M", "run"]
@@ -106,11 +105,7 @@ def format_table(rows: list[dict]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     folder = Path(args.faults)
-    if not folder.is_dir():
-        raise ConfigError("--faults", f"not a folder: {folder}")
-    files = sorted(folder.glob("*.toml"))
-    if not files:
-        raise ConfigError("--faults", f"no fault file (*.toml) in {folder}")
+    files = toml_files(folder, field="--faults", what="fault file")
     scenarios = list(args.fault_scenarios or DEFAULT_SCENARIOS)
     for path in scenarios:  # refuse a bad file before flying anything
         sc = load_scenario(path)

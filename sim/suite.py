@@ -39,7 +39,7 @@ from pathlib import Path
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.scenario import Scenario, load_scenario, toml_files
 from fleetmpc.sim import fault_matrix
 from fleetmpc.sim.lockstep import run_lockstep
 
@@ -383,11 +383,7 @@ def run(args: argparse.Namespace) -> int:
             args.json = DEFAULT_JSON.with_name("faults.json")
         return fault_matrix.run(args)
     folder = Path(args.dir)
-    if not folder.is_dir():
-        raise ConfigError("DIR", f"not a folder: {folder}")
-    paths = sorted(folder.glob("*.toml"))
-    if not paths:
-        raise ConfigError("DIR", f"no scenario (*.toml) in {folder}")
+    paths = toml_files(folder, field="DIR", what="scenario")
     if args.seeds < 1:
         raise ConfigError("--seeds", f"must be >= 1, got {args.seeds}")
     jobs = (os.cpu_count() or 1) if args.jobs is None else args.jobs

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from test_planbus import make_plan
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.faults import (
@@ -18,25 +19,11 @@ from fleetmpc.onboard.faults import (
 )
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
 from fleetmpc.protocol.keys import epoch_key, plan_key, status_key, target_observation_key
-from fleetmpc.protocol.plan import Plan
 
 FLEET = "test"
 FLEET_IDS = (1, 2, 3, 4, 5)
-PERIOD_NS = 200_000_000
 S = 1_000_000_000
 MS = 1_000_000
-
-
-def make_plan(vehicle_id: int, stamp_ns: int, *, m: int = 5) -> Plan:
-    j = np.arange(m + 1.0)
-    states = np.column_stack([j + vehicle_id, -j * 0.5, np.full(m + 1, 0.1 * vehicle_id)])
-    return Plan(
-        vehicle_id=vehicle_id,
-        stamp_ns=stamp_ns,
-        period_ns=PERIOD_NS,
-        states=states,
-        inputs=np.tile([1.0, 0.05 * vehicle_id], (m, 1)),
-    )
 
 
 def schedule(*faults: dict, seed: int | None = None) -> FaultSchedule:
