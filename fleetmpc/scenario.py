@@ -28,6 +28,8 @@ __all__ = [
     "load_scenario",
     "mavlink_url",
     "parse_scenario",
+    "pattern_slots",
+    "PATTERN_KINDS",
     "toml_files",
     "PX4_GCS_LOCAL_BASE_PORT",
     "PX4_OFFBOARD_LOCAL_BASE_PORT",
@@ -71,12 +73,27 @@ class Network:
     """ArduPilot SITL TCP port of vehicle 1 (vehicle i: + 10 * (i - 1))."""
     zenoh_port: int = 7447
     """TCP port of the Zenoh router or first peer."""
+    offboard_local_base_port: int | None = None
+    """PX4: the UDP port vehicle 1's SITL binds its offboard link to (vehicle i: + i - 1);
+    None: PX4's 14580, moved with `offboard_base_port` (which leaves room for 40 vehicles)."""
+    gcs_local_base_port: int | None = None
+    """The UDP port vehicle 1's SITL binds its ground-station link to (vehicle i: + i - 1);
+    None: PX4's 18570, moved with `gcs_port`."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.host, str) or not self.host:
             raise ConfigError("network.host", f"must be a host name or address, got {self.host!r}")
-        for name in ("offboard_base_port", "gcs_port", "ardupilot_tcp_base_port", "zenoh_port"):
+        for name in (
+            "offboard_base_port",
+            "gcs_port",
+            "ardupilot_tcp_base_port",
+            "zenoh_port",
+            "offboard_local_base_port",
+            "gcs_local_base_port",
+        ):
             port = getattr(self, name)
+            if port is None and name.endswith("_local_base_port"):
+                continue
             if not isinstance(port, int) or not 1 <= port <= 65535:
                 raise ConfigError(f"network.{name}", f"must be a port number, got {port!r}")
 
@@ -87,16 +104,20 @@ class Network:
     def offboard_local_port(self, vehicle_id: int) -> int:
         """PX4: the UDP port vehicle `vehicle_id`'s SITL binds its offboard link to (PX4's
         14580 + i - 1 on PX4's default network, moved with `offboard_base_port`)."""
-        moved = self.offboard_base_port - Network.offboard_base_port
-        return _derived_port(
-            "network.offboard_base_port", PX4_OFFBOARD_LOCAL_BASE_PORT + moved, vehicle_id - 1
-        )
+        base = self.offboard_local_base_port
+        if base is None:
+            base = (
+                PX4_OFFBOARD_LOCAL_BASE_PORT + self.offboard_base_port - Network.offboard_base_port
+            )
+        return _derived_port("network.offboard_local_base_port", base, vehicle_id - 1)
 
     def gcs_local_port(self, vehicle_id: int) -> int:
         """The UDP port vehicle `vehicle_id`'s SITL binds its ground-station link to (PX4's
         18570 + i - 1 on PX4's default network, moved with `gcs_port`)."""
-        moved = self.gcs_port - Network.gcs_port
-        return _derived_port("network.gcs_port", PX4_GCS_LOCAL_BASE_PORT + moved, vehicle_id - 1)
+        base = self.gcs_local_base_port
+        if base is None:
+            base = PX4_GCS_LOCAL_BASE_PORT + self.gcs_port - Network.gcs_port
+        return _derived_port("network.gcs_local_base_port", base, vehicle_id - 1)
 
     def ports(self, vehicles: "tuple[VehicleSpec, ...]") -> list[tuple[str, int, str, str]]:
         """Every port a fleet of `vehicles` binds or streams to on `host`, as (protocol, port,
@@ -129,7 +150,7 @@ class Network:
                         "udp",
                         self.offboard_local_port(v.id),
                         f"vehicle {v.id}'s SITL offboard port",
-                        "network.offboard_base_port",
+                        "network.offboard_local_base_port",
                     )
                 )
             out.append(
@@ -137,7 +158,7 @@ class Network:
                     "udp",
                     self.gcs_local_port(v.id),
                     f"vehicle {v.id}'s SITL ground-station port",
-                    "network.gcs_port",
+                    "network.gcs_local_base_port",
                 )
             )
         return out
@@ -299,6 +320,83 @@ _TOP_KEYS = {
 }
 
 
+PATTERN_KINDS = ("grid", "line", "wedge", "ring")
+
+
+def pattern_slots(
+    kind: str, count: int, spacing_m: float, columns: int
+) -> list[tuple[float, float]]:
+    """Slot offsets (forward, right) [m] of `count` vehicles in a pattern, about its centre:
+
+    - grid: rows of `columns`, `spacing_m` apart both ways, the first row in front;
+    - line: abreast, `spacing_m` apart, perpendicular to the formation's forward axis;
+    - wedge: a V behind a leader, each arm's vehicles `spacing_m` back and aside of the last;
+    - ring: evenly on a circle whose neighbours are `spacing_m` apart.
+    """
+    s = spacing_m
+    if kind == "grid":
+        rows = math.ceil(count / columns)
+        return [
+            ((rows - 1) / 2 * s - (i // columns) * s, (i % columns - (columns - 1) / 2) * s)
+            for i in range(count)
+        ]
+    if kind == "line":
+        return [(0.0, (i - (count - 1) / 2) * s) for i in range(count)]
+    if kind == "wedge":
+        out = [(0.0, 0.0)]
+        for i in range(1, count):
+            rank, side = (i + 1) // 2, 1.0 if i % 2 else -1.0
+            out.append((-rank * s * math.sqrt(0.5), side * rank * s * math.sqrt(0.5)))
+        depth = max(-x for x, _ in out)
+        return [(x + depth / 2, y) for x, y in out]
+    radius = 0.0 if count == 1 else s / (2 * math.sin(math.pi / count))
+    return [
+        (radius * math.cos(2 * math.pi * i / count), radius * math.sin(2 * math.pi * i / count))
+        for i in range(count)
+    ]
+
+
+def _pattern_vehicles(pattern: Any, formation: dict[str, Any], target: TargetScript) -> list:
+    """The [[vehicles]] tables a `formation.pattern` stands for: ids 1..count, their slots, and
+    each starting at its slot around the target's start, facing the target's course."""
+    field = "formation.pattern"
+    if not isinstance(pattern, dict):
+        raise ConfigError(field, f"must be a table, got {pattern!r}")
+    unknown = sorted(set(pattern) - {"kind", "count", "spacing_m", "columns"})
+    if unknown:
+        raise ConfigError(
+            f"{field}.{unknown[0]}", "unknown key (known: kind, count, spacing_m, columns)"
+        )
+    kind = pattern.get("kind")
+    if kind not in PATTERN_KINDS:
+        raise ConfigError(
+            f"{field}.kind", f"must be one of {', '.join(PATTERN_KINDS)}, got {kind!r}"
+        )
+    count = pattern.get("count")
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= 250:
+        raise ConfigError(f"{field}.count", f"must be an integer in [1, 250], got {count!r}")
+    spacing = positive(f"{field}.spacing_m", pattern.get("spacing_m", 5.0))
+    columns = pattern.get("columns", math.ceil(math.sqrt(count)))
+    if isinstance(columns, bool) or not isinstance(columns, int) or columns < 1:
+        raise ConfigError(f"{field}.columns", f"must be an integer >= 1, got {columns!r}")
+    slots = pattern_slots(kind, count, spacing, columns)
+    frame = formation.get("frame", "world")
+    trail = float(formation.get("trail_m", 5.0))
+    position, velocity = target.state_at(0.0)
+    course = math.atan2(velocity[1], velocity[0]) if math.hypot(*velocity) > 1e-9 else 0.0
+    cx, cy = position[0] - trail * math.cos(course), position[1] - trail * math.sin(course)
+    ux, uy = math.cos(course), math.sin(course)
+    vehicles = []
+    for i, (f, r) in enumerate(slots):
+        if frame == "course":  # (forward, right) turned by the course
+            slot, world = [f, r], (f * ux - r * uy, f * uy + r * ux)
+        else:  # the pattern's forward axis is North
+            slot, world = [f, r], (f, r)
+        initial = [cx + world[0], cy + world[1], course]
+        vehicles.append({"id": i + 1, "slot_m": slot, "initial": initial})
+    return vehicles
+
+
 def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario:
     """Validate a parsed TOML document and return the Scenario it describes."""
     unknown = sorted(set(doc) - _TOP_KEYS)
@@ -329,7 +427,13 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
     truth_default = doc.get("truth", {})
     if not isinstance(truth_default, dict):
         raise ConfigError("truth", "must be a table")
+    formation_table = dict(doc.get("formation", {}))
+    pattern = formation_table.pop("pattern", None)
     raw_vehicles = doc.get("vehicles")
+    if pattern is not None:
+        if raw_vehicles is not None:
+            raise ConfigError("formation.pattern", "give a pattern or [[vehicles]], not both")
+        raw_vehicles = _pattern_vehicles(pattern, formation_table, target)
     if not isinstance(raw_vehicles, list) or not raw_vehicles:
         raise ConfigError("vehicles", "must be a non-empty array of tables ([[vehicles]])")
     vehicles = []
@@ -360,7 +464,6 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ConfigError("vehicles", f"ids must be unique, got {ids}")
-    formation_table = dict(doc.get("formation", {}))
     if "slots_m" in formation_table:
         raise ConfigError("formation.slots_m", "give each vehicle's slot as vehicles[i].slot_m")
     formation = _build(

@@ -1,3 +1,5 @@
+import math
+
 import pytest
 
 from fleetmpc.errors import ConfigError
@@ -145,3 +147,56 @@ def test_a_fleet_whose_ports_collide_is_refused_naming_the_field():
     with pytest.raises(ConfigError) as e:
         parse_scenario(clash)
     assert e.value.field == "network.ardupilot_tcp_base_port"
+
+
+def test_pattern_slots_are_spaced_as_asked():
+    import math
+
+    from fleetmpc.scenario import pattern_slots
+
+    grid = pattern_slots("grid", 6, 5.0, 3)
+    assert grid[:3] == [(2.5, -5.0), (2.5, 0.0), (2.5, 5.0)] and grid[3] == (-2.5, -5.0)
+    line = pattern_slots("line", 3, 4.0, 1)
+    assert line == [(0.0, -4.0), (0.0, 0.0), (0.0, 4.0)]
+    ring = pattern_slots("ring", 8, 5.0, 1)
+    assert math.dist(ring[0], ring[1]) == pytest.approx(5.0)
+    wedge = pattern_slots("wedge", 5, 5.0, 1)
+    assert math.dist(wedge[0], wedge[1]) == pytest.approx(5.0)
+    assert wedge[1][1] == -wedge[2][1] and wedge[1][0] == wedge[2][0] < wedge[0][0]
+
+
+def test_a_pattern_makes_the_vehicles_and_starts_them_at_their_slots():
+    from fleetmpc.scenario import parse_scenario
+
+    doc = {
+        "name": "p",
+        "formation": {
+            "frame": "course",
+            "trail_m": 10.0,
+            "pattern": {"kind": "line", "count": 4, "spacing_m": 5.0},
+        },
+        "target": {"kind": "line", "start_m": [0.0, 0.0], "velocity_m_s": [0.0, 1.0]},
+    }
+    sc = parse_scenario(doc)
+    assert sc.vehicle_ids == (1, 2, 3, 4)
+    assert [v.slot_m for v in sc.vehicles] == [(0.0, -7.5), (0.0, -2.5), (0.0, 2.5), (0.0, 7.5)]
+    # The target flies East: the centre trails it 10 m West, "right" of East is South.
+    first = sc.vehicles[0].initial
+    assert first == (pytest.approx(7.5), pytest.approx(-10.0), pytest.approx(math.pi / 2))
+    for bad, field in (
+        ({"kind": "star", "count": 3}, "formation.pattern.kind"),
+        ({"kind": "grid", "count": 0}, "formation.pattern.count"),
+        ({"kind": "grid", "count": 4, "spacing_m": -1.0}, "formation.pattern.spacing_m"),
+        ({"kind": "grid", "count": 4, "rows": 2}, "formation.pattern.rows"),
+    ):
+        with pytest.raises(ConfigError) as e:
+            parse_scenario({**doc, "formation": {"pattern": bad}})
+        assert e.value.field == field
+    with pytest.raises(ConfigError) as e:
+        parse_scenario({**doc, "vehicles": [{"id": 1}]})
+    assert e.value.field == "formation.pattern"
+    with pytest.raises(ConfigError) as e:  # 1 m apart: closer than d_safe
+        parse_scenario(
+            {**doc, "formation": {"pattern": {"kind": "line", "count": 3, "spacing_m": 1.0}}}
+        )
+    assert e.value.field.startswith("vehicles[1]")
