@@ -45,7 +45,7 @@ from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
 from fleetmpc.launch.process_faults import ProcessFaults
-from fleetmpc.onboard.faults import FaultSchedule, load_faults
+from fleetmpc.onboard.faults import LINK_KINDS, FaultSchedule, load_faults
 from fleetmpc.scenario import flight_time, load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -447,7 +447,7 @@ def run(args: argparse.Namespace) -> int:
             args.faults, vehicle_ids=scenario.vehicle_ids, processes=[s.name for s in specs]
         )
         extra: dict[str, tuple[str, ...]] = {}
-        if any(f.network for f in schedule.faults):
+        if any(f.network or f.kind in LINK_KINDS for f in schedule.faults):
             for s in specs:
                 if s.role == "agent":
                     extra[s.name] = ("--faults", str(args.faults.resolve()))

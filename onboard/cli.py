@@ -29,7 +29,7 @@ from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.core.agent import Agent
-from fleetmpc.onboard.faults import FaultLayer, load_faults
+from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
@@ -187,6 +187,13 @@ def run(args: argparse.Namespace) -> int:
             log=_log,
             home_deg=(scenario.site.home_lat_deg, scenario.site.home_lon_deg),
         )
+        if faults is not None and any(f.kind in LINK_KINDS for f in faults.faults):
+            link.faults = LinkFaults(
+                faults,
+                vehicle_id=spec.id,
+                clock=lambda: clock.fleet_ns(time.time_ns()),
+                seed=scenario.seed,
+            )
         state = link.connect(timeout_s=args.connect_timeout)
         _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
         if state.system_id != spec.id:

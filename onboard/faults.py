@@ -51,6 +51,8 @@ from fleetmpc.validate import in_range, positive
 
 __all__ = [
     "FAULT_KINDS",
+    "LINK_KINDS",
+    "LinkFaults",
     "REORDER_HOLD_S",
     "Fault",
     "FaultLayer",
@@ -61,7 +63,8 @@ __all__ = [
 
 NETWORK_KINDS = ("loss", "delay", "duplicate", "reorder", "blackout", "partition")
 PROCESS_KINDS = ("freeze", "kill", "restart", "clock_offset")
-FAULT_KINDS = NETWORK_KINDS + PROCESS_KINDS
+LINK_KINDS = ("link_loss", "link_blackout")
+FAULT_KINDS = NETWORK_KINDS + PROCESS_KINDS + LINK_KINDS
 
 REORDER_HOLD_S = 0.5
 """Longest hold of a reordered message [s]: long enough for a plan at 5 Hz to be overtaken."""
@@ -77,6 +80,8 @@ _KEYS = {
     "kill": {"process"},
     "restart": {"process"},
     "clock_offset": {"process", "offset_s"},
+    "link_loss": {"probability"},
+    "link_blackout": set(),
 }
 _COMMON = {"kind", "start_s", "duration_s", "vehicles"}
 
@@ -129,10 +134,12 @@ class Fault:
             "kill": "killed (SIGKILL)",
             "restart": "killed, then restarted",
             "clock_offset": f"clock {self.offset_s * 1e3:+g} ms",
+            "link_loss": f"{self.probability:.0%} of the autopilot link's messages lost",
+            "link_blackout": "autopilot link cut",
         }[self.kind]
         if self.kind == "partition":
             who = "the fleet"
-        if not self.network:
+        if self.kind in PROCESS_KINDS:
             who = self.process
             if self.kind == "kill":
                 return f"{who} {what} at {self.start_s:g} s"
@@ -160,7 +167,15 @@ def _vehicle_list(field: str, value: Any, fleet: Sequence[int]) -> tuple[int, ..
     return tuple(value)
 
 
-def _fault(table: Any, field: str, fleet: Sequence[int], processes: Sequence[str] | None) -> Fault:
+def _fault(
+    table: Any,
+    field: str,
+    fleet: Sequence[int],
+    processes: Sequence[str] | None,
+    *,
+    live_link: bool = False,
+) -> Fault:
+    """One fault table; `live_link`: an agent reads it (its link faults are its own)."""
     if not isinstance(table, dict):
         raise ConfigError(field, f"must be a table, got {table!r}")
     kind = table.get("kind")
@@ -207,6 +222,11 @@ def _fault(table: Any, field: str, fleet: Sequence[int], processes: Sequence[str
                 raise ConfigError(f"{field}.groups[{i}]", f"repeats vehicle {min(seen & set(g))}")
             seen |= set(g)
         args["groups"] = tuple(parsed)
+    if kind in LINK_KINDS and processes is None and not live_link:
+        raise ConfigError(
+            f"{field}.kind",
+            f"{kind} is an autopilot-link fault: only a live fleet (fleetmpc up) has it",
+        )
     if kind in PROCESS_KINDS:
         if processes is None:
             raise ConfigError(
@@ -252,7 +272,7 @@ def parse_faults(
     if not isinstance(tables, list) or not tables:
         raise ConfigError("faults", "must be a non-empty array of tables ([[faults]])")
     faults = tuple(
-        _fault(t, f"faults[{i}]", vehicle_ids, processes)
+        _fault(t, f"faults[{i}]", vehicle_ids, processes, live_link=network_only)
         for i, t in enumerate(tables)
         if not (network_only and isinstance(t, dict) and t.get("kind") in PROCESS_KINDS)
     )
@@ -404,3 +424,43 @@ class FaultLayer:
         """Payloads held back right now."""
         with self._lock:
             return len(self._held)
+
+
+class LinkFaults:
+    """The autopilot-link faults of vehicle `vehicle_id` (link_loss, link_blackout): `cut` says
+    whether the MAVLink message at hand, either way, is lost. `clock` gives fleet time [ns],
+    None while it is not known (nothing is cut then). Thread-safe."""
+
+    def __init__(
+        self,
+        schedule: FaultSchedule,
+        *,
+        vehicle_id: int,
+        clock: Callable[[], int | None],
+        seed: int,
+    ) -> None:
+        self.vehicle_id = vehicle_id
+        self._faults = tuple(f for f in schedule.faults if f.kind in LINK_KINDS)
+        self._clock = clock
+        base = schedule.seed if schedule.seed is not None else seed
+        self._rng = np.random.default_rng((base, vehicle_id, 1))
+        self._lock = threading.Lock()
+        self.counts = {"link_lost": 0, "link_blacked_out": 0}
+        """Messages the link lost, by fault."""
+
+    def cut(self) -> bool:
+        """True if the message at hand is lost."""
+        now = self._clock()
+        if now is None:
+            return False
+        with self._lock:
+            for fault in self._faults:
+                if not (fault.active(now) and fault.hits(self.vehicle_id)):
+                    continue
+                if fault.kind == "link_blackout":
+                    self.counts["link_blacked_out"] += 1
+                    return True
+                if self._rng.random() < fault.probability:
+                    self.counts["link_lost"] += 1
+                    return True
+        return False

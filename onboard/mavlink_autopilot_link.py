@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 
 from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, LinkState
+from fleetmpc.onboard.faults import LinkFaults
 from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
@@ -121,6 +122,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         super().__init__()
         self._now_ns = now_ns
         self._home_deg = home_deg
+        self.faults: LinkFaults | None = None
+        """Injected autopilot-link faults (None: none)."""
         self._origin = _OriginShift() if home_deg is not None else None
         """Where the autopilot's local origin lies in the scenario's frame (None: taken to be
         the scenario's origin, when no home is given)."""
@@ -165,6 +168,8 @@ class MavlinkAutopilotLink(AutopilotLink):
                     self._update(rejected=self.state().rejected + 1)
 
     def _handle(self, msg) -> None:
+        if self.faults is not None and self.faults.cut():
+            return  # (an injected link fault: the message never came)
         kind = msg.get_type()
         src = msg.get_srcSystem()
         st = self.state()
@@ -270,6 +275,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         return self.state().system_id or (self._want_system or 1)
 
     def _send(self, fn: Callable[..., None], *args: object) -> bool:
+        if self.faults is not None and self.faults.cut():
+            return False  # (an injected link fault: the message is lost on the way)
         with self._send_lock:
             try:
                 fn(*args)

@@ -451,6 +451,9 @@ class FleetRunner:
                 "rejected": {str(k): v for k, v in c.rejected.items()},
             },
             "faults_injected": None if self.bus.faults is None else dict(self.bus.faults.counts),
+            "link_faults": None
+            if getattr(self.link, "faults", None) is None
+            else dict(self.link.faults.counts),
             "link_rejected": st.rejected,
             "setpoints_sent": self.link.setpoints_sent,
             **self.settings.extra,

@@ -120,3 +120,14 @@ def test_an_agent_whose_clock_runs_fast_is_still_avoided_and_flown_with(fly):
     ages = [r["neighbour_ages_s"]["2"] for r in flying if r["neighbour_ages_s"].get("2")]
     assert ages and min(ages) < -0.5, ages[:5]
     assert all(r["formation_terms"] == 2 for r in flying[-50:])
+
+
+def test_a_short_cut_in_an_autopilot_link_is_flown_through(fly):
+    up, rc, m = fly("link-blackout")
+    assert rc == 0, up.text()
+    _formation_back(m)
+    log = (up.run_dir / "logs" / "agent-2.log").read_text()
+    summary = json.loads(log.strip().splitlines()[-1])
+    assert summary["link_faults"]["link_blacked_out"] > 0, summary
+    assert summary["mode"] != "HOLD" or not summary["mode_lost"], summary
+    assert "mode lost" not in log

@@ -255,3 +255,31 @@ def test_a_clock_offset_is_an_agents_and_needs_its_offset():
         with pytest.raises(ConfigError) as e:
             live(table)
         assert e.value.field == field
+
+
+def test_link_faults_cut_the_hit_vehicles_link_inside_their_window():
+    from fleetmpc.onboard.faults import LinkFaults
+
+    doc = {
+        "faults": [
+            {"kind": "link_blackout", "vehicles": [2], "start_s": 10.0, "duration_s": 1.0},
+            {"kind": "link_loss", "vehicles": [3], "probability": 1.0},
+        ]
+    }
+    schedule = live(*doc["faults"])
+    now = [0]
+    two = LinkFaults(schedule, vehicle_id=2, clock=lambda: now[0], seed=0)
+    three = LinkFaults(schedule, vehicle_id=3, clock=lambda: now[0], seed=0)
+    one = LinkFaults(schedule, vehicle_id=1, clock=lambda: now[0], seed=0)
+    assert not two.cut() and three.cut() and not one.cut()
+    now[0] = 10 * S
+    assert two.cut() and not one.cut()
+    now[0] = 11 * S
+    assert not two.cut()
+    assert two.counts == {"link_lost": 0, "link_blacked_out": 1}
+    assert three.counts["link_lost"] == 1
+    with pytest.raises(ConfigError) as e:  # a simulation has no autopilot link
+        parse_faults({"faults": doc["faults"][:1]}, vehicle_ids=FLEET_IDS)
+    assert e.value.field == "faults[0].kind"
+    kept = parse_faults({"faults": doc["faults"]}, vehicle_ids=FLEET_IDS, network_only=True)
+    assert [f.kind for f in kept.faults] == ["link_blackout", "link_loss"]  # an agent's own
