@@ -56,6 +56,7 @@ from fleetmpc.protocol.plan import Plan
 __all__ = [
     "FleetRunner",
     "RunnerSettings",
+    "TargetFeed",
 ]
 
 _MAX_NEIGHBOURS = 8
@@ -103,6 +104,25 @@ class RunnerSettings:
 _OWN_GAP_WINDOW_S = 5.0
 """How far back (fleet time) a setpoint gap counts as the cause of a lost mode [s]: PX4 leaves
 offboard 1 s (COM_OF_LOSS_T) and ArduCopter's guided mode 3 s (GUID_TIMEOUT) into a gap."""
+
+
+class TargetFeed:
+    """Each target observation on a plan bus once: `take` hands over the newest one no older
+    than `max_age_ns`, if it is newer than the last one handed over (the live runner's and the
+    lockstep simulation's, for each agent)."""
+
+    def __init__(self, bus: PlanBus, *, max_age_ns: int) -> None:
+        self._bus = bus
+        self._max_age_ns = max_age_ns
+        self._last_stamp_ns = -1
+
+    def take(self, now_ns: int) -> tuple[np.ndarray | None, int | None]:
+        """(North, East) [m] of a new observation and its stamp [ns], or (None, None)."""
+        target = self._bus.latest_target(now_ns, self._max_age_ns)
+        if target is None or target.stamp_ns <= self._last_stamp_ns:
+            return None, None
+        self._last_stamp_ns = target.stamp_ns
+        return np.array([target.north_m, target.east_m]), target.stamp_ns
 
 
 def _hold_plan(plan: Plan, state: LinkState) -> Plan:
@@ -161,7 +181,7 @@ class FleetRunner:
         self.last_output: AgentOutput | None = None
         self.last_status = "waiting"
         self._last_pose_ns = -1
-        self._last_target_stamp_ns = -1
+        self._targets = TargetFeed(bus, max_age_ns=settings.target_max_age_ns)
         self._mode_lost_reported = False
         self.engaged = False
         self.engage_attempted = False
@@ -237,12 +257,7 @@ class FleetRunner:
             if state.position_boot_ns > self._last_pose_ns:
                 self._last_pose_ns = state.position_boot_ns
                 measurement = np.array([state.north_m, state.east_m, state.yaw_rad])
-            obs, obs_stamp = None, None
-            target = self.bus.latest_target(stamp_ns, self.settings.target_max_age_ns)
-            if target is not None and target.stamp_ns > self._last_target_stamp_ns:
-                self._last_target_stamp_ns = target.stamp_ns
-                obs = np.array([target.north_m, target.east_m])
-                obs_stamp = target.stamp_ns
+            obs, obs_stamp = self._targets.take(stamp_ns)
             plans = self.bus.latest_plans(stamp_ns, self.settings.plan_max_age_ns)
             held = _vehicle_mode(state) == VehicleMode.HOLD
             out = self.agent.step(

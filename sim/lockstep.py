@@ -27,7 +27,7 @@ from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
-from fleetmpc.onboard.runner import RunnerSettings
+from fleetmpc.onboard.runner import RunnerSettings, TargetFeed
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.plant import TruthPlant
@@ -118,8 +118,7 @@ def run_lockstep(
     runner = RunnerSettings(period_ns=period_ns)  # (the plan and target ages a runner accepts)
     target_bus = InMemoryPlanBus(hub, fleet=sc.name, vehicle_id=TARGET_ID)
     """The target's observations reach the agents on the plan bus too, as in a live fleet."""
-    seen_target_ns = [-1] * n
-    """The stamp of the newest target observation each agent has fused."""
+    targets = [TargetFeed(bus, max_age_ns=runner.target_max_age_ns) for bus in buses]
     setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
     samples: list[PeriodSample] = []
     predictions: list[np.ndarray] = []
@@ -144,15 +143,12 @@ def run_lockstep(
             hub.flush()
         outs = []
         for i, (agent, plant) in enumerate(zip(agents, plants, strict=True)):
-            seen = buses[i].latest_target(t_ns, runner.target_max_age_ns)
-            fresh = seen is not None and seen.stamp_ns > seen_target_ns[i]
-            if fresh:
-                seen_target_ns[i] = seen.stamp_ns
+            observation, observed_ns = targets[i].take(t_ns)
             inp = AgentInput(
                 stamp_ns=t_ns,
                 measurement=plant.measure(rngs[i]),
-                target_observation=np.array((seen.north_m, seen.east_m)) if fresh else None,
-                target_stamp_ns=seen.stamp_ns if fresh else None,
+                target_observation=observation,
+                target_stamp_ns=observed_ns,
                 neighbour_plans=buses[i].latest_plans(t_ns, runner.plan_max_age_ns),
             )
             t0 = time.perf_counter_ns()
