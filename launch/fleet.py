@@ -11,7 +11,8 @@ process is given an epoch: the ground station announces it on the bus once every
 engaged, and the target and the agents wait for it (`--wait-epoch`).
 """
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import PurePath
 
 from fleetmpc.scenario import Scenario
@@ -53,6 +54,9 @@ class FleetOptions:
     """Ground station's Rerun viewer: ``spawn``, ``connect=URL`` or ``none``."""
     agent_records_dir: str | None = None
     """If set, each agent writes one JSON line per step to ``<dir>/agent-<id>.jsonl``."""
+    external_autopilots: Mapping[int, str] = field(default_factory=dict)
+    """Vehicle id -> MAVLink URL of an autopilot outside the fleet (a real PX4 or ArduPilot, or
+    their SITL): that vehicle's agent flies it, and no simulated vehicle is started for it."""
 
 
 def _num(x: float) -> str:
@@ -79,12 +83,17 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
             "target",
         ),
     ]
+    external = options.external_autopilots
     for v in scenario.vehicles:
+        if v.id in external:
+            continue
         procs.append(
             ProcessSpec(f"sitl-{v.id}", ("sitl", *common, "--vehicle", str(v.id), *speed), "sitl")
         )
     for v in scenario.vehicles:
         argv = ["agent", *common, "--vehicle", str(v.id), *bus, *speed, "--wait-epoch"]
+        if v.id in external:
+            argv += ["--mavlink", external[v.id]]
         if options.agent_records_dir is not None:
             argv += ["--record", str(PurePath(options.agent_records_dir) / f"agent-{v.id}.jsonl")]
         procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent"))

@@ -353,11 +353,6 @@ def _gcs_options(args: argparse.Namespace) -> list[str]:
     return options
 
 
-def _vehicle_of(spec: ProcessSpec) -> int:
-    """The vehicle id of a SITL's or an agent's process."""
-    return int(spec.argv[spec.argv.index("--vehicle") + 1])
-
-
 def _external_autopilots(items: list[str], scenario) -> dict[int, str]:
     """`--mavlink ID=URL` options as {vehicle id: URL}; errors name the option."""
     out: dict[int, str] = {}
@@ -428,16 +423,9 @@ def run(args: argparse.Namespace) -> int:
             status_file=str(status_file),
             viewer=viewer,
             agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
+            external_autopilots=_external_autopilots(args.mavlink, scenario),
         ),
     )
-    external = _external_autopilots(args.mavlink, scenario)
-    specs = [
-        ProcessSpec(s.name, (*s.argv, "--mavlink", external[_vehicle_of(s)]), s.role)
-        if s.role == "agent" and _vehicle_of(s) in external
-        else s
-        for s in specs
-        if not (s.role == "sitl" and _vehicle_of(s) in external)
-    ]
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
     gcs_argv += gcs_options
     specs = [s if s.role != "gcs" else ProcessSpec(s.name, tuple(gcs_argv), s.role) for s in specs]

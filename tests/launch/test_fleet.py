@@ -94,3 +94,13 @@ def test_up_hands_its_flush_intervals_to_the_ground_station() -> None:
     for bad in ("0", "-1", "nan", "inf"):
         with pytest.raises(ConfigError, match="--series-flush-s"):
             up._gcs_options(_up_args("--series-flush-s", bad))
+
+
+def test_an_external_autopilot_replaces_its_vehicles_sitl():
+    sc = load_scenario(ROOT / "scenarios" / "paper.toml")
+    opts = FleetOptions(scenario_path="s.toml", external_autopilots={2: "tcp:127.0.0.1:5770"})
+    procs = {p.name: p for p in fleet_processes(sc, opts)}
+    assert "sitl-2" not in procs and {"sitl-1", "sitl-3"} <= set(procs)
+    argv = procs["agent-2"].argv
+    assert argv[argv.index("--mavlink") + 1] == "tcp:127.0.0.1:5770"
+    assert "--mavlink" not in procs["agent-1"].argv
