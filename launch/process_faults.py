@@ -17,6 +17,7 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from fleetmpc.onboard.faults import Fault
 
@@ -38,6 +39,9 @@ class ProcessFaults:
     `signal_process(name, signum)` signals the running process called `name`;
     `start_process(name)` starts it again; `log(text)` reports each action.
     """
+
+    KINDS: ClassVar[tuple[str, ...]] = ("freeze", "kill", "restart")
+    """The fault kinds it applies (a clock offset is given to its process at launch)."""
 
     faults: tuple[Fault, ...]
     signal_process: Callable[[str, int], None]

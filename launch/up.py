@@ -393,7 +393,7 @@ def _process_faults(schedule: FaultSchedule, fleet: Fleet, *, speed: float) -> P
         fleet.restart(name)
 
     return ProcessFaults(
-        tuple(f for f in schedule.faults if not f.network),
+        tuple(f for f in schedule.faults if f.kind in ProcessFaults.KINDS),
         signal_process=signal_process,
         start_process=start_process,
         log=lambda text: print(f"fleetmpc up: fault at {text}", flush=True),

@@ -173,13 +173,12 @@ def run(args: argparse.Namespace) -> int:
     link = bus = streamer = runner = None
     try:
         bus = open_fleet_bus(args, scenario, sender_id=spec.id)
+
+        def fleet_now() -> int | None:
+            return clock.fleet_ns(time.time_ns())  # (None before the epoch: no fault applies)
+
         if faults is not None:
-            bus.faults = FaultLayer(
-                faults,
-                vehicle_id=spec.id,
-                clock=lambda: clock.fleet_ns(time.time_ns()),
-                seed=scenario.seed,
-            )
+            bus.faults = FaultLayer(faults, vehicle_id=spec.id, clock=fleet_now, seed=scenario.seed)
         link = open_autopilot_link(
             url,
             system_id=args.target_system,
@@ -189,10 +188,7 @@ def run(args: argparse.Namespace) -> int:
         )
         if faults is not None and any(f.kind in LINK_KINDS for f in faults.faults):
             link.faults = LinkFaults(
-                faults,
-                vehicle_id=spec.id,
-                clock=lambda: clock.fleet_ns(time.time_ns()),
-                seed=scenario.seed,
+                faults, vehicle_id=spec.id, clock=fleet_now, seed=scenario.seed
             )
         state = link.connect(timeout_s=args.connect_timeout)
         _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")

@@ -379,15 +379,16 @@ class FaultLayer:
         if not active:
             return [(key, payload)]
         sender = _sender(key)
-        cuts, effects = self._draws(key, payload, 2 * len(active)), []
+        draws = self._draws(key, payload, 2 * len(active))
+        cut_draws, effect_draws, effects = draws[: len(active)], draws[len(active) :], []
         with self._lock:
-            for fault, draw in zip(active, cuts, strict=False):
+            for fault, draw in zip(active, cut_draws, strict=True):
                 cut = self._cut(fault, sender, draw)
                 if cut is not None:
                     self.counts[cut] += 1
                     return []
             hold_ns, copies = 0, 1
-            for fault, draw in zip(active, cuts[len(active) :], strict=True):
+            for fault, draw in zip(active, effect_draws, strict=True):
                 if not fault.hits(self.vehicle_id):
                     continue
                 if fault.kind == "delay":
