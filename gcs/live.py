@@ -131,9 +131,7 @@ class LiveRecord:
         """Per vehicle, the column of each other vehicle in its plan ages."""
         self._scenario_rows = ScenarioRows(scenario)
         self._target = TargetEstimator(
-            observation_std_m=max(scenario.target.observation_noise_m, 1e-3),
-            accel_std_m_s2=scenario.controller.target_accel_std_m_s2,
-            turn_accel_std_rad_s2=scenario.controller.target_turn_accel_std_rad_s2,
+            observation_std_m=max(scenario.target.observation_noise_m, 1e-3)
         )
         self.target_observations = 0
         self._target_pending: TargetObservation | None = None

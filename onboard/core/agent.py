@@ -16,6 +16,7 @@ No I/O, no clocks: time arrives as integer nanoseconds. docs/design.md has the m
 """
 
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -34,6 +35,9 @@ from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
 from fleetmpc.protocol.plan import Plan
 
 __all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_rate"]
+
+REFERENCE_HISTORY = 50
+"""Periods of reference course kept to restart a sweep where a manoeuvre began."""
 
 
 def reference_course_rate(controller: ControllerSettings, formation: FormationSettings) -> float:
@@ -123,16 +127,14 @@ class Agent:
         self.settings = controller
         self.learning = learning
         self.dekf = DualEkf(learning, tau=controller.period_s)
-        self.target = TargetEstimator(
-            observation_std_m=target_observation_std_m,
-            accel_std_m_s2=controller.target_accel_std_m_s2,
-            turn_accel_std_rad_s2=controller.target_turn_accel_std_rad_s2,
-        )
+        self.target = TargetEstimator(observation_std_m=target_observation_std_m)
         self.formation = Formation(formation)
         self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
         self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation, controller))
         self._reference_stamp_ns = 0
         self._course_locked = False
+        self._reference_history: deque[tuple[int, float]] = deque(maxlen=REFERENCE_HISTORY)
+        """(stamp, value) of the reference course over the last periods outside manoeuvres."""
         """True once the target's course was known well enough to rate-limit the reference."""
         self.u_max = self.mpc.u_max
         M = controller.horizon
@@ -178,7 +180,19 @@ class Agent:
         the course at 0 (North).
         """
         ref, v0, turn_rate = self.reference, velocities[0], self.target.turn_rate_rad_s
-        if self._course_locked:
+        onset_ns = self.target.manoeuvre_onset_ns
+        if self._course_locked and onset_ns is not None and self._reference_history:
+            # A manoeuvre (a corner) noticed only now began at onset_ns: the reference turns as
+            # if it had known since then, so its sweep starts with the target's, not later.
+            then_ns, then = next(
+                ((t, v) for t, v in reversed(self._reference_history) if t <= onset_ns),
+                self._reference_history[0],
+            )
+            steps = min(round((stamp_ns - then_ns) / self.settings.period_ns), REFERENCE_HISTORY)
+            ref.value = ref.replay(
+                then, v0, self.settings.period_s, steps, turn_rate_rad_s=turn_rate
+            )
+        elif self._course_locked:
             dt_s = (stamp_ns - self._reference_stamp_ns) * 1e-9
             ref.follow(v0, dt_s, turn_rate_rad_s=turn_rate)
         else:
@@ -188,6 +202,8 @@ class Agent:
                 ref.value is not None and speed >= 3.0 * self.target.velocity_std_m_s()
             )
         self._reference_stamp_ns = stamp_ns
+        if ref.value is not None and self._course_locked and onset_ns is None:
+            self._reference_history.append((stamp_ns, ref.value))
         if ref.value is None:
             return [0.0] * len(velocities)
         ahead = ref.ahead(velocities[1:], self.settings.period_s, turn_rate_rad_s=turn_rate)

@@ -46,10 +46,6 @@ class ControllerSettings:
     """Plan age beyond which a neighbour's formation term is dropped [s]."""
     plan_forget_s: float = 10.0
     """Plan age beyond which a neighbour is ignored entirely [s]."""
-    target_accel_std_m_s2: float = 0.01
-    """White-acceleration noise of the target filter's velocity [m/s^2]."""
-    target_turn_accel_std_rad_s2: float = 0.002
-    """Random-walk noise of the target filter's turn rate [rad/s^2]."""
     r_yaw_rate_change: float = 1.0
     """Input weight on the change of yaw rate from one step to the next [s^2/rad^2]: smooths the
     yaw-rate command (0: no such term)."""
@@ -83,8 +79,6 @@ class ControllerSettings:
             "plan_extrapolation_s",
             "plan_stale_s",
             "plan_forget_s",
-            "target_accel_std_m_s2",
-            "target_turn_accel_std_rad_s2",
             "yaw_rate_trust_rad_s",
             "speed_rate_max_m_s2",
         ):

@@ -165,6 +165,22 @@ class ReferenceCourse:
             self.value = self._turned(self.value, velocity_m_s, turn_rate_rad_s, dt_s)
         return self.value
 
+    def replay(
+        self,
+        value_then: float,
+        velocity_m_s: Sequence[float],
+        dt_s: float,
+        steps: int,
+        *,
+        turn_rate_rad_s: float = 0.0,
+    ) -> float:
+        """The value the reference would have now, had it turned from value_then through
+        `steps` periods of dt_s with this velocity and turn rate (the current value stays)."""
+        current = value_then
+        for _ in range(steps):
+            current = self._turned(current, velocity_m_s, turn_rate_rad_s, dt_s)
+        return current
+
     def ahead(
         self,
         velocities_m_s: Sequence[Sequence[float]],

@@ -1,27 +1,33 @@
-"""The target's track: a coordinated-turn extended Kalman filter on noisy position observations.
+"""The target's track: an interacting-multiple-model (IMM) filter of two coordinated-turn models
+on noisy position observations.
 
 State (x, y, vx, vy, omega) in the world frame [m, m, m/s, m/s, rad/s]: the target flies a turn of
 rate omega (straight when omega = 0), its velocity perturbed by white acceleration and its turn
-rate by a random walk (docs/design.md, "Target"). The turn rate is always estimated, so the
-prediction over the horizon curves with the target; on a straight line omega stays near zero.
-Observations are positions, a linear measurement: filterpy's KalmanFilter updates the state, and
-the nonlinear predict (the exact turn, its Jacobian for the covariance) is this module's.
+rate by a random walk (docs/design.md, "Target"). Two models share that state and differ in
+their process noise: *steady* (a straight line or a turn of constant rate: very little noise, so
+its course is quiet) and *turning* (a turn that tightens or opens, a change of speed: enough
+noise to follow a figure eight). The IMM (Bar-Shalom, Li and Kirubarajan, *Estimation with
+Applications to Tracking and Navigation*, 2001, Sec. 11.6) runs one extended Kalman filter per
+model, mixes their estimates before each prediction by the models' probabilities and a Markov
+chain of switches between them, weighs each model by how well it predicted the observation, and
+reports the weighted combination. The turn rate is always estimated, so the prediction over the
+horizon curves with the target; on a straight line omega stays near zero.
 
-A sharp corner (a waypoint) is not a turn this model expects. The filter notices it by its
+A sharp corner (a waypoint) is a turn neither model expects. The filter notices it by its
 innovations: while their normalized square, averaged over the last few observations, stays above
-what a target that keeps to the model would give (MANEUVER_NIS), the process noise of each
+what a target that keeps to the models would give (MANEUVER_NIS), the process noise of each
 prediction is scaled up (MANEUVER_SCALE), so the velocity follows the new course within a couple
-of observations instead of tens of seconds; on a steady path the noise stays low and the
-estimate quiet (Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to Tracking and
-Navigation*, 2001, Sec. 11.2: maneuver detection and process noise adjustment).
+of observations instead of tens of seconds (Bar-Shalom et al. 2001, Sec. 11.2: maneuver
+detection and process noise adjustment). The filter also reports when that manoeuvre began
+(the last observation that still fit), so the formation's reference can start its turn there.
 """
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
-__all__ = ["TargetEstimator", "turn_motion"]
+__all__ = ["MotionModel", "TargetEstimator", "turn_motion"]
 
 MANEUVER_NIS = 10.0
 """Averaged normalized innovation squared above which the target is taken to be manoeuvring (a
@@ -32,6 +38,10 @@ MANEUVER_AVERAGING = 0.5
 
 MANEUVER_SCALE = 1000.0
 """Factor on the process noise while the target manoeuvres (about 30x the standard deviations)."""
+
+QUIET_NIS = 9.21
+"""An observation whose own normalized innovation squared is at most this (the chi-square 99 %
+point for 2 degrees of freedom) still fits the models: a manoeuvre began after the last one."""
 
 _SMALL_TURN = 1e-6
 """Below this |omega dt| [rad] the turn's formulas use their series expansions."""
@@ -68,13 +78,6 @@ def _process_noise(dt: float, accel_std: float, turn_std: float) -> np.ndarray:
     return Q
 
 
-def _inverse_2x2(S: np.ndarray) -> np.ndarray:
-    """Closed-form inverse of the 2 x 2 innovation covariance (filterpy's `inv` hook)."""
-    (a, b), (c, d) = S.tolist()
-    det = a * d - b * c
-    return np.array((d / det, -b / det, -c / det, a / det)).reshape(2, 2)
-
-
 def _turn_jacobian(vx: float, vy: float, w: float, dt: float) -> np.ndarray:
     """d turn_motion / d (x, y, vx, vy, omega), with omega kept (5, 5)."""
     a = w * dt
@@ -96,6 +99,28 @@ def _turn_jacobian(vx: float, vy: float, w: float, dt: float) -> np.ndarray:
     ).reshape(5, 5)  # fmt: skip
 
 
+@dataclass(frozen=True)
+class MotionModel:
+    """One model of the IMM: its process noise and how long the target keeps to it."""
+
+    accel_std_m_s2: float
+    """White acceleration on position and velocity [m/s^2]."""
+    turn_accel_std_rad_s2: float
+    """Random walk of the turn rate [rad/s per sqrt(s)]."""
+    mean_duration_s: float
+    """Mean time the target keeps to this model before switching to the other [s]."""
+
+
+STEADY = MotionModel(accel_std_m_s2=0.001, turn_accel_std_rad_s2=1e-5, mean_duration_s=60.0)
+"""A straight line or a turn of constant rate, at a constant speed."""
+
+TURNING = MotionModel(accel_std_m_s2=0.005, turn_accel_std_rad_s2=0.003, mean_duration_s=20.0)
+"""A turn that tightens or opens (a figure eight's lobes), a speed that changes."""
+
+_START_STD = (2.0, 0.1)
+"""Standard deviations of the velocity [m/s] and turn rate [rad/s] at the first observation."""
+
+
 class TargetEstimator:
     """Tracks the target from position observations; time is integer nanoseconds."""
 
@@ -103,18 +128,30 @@ class TargetEstimator:
         self,
         *,
         observation_std_m: float,
-        accel_std_m_s2: float = 0.01,
-        turn_accel_std_rad_s2: float = 0.002,
+        models: tuple[MotionModel, ...] = (STEADY, TURNING),
     ) -> None:
-        self._kf = KalmanFilter(dim_x=5, dim_z=2)
-        self._kf.H = self._H = np.array([[1.0, 0, 0, 0, 0], [0, 1.0, 0, 0, 0]])
-        self._kf.R = np.eye(2) * max(observation_std_m, 1e-3) ** 2
-        self._kf.inv = _inverse_2x2
-        self._accel_std, self._turn_std = accel_std_m_s2, turn_accel_std_rad_s2
-        self._noise: dict[int, np.ndarray] = {}
+        self._R = np.eye(2) * max(observation_std_m, 1e-3) ** 2
+        self.models = models
+        n = len(models)
+        if n < 2:
+            raise ValueError(f"an IMM needs at least two models, got {n}")
+        self._xs = np.zeros((n, 5))
+        """Each model's state."""
+        self._Ps = np.stack([np.eye(5)] * n)
+        """Each model's covariance."""
+        self._noise: dict[tuple[int, bool], tuple[np.ndarray, np.ndarray]] = {}
+        self.probabilities = np.full(n, 1.0 / n)
+        """Each model's probability after the last observation."""
+        self.x = np.zeros(5)
+        """The combined state (x, y, vx, vy, omega)."""
         self._stamp_ns: int | None = None
         self._nis = 2.0
-        """The averaged normalized innovation squared (its mean while the model holds)."""
+        """The averaged normalized innovation squared (its mean while the models hold)."""
+        self._quiet_ns: int | None = None
+        """Stamp of the last observation that still fit the models (QUIET_NIS)."""
+        self.manoeuvre_onset_ns: int | None = None
+        """While the target manoeuvres: when the manoeuvre began (the last observation that fit
+        before it); None otherwise."""
         self.observations = 0
 
     @property
@@ -125,34 +162,63 @@ class TargetEstimator:
     @property
     def turn_rate_rad_s(self) -> float:
         """The estimated turn rate [rad/s]."""
-        return float(self._kf.x[4])
+        return float(self.x[4])
+
+    @property
+    def P(self) -> np.ndarray:
+        """The combined covariance (5, 5), the spread between the models' states included."""
+        d = self._xs - self.x
+        spread = d[:, :, None] * d[:, None, :]
+        return np.tensordot(self.probabilities, self._Ps + spread, axes=(0, 0))
 
     def velocity_std_m_s(self) -> float:
         """Standard deviation of the velocity estimate (the larger axis's) [m/s]."""
-        P = self._kf.P
+        P = self.P
         return math.sqrt(max(P[2, 2], P[3, 3]))
 
     @property
     def manoeuvring(self) -> bool:
-        """True while the innovations say the target leaves the model (a corner)."""
+        """True while the innovations say the target leaves the models (a corner)."""
         return self._nis > MANEUVER_NIS
 
-    def _predict_to(self, stamp_ns: int) -> None:
-        """The filter's predict: the state turned exactly, the covariance through the Jacobian
-        (with the process noise scaled up while the target manoeuvres)."""
-        dt_ns = stamp_ns - self._stamp_ns
-        dt = dt_ns * 1e-9
-        Q = self._noise.get(dt_ns)
-        if Q is None:  # (one period almost always: cached by step)
+    def _switching(self, dt_ns: int) -> np.ndarray:
+        """The Markov chain's switch probabilities over dt_ns: [i, j] from model i to j (a model
+        left goes to each other one alike); cached with the process noise."""
+        return self._cached(dt_ns, self.manoeuvring)[0]
+
+    def _process_noise(self, dt_ns: int, manoeuvring: bool) -> np.ndarray:
+        """Every model's process noise over dt_ns (models, 5, 5)."""
+        return self._cached(dt_ns, manoeuvring)[1]
+
+    def _cached(self, dt_ns: int, manoeuvring: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The switch probabilities and process noises over dt_ns (one period, mostly)."""
+        key = (dt_ns, manoeuvring)
+        found = self._noise.get(key)
+        if found is None:
             if len(self._noise) >= 64:  # irregular stamps: do not grow without bound
                 self._noise.clear()
-            Q = self._noise[dt_ns] = _process_noise(dt, self._accel_std, self._turn_std)
-        kf = self._kf
-        x, y, vx, vy, w = kf.x.tolist()
-        F = _turn_jacobian(vx, vy, w, dt)
-        kf.x = np.array((*turn_motion(x, y, vx, vy, w, dt), w))
-        kf.P = F.dot(kf.P).dot(F.T) + (MANEUVER_SCALE * Q if self.manoeuvring else Q)
-        self._stamp_ns = stamp_ns
+            dt = dt_ns * 1e-9
+            n = len(self.models)
+            leave = np.array([1.0 - math.exp(-dt / m.mean_duration_s) for m in self.models])
+            switch = np.repeat(leave[:, None] / (n - 1), n, axis=1)
+            np.fill_diagonal(switch, 1.0 - leave)
+            scale = MANEUVER_SCALE if manoeuvring else 1.0
+            Q = np.stack(
+                [scale * _process_noise(dt, m.accel_std_m_s2, m.turn_accel_std_rad_s2)
+                 for m in self.models]
+            )  # fmt: skip
+            found = self._noise[key] = (switch, Q)
+        return found
+
+    def _start(self, stamp_ns: int, p: np.ndarray) -> None:
+        """The first observation starts the track at rest, its velocity and turn rate wide."""
+        r = self._R[0, 0]
+        v, w = _START_STD
+        self.x = np.array([p[0], p[1], 0.0, 0.0, 0.0])
+        P = np.diag([r, r, v * v, v * v, w * w])
+        self._xs = np.stack([self.x] * len(self.models))
+        self._Ps = np.stack([P] * len(self.models))
+        self._stamp_ns = self._quiet_ns = stamp_ns
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
         """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
@@ -160,19 +226,54 @@ class TargetEstimator:
         if p.shape != (2,) or not all(map(math.isfinite, p.tolist())):
             return False
         if self._stamp_ns is None:
-            r = self._kf.R[0, 0]
-            self._kf.x = np.array([p[0], p[1], 0.0, 0.0, 0.0])
-            self._kf.P = np.diag([r, r, 4.0, 4.0, 0.01])
-            self._stamp_ns = stamp_ns
+            self._start(stamp_ns, p)
             self.observations = 1
             return True
         if stamp_ns <= self._stamp_ns:
             return False
-        self._predict_to(stamp_ns)
-        self._kf.update(p, H=self._H)  # H given: p is used as it is (no reshape_z)
-        innovation, S_inv = self._kf.y, self._kf.SI
-        nis = float(innovation.dot(S_inv).dot(innovation))
-        self._nis += MANEUVER_AVERAGING * (nis - self._nis)
+        dt_ns = stamp_ns - self._stamp_ns
+        dt = dt_ns * 1e-9
+        # Mixing: each model starts from the estimates of both, weighed by the chance that the
+        # target kept to the other one and has switched since ([i, j]: i given j now).
+        switch = self._switching(dt_ns)
+        prior = self.probabilities.dot(switch)
+        mix = switch * self.probabilities[:, None] / prior  # [i, j]
+        xs, Ps = self._xs, self._Ps
+        x0 = mix.T.dot(xs)
+        d = xs[:, None, :] - x0[None, :, :]  # [i, j]: model i's state less model j's start
+        spread = d[..., :, None] * d[..., None, :]
+        P0 = (mix[:, :, None, None] * (Ps[:, None] + spread)).sum(axis=0)
+        # Each model's EKF: turn exactly, the covariance through the Jacobian; fuse p.
+        F = np.array([_turn_jacobian(vx, vy, w, dt) for _, _, vx, vy, w in x0.tolist()])
+        xs = np.array([(*turn_motion(*row[:4], row[4], dt), row[4]) for row in x0.tolist()])
+        Ps = F @ P0 @ F.transpose(0, 2, 1) + self._process_noise(dt_ns, self.manoeuvring)
+        innovation = (p - xs[:, :2])[:, :, None]  # (models, 2, 1)
+        S = Ps[:, :2, :2] + self._R
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        S_inv = S[:, ::-1, ::-1] * np.array([[1.0, -1.0], [-1.0, 1.0]]) / det[:, None, None]
+        K = Ps[:, :, :2] @ S_inv  # (models, 5, 2)
+        self._xs = xs + (K @ innovation)[:, :, 0]
+        Ps = Ps - K @ Ps[:, :2, :]
+        self._Ps = 0.5 * (Ps + Ps.transpose(0, 2, 1))
+        nis = (innovation.transpose(0, 2, 1) @ S_inv @ innovation)[:, 0, 0]
+        likelihood = np.exp(-0.5 * nis) / (2.0 * math.pi * np.sqrt(det))
+        # Each model's probability, and the combined estimate.
+        posterior = prior * likelihood
+        total = float(posterior.sum())
+        # (Both likelihoods underflow only at an absurd observation: keep the prior then.)
+        mu = np.clip(posterior / total if total > 0.0 else prior, 1e-9, None)
+        self.probabilities = mu / mu.sum()
+        self.x = self.probabilities.dot(self._xs)
+        # Manoeuvre detection, on the innovation as the models together expected it.
+        observed_nis = float(prior.dot(nis))
+        self._nis += MANEUVER_AVERAGING * (observed_nis - self._nis)
+        if not self.manoeuvring:
+            self.manoeuvre_onset_ns = None
+        elif self.manoeuvre_onset_ns is None:
+            self.manoeuvre_onset_ns = self._quiet_ns
+        if observed_nis <= QUIET_NIS:
+            self._quiet_ns = stamp_ns
+        self._stamp_ns = stamp_ns
         self.observations += 1
         return True
 
@@ -182,7 +283,7 @@ class TargetEstimator:
         """Positions and velocities at stamp_ns + k period_ns, k = 0..count-1, as float pairs."""
         if self._stamp_ns is None:
             raise RuntimeError("no target observation yet")
-        x, y, vx, vy, w = self._kf.x.tolist()
+        x, y, vx, vy, w = self.x.tolist()
         x, y, vx, vy = turn_motion(x, y, vx, vy, w, (stamp_ns - self._stamp_ns) * 1e-9)
         dt = period_ns * 1e-9
         positions, velocities = [(x, y)], [(vx, vy)]

@@ -131,3 +131,35 @@ def test_nan_measurement_never_reaches_the_command(paper):
     agent.step(AgentInput(0, np.array([0.0, 0.0, 0.0]), np.array([5.0, 5.0])))
     out = agent.step(AgentInput(PERIOD_NS, np.array([np.nan, 0.0, 0.0]), np.array([5.2, 5.2])))
     assert np.all(np.isfinite(out.command)) and np.all(np.abs(out.command) <= agent.u_max)
+
+
+def test_a_corner_noticed_late_is_swept_from_when_the_target_turned():
+    """The reference course's sweep after a waypoint corner starts at the corner (as the true
+    reference's does), not when the filter noticed it a few observations later."""
+    from fleetmpc.onboard.core.agent import reference_course_rate
+    from fleetmpc.onboard.core.formation import TrueReference
+    from fleetmpc.scenario import load_scenario
+
+    sc = load_scenario("scenarios/square.toml")
+    v = sc.vehicles[0]
+    agent = Agent(
+        v.id,
+        fleet_ids=sc.vehicle_ids,
+        controller=sc.controller,
+        formation=sc.formation,
+        learning=sc.learning,
+        target_observation_std_m=sc.target.observation_noise_m,
+    )
+    truth = TrueReference(reference_course_rate(sc.controller, sc.formation))
+    rng = np.random.default_rng(11)
+    period_ns = sc.controller.period_ns
+    lags = []
+    for k in range(int(50.0 * 1e9 / period_ns)):
+        t = k * period_ns * 1e-9
+        _, velocity = sc.target.state_at(t)
+        agent.step(AgentInput(k * period_ns, np.array(v.initial), sc.target.observe(t, rng)))
+        true_course = truth.follow(velocity.tolist(), period_ns * 1e-9)
+        if t >= 42.0:  # the corner is at 40 s
+            lags.append(abs(agent.reference.value - true_course))
+    rate = reference_course_rate(sc.controller, sc.formation)
+    assert max(lags) < rate * 0.25  # less than 0.25 s of the sweep behind

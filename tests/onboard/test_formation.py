@@ -30,6 +30,16 @@ def test_a_corner_becomes_a_sweep_at_the_rate_limit():
     assert np.all(np.abs(steps) <= 0.05 * 0.2 + 1e-12)
 
 
+def test_a_replay_turns_as_the_reference_would_have_from_a_past_value():
+    ref = ReferenceCourse(0.05)
+    ref.follow(_velocity(0.0), 0.2)
+    replayed = ref.replay(0.0, _velocity(math.pi / 2), 0.2, 10, turn_rate_rad_s=0.0)
+    assert ref.value == 0.0  # (the state stays)
+    followed = [ref.follow(_velocity(math.pi / 2), 0.2) for _ in range(10)][-1]
+    assert replayed == pytest.approx(followed) == pytest.approx(0.05 * 0.2 * 10)
+    assert ref.replay(0.3, _velocity(1.0), 0.2, 0) == 0.3
+
+
 def test_a_steady_turn_below_the_limit_is_followed_without_lag():
     rate, dt = 0.03, 0.2
     ref = ReferenceCourse(0.05)

@@ -56,21 +56,48 @@ def test_the_prediction_curves_with_the_target(script, limit_m):
     assert math.sqrt(np.mean(np.square(errors))) < limit_m
 
 
-def test_a_corner_is_noticed_and_the_course_follows_within_seconds():
+def test_a_corner_is_noticed_its_onset_dated_and_the_course_follows_within_seconds():
     square = TargetScript(
         kind="waypoints", waypoints_m=((0, 0), (40, 0), (40, 40)), speed_m_s=1.0,
         observation_noise_m=0.05,
     )  # fmt: skip
     rng = np.random.default_rng(5)
     est = TargetEstimator(observation_std_m=0.05)
-    noticed = None
+    noticed, onset, courses = None, None, []
     for k in range(int(50.0 / 0.2) + 1):
         t = k * 0.2
         est.observe(k * PERIOD_NS, square.observe(t, rng))
-        if t > 40.0 and noticed is None and est.manoeuvring:
-            noticed = t
-        if t == pytest.approx(43.0):
+        if t < 39.0:
+            assert not est.manoeuvring and est.manoeuvre_onset_ns is None
+        if t > 39.0 and noticed is None and est.manoeuvring:
+            noticed, onset = t, est.manoeuvre_onset_ns * 1e-9
+        if t >= 46.0:
             _, velocities = est.predicted_track(k * PERIOD_NS, PERIOD_NS, 1)
-            course = math.atan2(velocities[0][1], velocities[0][0])
-    assert noticed is not None and noticed < 41.5
-    assert abs(course - math.pi / 2) < math.radians(10)
+            courses.append(math.atan2(velocities[0][1], velocities[0][0]))
+    assert noticed is not None and noticed < 41.0
+    assert onset == pytest.approx(40.0, abs=0.21)  # the last observation on the old leg
+    assert max(abs(c - math.pi / 2) for c in courses) < math.radians(10)
+
+
+def test_the_steady_model_holds_a_line_and_the_turning_one_a_tightening_turn():
+    line = TargetScript(kind="line", start_m=(0, 0), velocity_m_s=(1, 0.5),
+                        observation_noise_m=0.05)  # fmt: skip
+    eight = TargetScript(kind="figure_eight", center_m=(0, 0), radius_m=60.0, period_s=410.0,
+                         observation_noise_m=0.05)  # fmt: skip
+    rng = np.random.default_rng(7)
+    for script, model, seconds in ((line, 0, 60.0), (eight, 1, 60.0)):
+        est = TargetEstimator(observation_std_m=0.05)
+        probabilities = []
+        for k in range(int(seconds / 0.2) + 1):
+            est.observe(k * PERIOD_NS, script.observe(k * 0.2, rng))
+            probabilities.append(est.probabilities[model])
+        assert np.mean(probabilities[len(probabilities) // 2 :]) > 0.6
+
+
+def test_out_of_order_and_non_finite_observations_are_ignored():
+    est = TargetEstimator(observation_std_m=0.05)
+    assert est.observe(PERIOD_NS, np.array([1.0, 2.0]))
+    assert not est.observe(PERIOD_NS, np.array([5.0, 5.0]))
+    assert not est.observe(2 * PERIOD_NS, np.array([math.nan, 0.0]))
+    assert est.observations == 1
+    assert est.x[:2].tolist() == [1.0, 2.0]
