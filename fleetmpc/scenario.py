@@ -207,12 +207,24 @@ class VehicleSpec:
     """The simulated vehicle's true parameters."""
     autopilot: str = "px4"
     """Autopilot profile of the vehicle's SITL and link: "px4" or "ardupilot"."""
+    system_id: int | None = None
+    """MAVLink system id of the vehicle's autopilot when it is not `id` (a stock ArduCopter
+    answers as 1): the ground station tells vehicles apart by it; None: `id`."""
 
     def __post_init__(self) -> None:
         if self.autopilot not in AUTOPILOTS:
             raise ConfigError(
                 "autopilot", f'must be "px4" or "ardupilot", got {_quoted(self.autopilot)}'
             )
+        sid = self.system_id
+        integer = isinstance(sid, int) and not isinstance(sid, bool)
+        if sid is not None and not (integer and 1 <= sid <= 250):
+            raise ConfigError("system_id", f"must be an integer in [1, 250], got {sid!r}")
+
+    @property
+    def mavlink_system_id(self) -> int:
+        """The system id the vehicle's autopilot answers as."""
+        return self.id if self.system_id is None else self.system_id
 
 
 def _quoted(value: object) -> str:
@@ -301,7 +313,7 @@ def _truth(table: dict[str, Any], prefix: str, controller: ControllerSettings) -
     return _build(TruthParams, table, prefix, wind=wind)
 
 
-_VEHICLE_KEYS = {"id", "initial", "slot_m", "truth", "autopilot"}
+_VEHICLE_KEYS = {"id", "initial", "slot_m", "truth", "autopilot", "system_id"}
 
 _TOP_KEYS = {
     "name",
@@ -457,13 +469,26 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
             truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
         truth = _truth(truth_table, f"{prefix}.truth", controller)
         try:
-            spec = VehicleSpec(vid, initial, slot, truth, autopilot=raw.get("autopilot", "px4"))
+            spec = VehicleSpec(
+                vid,
+                initial,
+                slot,
+                truth,
+                autopilot=raw.get("autopilot", "px4"),
+                system_id=raw.get("system_id"),
+            )
         except ConfigError as e:
             raise ConfigError(f"{prefix}.{e.field}", str(e).split(": ", 1)[1]) from None
         vehicles.append(spec)
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ConfigError("vehicles", f"ids must be unique, got {ids}")
+    systems = [v.mavlink_system_id for v in vehicles]
+    if len(set(systems)) != len(systems):
+        raise ConfigError(
+            "vehicles",
+            f"MAVLink system ids (system_id, else id) must be unique, got {systems}",
+        )
     if "slots_m" in formation_table:
         raise ConfigError("formation.slots_m", "give each vehicle's slot as vehicles[i].slot_m")
     formation = _build(

@@ -169,15 +169,16 @@ GCS_DATA_STREAMS_HZ = {6: 5, 2: 1}
 EXTENDED_STATUS at 1 Hz)."""
 
 
-def _ask_for_streams(mav, vehicle_id: int) -> None:
-    """Ask vehicle `vehicle_id` for the messages the ground station reads, on this link (a real
-    ArduPilot streams nothing to a ground station until asked). A UDP server link writes to every
-    vehicle it hears; the commands' target system picks the one."""
+def _ask_for_streams(mav, system_id: int) -> None:
+    """Ask the autopilot of MAVLink system `system_id` for the messages the ground station
+    reads, on this link (a real ArduPilot streams nothing to a ground station until asked). A
+    UDP server link writes to every vehicle it hears; the commands' target system picks the
+    one."""
     messages = [
-        mav.mav.command_long_encode(vehicle_id, 1, 511, 0, msg_id, interval, 0, 0, 0, 0, 0)
+        mav.mav.command_long_encode(system_id, 1, 511, 0, msg_id, interval, 0, 0, 0, 0, 0)
         for msg_id, interval in GCS_STREAMS_US.items()
     ] + [
-        mav.mav.request_data_stream_encode(vehicle_id, 1, stream, rate, 1)
+        mav.mav.request_data_stream_encode(system_id, 1, stream, rate, 1)
         for stream, rate in GCS_DATA_STREAMS_HZ.items()
     ]
     for message in messages:
@@ -259,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
                 gs.drain_bus()
                 gs.check_links(time.time())
                 for vid in gs.links_to_ask(time.time()):
-                    _ask_for_streams(mav, vid)
+                    _ask_for_streams(mav, scenario.vehicle(vid).mavlink_system_id)
                 if args.status_file is not None:
                     phase = "waiting" if gs.epoch_ns is None else "flying"
                     _write_json(args.status_file, gs.status_snapshot(phase))

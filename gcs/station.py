@@ -79,6 +79,8 @@ class GroundStation:
         self.periods = int(round(duration_s * 1e9 / scenario.controller.period_ns)) + 1
         self.live = LiveRecord(scenario, periods=self.periods)
         self.links = {vid: VehicleLink() for vid in scenario.vehicle_ids}
+        self._vehicle_of_system = {v.mavlink_system_id: v.id for v in scenario.vehicles}
+        """Vehicle id of each autopilot's MAVLink system id (the same unless the scenario says)."""
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.epoch_ns: int | None = None
         self.logged_periods = 0
@@ -108,7 +110,7 @@ class GroundStation:
 
     # -- MAVLink ----------------------------------------------------------------------------------
     def on_mavlink(self, msg, received_ns: int) -> None:
-        vid = msg.get_srcSystem()
+        vid = self._vehicle_of_system.get(msg.get_srcSystem())
         link = self.links.get(vid)
         if link is None or msg.get_srcComponent() != 1:
             return

@@ -393,6 +393,15 @@ class MavlinkAutopilotLink(AutopilotLink):
                 and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
                 and self._wait_airborne(timeout_s=timeout_s)
             )
+        elif st.landed_state == LandedState.ON_GROUND:
+            # PX4 flies no offboard setpoint off the ground at a constant altitude: it takes off
+            # first (AUTO_TAKEOFF to MIS_TAKEOFF_ALT, param 7 NaN), then holds (AUTO_LOITER).
+            ok = (
+                self._retry(400, (1.0,), timeout_s=timeout_s)
+                and self._retry(22, (0,) * 6 + (math.nan,), timeout_s=timeout_s)
+                and self._wait_airborne(timeout_s=timeout_s)
+                and self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
+            )
         else:
             ok = self._retry(400, (1.0,), timeout_s=timeout_s) and self._set_mode(
                 FlightMode.OFFBOARD, timeout_s=timeout_s
@@ -402,9 +411,15 @@ class MavlinkAutopilotLink(AutopilotLink):
         return ok
 
     def _wait_airborne(self, *, timeout_s: float) -> bool:
-        """Until the takeoff is over: ArduCopter reads no GUIDED target while it climbs
-        (its landed state is TAKEOFF), so the vehicle is not the agent's until then. An
+        """Until the takeoff is over (landed state IN_AIR): ArduCopter reads no GUIDED target
+        while it climbs (its landed state is TAKEOFF), PX4 reports TAKEOFF until its takeoff
+        setpoint is reached and it loiters, so the vehicle is not the agent's until then. An
         autopilot that reports no landed state within a second is taken at its word."""
+        climbing_modes = (
+            (FlightMode.OFFBOARD,)
+            if self.state().autopilot == Autopilot.ARDUPILOTMEGA
+            else (FlightMode.TAKEOFF, FlightMode.HOLD)
+        )
         deadline = time.monotonic() + timeout_s
         quiet_until = time.monotonic() + 1.0
         with self._cond:
@@ -414,7 +429,7 @@ class MavlinkAutopilotLink(AutopilotLink):
                     return True
                 if st.landed_state is None and time.monotonic() >= quiet_until:
                     return True
-                if not st.armed or (st.mode is not None and st.mode != FlightMode.OFFBOARD):
+                if not st.armed or (st.mode is not None and st.mode not in climbing_modes):
                     self._log("the takeoff ended before the vehicle was airborne")
                     return False
                 left = deadline - time.monotonic()

@@ -12,8 +12,10 @@ Profiles:
   setpoint, then OFFBOARD at once, is accepted. Without a valid setpoint for that long the vehicle
   switches to HOLD.
   Offboard may be engaged on the ground, and the horizontal (unicycle) plant then follows the
-  setpoints at any altitude, so the usual arm -> setpoint -> offboard flow works without a takeoff.
-  TAKEOFF climbs to the takeoff altitude and then switches to HOLD.
+  setpoints at any altitude, so a client's arm -> setpoint -> offboard flow works without a
+  takeoff (a simplification: a real PX4 leaves the ground only on a climb demand or a takeoff,
+  which is why the agent takes off first). TAKEOFF (MAV_CMD_NAV_TAKEOFF) climbs to the takeoff
+  altitude and then switches to HOLD; the landed state is TAKEOFF during the climb, IN_AIR after.
 - ArduPilot (Copter): boots in STABILIZE. Arming and the modes that need a position are refused
   until the position estimate is ready (`position_ready_ns` after boot). GUIDED targets are used
   only once airborne and the takeoff (the takeoff command comes first) is complete; after

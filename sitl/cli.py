@@ -13,6 +13,7 @@ set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
 """
 
 import argparse
+import math
 import signal
 import sys
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ from pathlib import Path
 
 from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
-from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
@@ -44,6 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--host", help="address to bind and stream to (default: scenario network.host)"
     )
     parser.add_argument("--port-offset", type=int, default=0, help="added to every default port")
+    parser.add_argument(
+        "--boot-origin",
+        metavar="NORTH,EAST",
+        help="where the autopilot booted (its local frame's origin, as a real autopilot's EKF"
+        " origin), in metres from the scenario's origin (default: the vehicle's start)",
+    )
     ports = parser.add_argument_group("explicit ports (override the defaults)")
     ports.add_argument("--offboard-port", type=int, help="PX4: port streamed to (offboard API)")
     ports.add_argument(
@@ -74,6 +81,20 @@ def _ns(option: str, seconds: float, *, lo: float, hi: float) -> int:
     if not lo <= seconds <= hi:  # also rejects NaN
         raise ConfigError(option, f"must be in [{lo}, {hi}] s, got {seconds}")
     return round(seconds * 1e9)
+
+
+def _boot_origin(text: str | None, spec: VehicleSpec) -> tuple[float, float]:
+    """--boot-origin NORTH,EAST [m], else where the vehicle starts."""
+    if text is None:
+        return (spec.initial[0], spec.initial[1])
+    parts = text.split(",")
+    try:
+        north, east = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError("--boot-origin", f"must be NORTH,EAST in metres, got {text!r}") from None
+    if not (math.isfinite(north) and math.isfinite(east)):
+        raise ConfigError("--boot-origin", f"must be finite, got {text!r}")
+    return (north, east)
 
 
 def _port(option: str, value: int, *, allow_zero: bool) -> int:
@@ -124,7 +145,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         offboard_loss_timeout_ns=_ns("--com-of-loss-t", args.com_of_loss_t, lo=0.05, hi=60.0),
         guided_timeout_ns=_ns("--guided-timeout", args.guided_timeout, lo=0.05, hi=60.0),
         position_ready_ns=_ns("--position-ready", args.position_ready, lo=0.0, hi=600.0),
-        local_origin_m=(spec.initial[0], spec.initial[1]),  # (where it boots)
+        local_origin_m=_boot_origin(args.boot_origin, spec),
     )
     common = dict(
         vehicle=spec,

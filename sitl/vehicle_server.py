@@ -123,12 +123,12 @@ class VehicleServer:
         self.autopilot = Autopilot(config.autopilot)
         px4 = config.autopilot.profile == Profile.PX4
         self.ident = Identity(
-            system_id=v.id,
+            system_id=v.mavlink_system_id,
             autopilot=AutopilotType.PX4 if px4 else AutopilotType.ARDUPILOTMEGA,
             site=config.site,
             local_origin_m=config.autopilot.local_origin_m,
         )
-        self.encoder = MavlinkEncoder(system_id=v.id)
+        self.encoder = MavlinkEncoder(system_id=v.mavlink_system_id)
         self.stats = DecodeStats()
         self.counters = _Counters()
         self._rng = np.random.default_rng([config.seed, v.id])

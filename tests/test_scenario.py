@@ -1,4 +1,6 @@
 import math
+import tomllib
+from pathlib import Path
 
 import pytest
 
@@ -200,3 +202,16 @@ def test_a_pattern_makes_the_vehicles_and_starts_them_at_their_slots():
             {**doc, "formation": {"pattern": {"kind": "line", "count": 3, "spacing_m": 1.0}}}
         )
     assert e.value.field.startswith("vehicles[1]")
+
+
+def test_a_vehicle_may_name_its_autopilots_system_id_and_system_ids_stay_unique():
+    doc = tomllib.loads(Path("scenarios/mixed-autopilots.toml").read_text())
+    doc["vehicles"][1]["system_id"] = 1
+    with pytest.raises(ConfigError, match="system ids .* must be unique"):
+        parse_scenario(doc)
+    doc["vehicles"][0]["system_id"] = 11
+    sc = parse_scenario(doc)
+    assert [v.mavlink_system_id for v in sc.vehicles] == [11, 1, 3]
+    doc["vehicles"][0]["system_id"] = 0
+    with pytest.raises(ConfigError, match=r"vehicles\[0\]\.system_id: must be an integer"):
+        parse_scenario(doc)

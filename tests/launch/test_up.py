@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import rerun as rr
 from helpers import live_processes_naming, scenario_on_free_ports
@@ -198,3 +199,69 @@ def test_up_flies_the_mixed_fleet_at_x1_within_the_gates(launch, tmp_path):
     assert m["min_separation_m"] >= 2.0, m
     log = (tmp_path / "run" / "logs" / "agent-2.log").read_text()
     assert "vehicle 2: engaged" in log
+
+
+def test_an_ardupilot_answering_as_system_1_and_booted_elsewhere_flies_vehicle_2(launch, tmp_path):
+    """A stock ArduCopter answers as system 1 and reports local position from where it booted.
+    Here an ArduPilot-profile vehicle started by hand (not by `up`) serves vehicle 2's slot as
+    system 1, its local origin 12 m East of its start (it was carried there after boot). The
+    agent flies the first autopilot it hears and places it from its global position; the ground
+    station knows it as vehicle 2 from the scenario's `system_id`; both see it at the same place."""
+    from fleetmpc.gcs.rrd_reader import read_recording
+    from fleetmpc.scenario import load_scenario, mavlink_url
+
+    mixed = scenario_on_free_ports(
+        ROOT / "scenarios" / "mixed-autopilots.toml", tmp_path / "m.toml"
+    )
+    text = mixed.read_text()
+    text = text.replace("[[vehicles]]\nid = 1\n", "[[vehicles]]\nid = 1\nsystem_id = 11\n", 1)
+    text = text.replace("[[vehicles]]\nid = 2\n", "[[vehicles]]\nid = 2\nsystem_id = 1\n", 1)
+    mixed.write_text(text)
+    sc = load_scenario(mixed)
+    v2 = sc.vehicle(2)
+    assert (v2.autopilot, v2.mavlink_system_id, sc.vehicle(1).mavlink_system_id) == (
+        "ardupilot",
+        1,
+        11,
+    )
+    url = mavlink_url(sc.network, v2)
+    origin = f"{v2.initial[0]:.3f},{v2.initial[1] + 12.0:.3f}"
+    sitl_log = (tmp_path / "sitl-2.log").open("w")  # noqa: SIM115 (closed below)
+    sitl = subprocess.Popen(
+        [sys.executable, "-m", "fleetmpc.cli", "sitl", "--scenario", str(mixed), "--vehicle", "2",
+         "--speed", f"{SPEED:g}", "--boot-origin", origin],
+        stdout=sitl_log, stderr=subprocess.STDOUT, cwd=ROOT,
+    )  # fmt: skip
+    try:
+        metrics = tmp_path / "metrics.json"
+        up = launch(mixed, tmp_path / "run", "--mavlink", f"2={url}", "--metrics", str(metrics),
+                    "--agent-records")  # fmt: skip
+        assert up.wait(timeout_s=180.0) == 0, up.text()
+    finally:
+        sitl.terminate()
+        sitl.wait(timeout=10.0)
+        sitl_log.close()
+    log = (tmp_path / "run" / "logs" / "agent-2.log").read_text()
+    assert "vehicle 2: engaged" in log
+    m = json.loads(metrics.read_text())
+    assert all(e <= 0.1 for e in m["separation_error_m"]), m["separation_error_m"]
+    assert m["centre_distance_error_m"] <= 0.1, m
+    assert m["min_separation_m"] >= 2.0, m
+    # The ground station's position of vehicle 2 against its agent's, at the times the agent's
+    # poses were measured (fleet time = autopilot boot time + the agent's clock offset).
+    rec = read_recording(tmp_path / "run" / "run.rrd").record
+    rows = [
+        json.loads(line)
+        for line in (tmp_path / "run" / "agents" / "agent-2.jsonl").read_text().splitlines()
+    ]
+    t = np.array([(r["time_boot_ns"] + r["offset_ns"]) * 1e-9 for r in rows if r["offset_ns"]])
+    agent = np.array([r["pose"][:2] for r in rows if r["offset_ns"]], dtype=float)
+    inside = (t >= rec.t_s[0] + 1.0) & (t <= rec.t_s[-1])
+    ground = np.stack(
+        [np.interp(t[inside], rec.t_s, rec.truth[:, 1, axis]) for axis in (0, 1)], axis=1
+    )
+    offset = agent[inside] - ground
+    assert inside.sum() >= 100
+    # (each side reads its own noisy telemetry: 5 cm of sensor noise per sample)
+    assert np.hypot(*offset.mean(axis=0)) <= 0.02, offset.mean(axis=0)
+    assert np.median(np.hypot(offset[:, 0], offset[:, 1])) <= 0.1

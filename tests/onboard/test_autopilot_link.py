@@ -20,6 +20,7 @@ from fleetmpc.onboard.mavlink_autopilot_link import MavlinkAutopilotLink  # noqa
 from fleetmpc.protocol.mavlink_map import (  # noqa: E402
     Autopilot,
     FlightMode,
+    LandedState,
     base_mode,
     custom_mode_of,
 )
@@ -42,8 +43,14 @@ class _Sink:
 class ScriptedAutopilot:
     """A minimal MAVLink autopilot on loopback: streams pose, records and ACKs what it gets."""
 
-    def __init__(self, port: int, *, autopilot: Autopilot, deny_arms: int = 0) -> None:
+    def __init__(
+        self, port: int, *, autopilot: Autopilot, deny_arms: int = 0, on_ground: bool = False
+    ) -> None:
         self.autopilot = autopilot
+        self.landed_state = 1 if on_ground else None
+        """EXTENDED_SYS_STATE's landed state to stream (None: not streamed)."""
+        self.climb_left = 0
+        """Loop turns (20 ms) until a takeoff's climb is over."""
         self.port = port
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
@@ -89,6 +96,13 @@ class ScriptedAutopilot:
                 x = math.nan
             self._send(self.mav.local_position_ned_encode(self.boot_ms, x, y, -10.0, 0, 0, 0))
             self._send(self.mav.attitude_encode(self.boot_ms, 0, 0, yaw, 0, 0, 0))
+            if self.climb_left > 0:
+                self.climb_left -= 1
+                if self.climb_left == 0:  # (the takeoff is over: PX4 loiters)
+                    self.landed_state, self.mode = 2, FlightMode.HOLD
+                    self._heartbeat()
+            if self.landed_state is not None and k % 5 == 0:
+                self._send(self.mav.extended_sys_state_encode(0, self.landed_state))
             k += 1
             deadline = time.monotonic() + 0.02
             while time.monotonic() < deadline:
@@ -110,10 +124,15 @@ class ScriptedAutopilot:
                 result = 4
             else:
                 self.armed = True
+        elif msg.command == 22 and self.landed_state is not None:
+            self.landed_state, self.mode, self.climb_left = 3, FlightMode.TAKEOFF, 15
         elif msg.command == 176:
             number = int(msg.param2)
             if self.autopilot == Autopilot.PX4:
-                self.mode = {6: FlightMode.OFFBOARD, 4: FlightMode.HOLD}.get(number, self.mode)
+                if number == 6 and self.landed_state in (1, 3):
+                    result = 4  # (this script accepts OFFBOARD only in the air)
+                else:
+                    self.mode = {6: FlightMode.OFFBOARD, 4: FlightMode.HOLD}.get(number, self.mode)
             else:
                 self.mode = {4: FlightMode.OFFBOARD, 5: FlightMode.HOLD}.get(number, self.mode)
         self._send(self.mav.command_ack_encode(msg.command, result, 0, 0, 255, 190))
@@ -183,6 +202,29 @@ def test_engage_follows_the_autopilots_semantics(pair) -> None:
         assert commands[-1][0] == 22  # takeoff after arming
     state = link.wait_state(newer_than_ns=link.state().time_boot_ns, timeout_s=1.0)
     assert state.engaged and state.mode == FlightMode.OFFBOARD and state.armed
+
+
+def test_a_px4_on_the_ground_takes_off_before_offboard() -> None:
+    port = _free_udp_port()
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", system_id=1)
+    ap = ScriptedAutopilot(port, autopilot=Autopilot.PX4, on_ground=True)
+    try:
+        link.connect(timeout_s=5.0)
+        deadline = time.monotonic() + 2.0
+        while link.state().landed_state is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert link.engage(timeout_s=5.0)
+        commands = [int(m.command) for m in ap.of_type("COMMAND_LONG") if m.command != 511]
+        assert commands[:2] == [400, 22]  # arm, then take off,
+        assert commands[-1] == 176 and commands.count(176) == 1  # then OFFBOARD, once airborne
+        takeoff = next(m for m in ap.of_type("COMMAND_LONG") if m.command == 22)
+        assert math.isnan(takeoff.param7)  # PX4's own takeoff altitude (MIS_TAKEOFF_ALT)
+        state = link.wait_state(newer_than_ns=link.state().time_boot_ns, timeout_s=1.0)
+        assert state.engaged and state.mode == FlightMode.OFFBOARD
+        assert state.landed_state == LandedState.IN_AIR
+    finally:
+        link.close()
+        ap.close()
 
 
 def test_mode_loss_is_detected_not_fought(pair) -> None:
