@@ -133,6 +133,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._mavutil = mavutil
         self.url = url
         self._want_system = system_id
+        self._setpoints_paused = False
+        """True while an ArduPilot takeoff is under way: setpoints would cancel it."""
         """The autopilot's system id to insist on; None: the first autopilot heard."""
         self._heard_systems: set[int] = set()
         """System ids of every autopilot heartbeat heard on the link."""
@@ -302,6 +304,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._send_fields(encode_position_setpoint(north_m - shift[0], east_m - shift[1], down_m))
 
     def _send_fields(self, sp: SetpointFields) -> None:
+        if self._setpoints_paused:
+            return  # (an ArduPilot takeoff is under way)
         target = self._target()
         boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & _MAX_BOOT_MS
         mav = self._conn.mav
@@ -387,12 +391,21 @@ class MavlinkAutopilotLink(AutopilotLink):
     def engage(self, *, timeout_s: float) -> bool:
         st = self.state()
         if st.autopilot == Autopilot.ARDUPILOTMEGA:
-            ok = (
-                self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
-                and self._retry(400, (1.0,), timeout_s=timeout_s)
-                and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
-                and self._wait_airborne(timeout_s=timeout_s)
+            # A GUIDED target sent during ArduCopter's takeoff replaces the takeoff (its guided
+            # mode leaves SubMode::TakeOff), and the stream holds the vehicle at the altitude it
+            # is at, the ground: setpoints are held back until it is airborne.
+            ok = self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s) and self._retry(
+                400, (1.0,), timeout_s=timeout_s
             )
+            self._setpoints_paused = ok
+            try:
+                ok = (
+                    ok
+                    and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
+                    and self._wait_airborne(timeout_s=timeout_s)
+                )
+            finally:
+                self._setpoints_paused = False
         elif st.landed_state == LandedState.ON_GROUND:
             # PX4 flies no offboard setpoint off the ground at a constant altitude: it takes off
             # first (AUTO_TAKEOFF to MIS_TAKEOFF_ALT, param 7 NaN), then holds (AUTO_LOITER).
@@ -422,6 +435,9 @@ class MavlinkAutopilotLink(AutopilotLink):
         )
         deadline = time.monotonic() + timeout_s
         quiet_until = time.monotonic() + 1.0
+        climbing_seen = False
+        """(A real ArduPilot sends HEARTBEAT once a second: the state may not show the arming
+        and mode the acknowledged commands set until one comes.)"""
         with self._cond:
             while not self._stop.is_set():
                 st = self._state
@@ -429,9 +445,11 @@ class MavlinkAutopilotLink(AutopilotLink):
                     return True
                 if st.landed_state is None and time.monotonic() >= quiet_until:
                     return True
-                if not st.armed or (st.mode is not None and st.mode not in climbing_modes):
+                climbing = st.armed and (st.mode is None or st.mode in climbing_modes)
+                if climbing_seen and not climbing:
                     self._log("the takeoff ended before the vehicle was airborne")
                     return False
+                climbing_seen = climbing_seen or climbing
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self._log(f"not airborne {timeout_s:g} s after the takeoff command")

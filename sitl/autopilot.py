@@ -17,8 +17,9 @@ Profiles:
   which is why the agent takes off first). TAKEOFF (MAV_CMD_NAV_TAKEOFF) climbs to the takeoff
   altitude and then switches to HOLD; the landed state is TAKEOFF during the climb, IN_AIR after.
 - ArduPilot (Copter): boots in STABILIZE. Arming and the modes that need a position are refused
-  until the position estimate is ready (`position_ready_ns` after boot). GUIDED targets are used
-  only once airborne and the takeoff (the takeoff command comes first) is complete; after
+  until the position estimate is ready (`position_ready_ns` after boot). A GUIDED target flies
+  only once airborne (the takeoff command comes first), and one sent during the takeoff replaces
+  it, as ArduCopter's guided mode does (a client must wait for the takeoff to end); after
   `guided_timeout_ns` without a new one the vehicle holds position (mode stays GUIDED). Armed on
   the ground without a takeoff for `disarm_delay_ns` (DISARM_DELAY), it disarms itself.
 Position control. A flying vehicle that is not given a velocity demand holds its position, as a
@@ -320,8 +321,11 @@ class Autopilot:
             self._notify(
                 Severity.CRITICAL, f"Offboard lost: no setpoint for {timeout_s:.1f} s, Hold"
             )
-        if not self.px4 and self._takeoff_target_m is not None:
-            fresh = None  # ArduPilot finishes its takeoff before it reads GUIDED targets
+        if not self.px4 and self._takeoff_target_m is not None and fresh is not None:
+            # A GUIDED target that comes during the takeoff replaces it (ArduCopter's
+            # ModeGuided::set_destination and its kin leave SubMode::TakeOff): on the ground,
+            # a position target at the ground's altitude keeps the vehicle there.
+            self._takeoff_target_m = None
         self._auto_disarm(now_ns)
         demand = self._decode(fresh, heading_rad)
         self._climb(demand, tick_ns * 1e-9)

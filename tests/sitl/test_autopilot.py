@@ -243,11 +243,24 @@ def test_a_flying_vehicle_without_a_velocity_holds_a_point():
     ardu.ap.arm(ardu.now)
     ardu.ap.takeoff(ardu.now)
     for _ in range(10):
-        ardu.ap.receive_setpoint(FORWARD, ardu.now)
         ardu.demand = ardu.ap.step(ardu.now, TICK_NS, heading_rad=0.0, position_m=(0.0, 12.0))
         ardu.clock.advance(TICK_NS)
     assert ardu.ap.altitude_m > 0.0 and ardu.demand == (0.0, 0.0)
     assert ardu.ap.holding == (0.0, 12.0), "the takeoff climb holds the point"
+
+
+def test_an_ardupilot_guided_target_during_the_takeoff_replaces_it():
+    """As ArduCopter's guided mode: a target sent during the takeoff leaves SubMode::TakeOff. A
+    position target at the ground's altitude keeps the vehicle on the ground, where it disarms
+    itself after DISARM_DELAY."""
+    ardu = Sim(profile=Profile.ARDUPILOT, position_ready_ns=0, takeoff_altitude_m=3.0)
+    ardu.ap.set_mode(FlightMode.OFFBOARD, ardu.now)
+    ardu.ap.arm(ardu.now)
+    assert ardu.ap.takeoff(ardu.now) == MavResult.ACCEPTED
+    ground = encode_position_setpoint(0.0, 0.0, 0.0)
+    ardu.run(12 * S, setpoint=ground)
+    assert ardu.ap.altitude_m == 0.0 and ardu.ap.landed_state == LandedState.ON_GROUND
+    assert not ardu.ap.armed
 
 
 def test_ardupilot_ignores_setpoints_outside_guided():
