@@ -44,9 +44,18 @@ class ScriptedAutopilot:
     """A minimal MAVLink autopilot on loopback: streams pose, records and ACKs what it gets."""
 
     def __init__(
-        self, port: int, *, autopilot: Autopilot, deny_arms: int = 0, on_ground: bool = False
+        self,
+        port: int,
+        *,
+        autopilot: Autopilot,
+        deny_arms: int = 0,
+        on_ground: bool = False,
+        prompt_heartbeat: bool = True,
     ) -> None:
         self.autopilot = autopilot
+        self.prompt_heartbeat = prompt_heartbeat
+        """Send a HEARTBEAT right after each command (a real ArduPilot waits for its 1 Hz one)."""
+        self.setpoints_in_takeoff = 0
         self.landed_state = 1 if on_ground else None
         """EXTENDED_SYS_STATE's landed state to stream (None: not streamed)."""
         self.climb_left = 0
@@ -99,8 +108,10 @@ class ScriptedAutopilot:
             if self.climb_left > 0:
                 self.climb_left -= 1
                 if self.climb_left == 0:  # (the takeoff is over: PX4 loiters)
-                    self.landed_state, self.mode = 2, FlightMode.HOLD
-                    self._heartbeat()
+                    self.landed_state = 2
+                    if self.autopilot == Autopilot.PX4:
+                        self.mode = FlightMode.HOLD
+                        self._heartbeat()
             if self.landed_state is not None and k % 5 == 0:
                 self._send(self.mav.extended_sys_state_encode(0, self.landed_state))
             k += 1
@@ -115,6 +126,8 @@ class ScriptedAutopilot:
 
     def _handle(self, msg) -> None:
         self.received.append(msg)
+        if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and self.landed_state == 3:
+            self.setpoints_in_takeoff += 1
         if msg.get_type() != "COMMAND_LONG":
             return
         result = 0
@@ -125,7 +138,9 @@ class ScriptedAutopilot:
             else:
                 self.armed = True
         elif msg.command == 22 and self.landed_state is not None:
-            self.landed_state, self.mode, self.climb_left = 3, FlightMode.TAKEOFF, 15
+            self.landed_state, self.climb_left = 3, 15
+            if self.autopilot == Autopilot.PX4:
+                self.mode = FlightMode.TAKEOFF
         elif msg.command == 176:
             number = int(msg.param2)
             if self.autopilot == Autopilot.PX4:
@@ -136,7 +151,8 @@ class ScriptedAutopilot:
             else:
                 self.mode = {4: FlightMode.OFFBOARD, 5: FlightMode.HOLD}.get(number, self.mode)
         self._send(self.mav.command_ack_encode(msg.command, result, 0, 0, 255, 190))
-        self._heartbeat()
+        if self.prompt_heartbeat:
+            self._heartbeat()
 
     def of_type(self, kind: str) -> list:
         return [m for m in list(self.received) if m.get_type() == kind]
@@ -223,6 +239,40 @@ def test_a_px4_on_the_ground_takes_off_before_offboard() -> None:
         assert state.engaged and state.mode == FlightMode.OFFBOARD
         assert state.landed_state == LandedState.IN_AIR
     finally:
+        link.close()
+        ap.close()
+
+
+def test_an_ardupilot_takeoff_gets_no_setpoints_and_outlasts_a_late_heartbeat() -> None:
+    """A real ArduCopter: HEARTBEAT once a second, not after each command (so the arming shows
+    late), and a GUIDED target during its takeoff would replace the takeoff."""
+    port = _free_udp_port()
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", system_id=1)
+    ap = ScriptedAutopilot(
+        port, autopilot=Autopilot.ARDUPILOTMEGA, on_ground=True, prompt_heartbeat=False
+    )
+    stop = threading.Event()
+
+    def stream() -> None:  # (as the agent's setpoint streamer does, all along)
+        while not stop.wait(0.02):
+            link.send_position_setpoint(north_m=1.5, east_m=-2.5, down_m=0.0)
+
+    streamer = threading.Thread(target=stream, daemon=True)
+    try:
+        link.connect(timeout_s=5.0)
+        deadline = time.monotonic() + 2.0
+        while link.state().landed_state is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        streamer.start()
+        assert link.engage(timeout_s=5.0)
+        assert link.state().landed_state == LandedState.IN_AIR
+        assert ap.setpoints_in_takeoff == 0
+        time.sleep(0.2)
+        assert ap.of_type("SET_POSITION_TARGET_LOCAL_NED")  # (flowing again once airborne)
+    finally:
+        stop.set()
+        if streamer.is_alive():
+            streamer.join(timeout=1.0)
         link.close()
         ap.close()
 
