@@ -210,6 +210,9 @@ class VehicleSpec:
     system_id: int | None = None
     """MAVLink system id of the vehicle's autopilot when it is not `id` (a stock ArduCopter
     answers as 1): the ground station tells vehicles apart by it; None: `id`."""
+    response_delay_s: float = 0.0
+    """How long the vehicle's autopilot takes to fly a command [s]: its agent plans from the
+    state the commands already sent lead to (0 for the simulated vehicles)."""
 
     def __post_init__(self) -> None:
         if self.autopilot not in AUTOPILOTS:
@@ -220,6 +223,9 @@ class VehicleSpec:
         integer = isinstance(sid, int) and not isinstance(sid, bool)
         if sid is not None and not (integer and 1 <= sid <= 250):
             raise ConfigError("system_id", f"must be an integer in [1, 250], got {sid!r}")
+        delay = self.response_delay_s
+        if isinstance(delay, bool) or not isinstance(delay, int | float) or not 0 <= delay <= 5:
+            raise ConfigError("response_delay_s", f"must be a number in [0, 5] s, got {delay!r}")
 
     @property
     def mavlink_system_id(self) -> int:
@@ -313,7 +319,15 @@ def _truth(table: dict[str, Any], prefix: str, controller: ControllerSettings) -
     return _build(TruthParams, table, prefix, wind=wind)
 
 
-_VEHICLE_KEYS = {"id", "initial", "slot_m", "truth", "autopilot", "system_id"}
+_VEHICLE_KEYS = {
+    "id",
+    "initial",
+    "slot_m",
+    "truth",
+    "autopilot",
+    "system_id",
+    "response_delay_s",
+}
 
 _TOP_KEYS = {
     "name",
@@ -476,6 +490,7 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
                 truth,
                 autopilot=raw.get("autopilot", "px4"),
                 system_id=raw.get("system_id"),
+                response_delay_s=raw.get("response_delay_s", 0.0),
             )
         except ConfigError as e:
             raise ConfigError(f"{prefix}.{e.field}", str(e).split(": ", 1)[1]) from None

@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         learning=scenario.learning,
         formation=scenario.formation,
         target_observation_std_m=scenario.target.observation_noise_m,
+        response_delay_s=spec.response_delay_s,
     )
     # The setpoint streamer sends only while it holds the GIL, and Python's default 5 ms switch
     # interval lets the control loop keep it that long past a send's due time: 20 ms of fleet

@@ -46,6 +46,7 @@ def build_agents(scenario: Scenario, *, learning: bool = True) -> list[Agent]:
             learning=learn,
             formation=scenario.formation,
             target_observation_std_m=scenario.target.observation_noise_m,
+            response_delay_s=v.response_delay_s,
         )
         for v in scenario.vehicles
     ]

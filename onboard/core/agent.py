@@ -115,6 +115,7 @@ class Agent:
         learning: LearningSettings,
         formation: FormationSettings,
         target_observation_std_m: float,
+        response_delay_s: float = 0.0,
     ) -> None:
         if vehicle_id not in fleet_ids:
             raise ValueError(f"vehicle_id {vehicle_id} is not in fleet_ids {fleet_ids}")
@@ -156,6 +157,14 @@ class Agent:
         self._full_weight = controller.q_position + N * controller.q_formation
         """Stage position weight with every formation term (the terminal P's)."""
         self._last_command = np.zeros(2)
+        self._delay_periods = max(0, round(response_delay_s / controller.period_s))
+        """Periods between a command and the autopilot flying it (the vehicle's
+        `response_delay_s`; docs/design.md, "Response delay")."""
+        self._sent: deque[np.ndarray] = deque(
+            [np.zeros(2)] * (self._delay_periods + 1), maxlen=self._delay_periods + 1
+        )
+        """The last commands sent, oldest first: the oldest is the one flown over the last
+        period, the others are still to be flown."""
         self._last_plan: Plan | None = None
         self.fallbacks = 0
         self.steps = 0
@@ -242,9 +251,7 @@ class Agent:
         M, tau = s.horizon, s.period_s
         self.steps += 1
         applied = (
-            self._last_command
-            if inp.applied_input is None
-            else np.asarray(inp.applied_input, float)
+            self._sent[0] if inp.applied_input is None else np.asarray(inp.applied_input, float)
         )
         y = None if inp.measurement is None else np.asarray(inp.measurement, float)
         if (
@@ -281,13 +288,19 @@ class Agent:
                 ages,
             )
         z0, beta = self.dekf.z.copy(), self.dekf.beta.copy()
+        # The plan starts when its first input will be flown: after the commands already sent
+        # and not flown yet (none unless the autopilot responds late), from the state they lead
+        # to; everything below is placed at that time, `start_ns`.
+        for v, w in list(self._sent)[1:]:
+            z0 = np.array(advance(*z0.tolist(), v, w, beta.tolist(), tau))
+        start_ns = inp.stamp_ns + self._delay_periods * s.period_ns
         z0_f, beta_f = z0.tolist(), beta.tolist()
         # The target, the reference course and the slots over j = 0..M+1: at each step, slot
         # i = target - trail + offset i, both turned to that step's reference course.
-        track, velocities = self.target.predicted_track(inp.stamp_ns, s.period_ns, M + 2)
+        track, velocities = self.target.predicted_track(start_ns, s.period_ns, M + 2)
         centres, offsets = [], []
         for (tx, ty), course in zip(
-            track, self._reference_courses(inp.stamp_ns, velocities), strict=True
+            track, self._reference_courses(start_ns, velocities), strict=True
         ):
             trail_x, trail_y, step_offsets = self.formation.placement(course)
             centres.append((tx - trail_x, ty - trail_y))
@@ -299,12 +312,12 @@ class Agent:
         u_s, heading_s = self.seeder.steady_inputs(mine, beta_f, z0_f[2])
         neighbourhood, plans = self.neighbourhood, inp.neighbour_plans
         inflations, pull, n_terms = neighbourhood.inflations_and_pull(
-            inp.stamp_ns, plans, ages, centres, offsets
+            start_ns, plans, ages, centres, offsets
         )
         weight = s.q_position + n_terms * s.q_formation
         here, drift = (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3])
         planes = neighbourhood.planes(
-            inp.stamp_ns, plans, self._last_plan, here, drift, ages, inflations
+            start_ns, plans, self._last_plan, here, drift, ages, inflations
         )
         goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
         goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])
@@ -359,9 +372,10 @@ class Agent:
                 f"fallback: {sol.status}",
             )
         states[:, 2] = [wrap(h) for h in states[:, 2].tolist()]
-        plan = Plan(self.vehicle_id, inp.stamp_ns, s.period_ns, states, inputs)
+        plan = Plan(self.vehicle_id, start_ns, s.period_ns, states, inputs)
         self._last_plan = plan
         self._last_command = inputs[0].copy()
+        self._sent.append(self._last_command)
         return AgentOutput(
             command=inputs[0].copy(),
             plan=plan,
@@ -381,6 +395,7 @@ class Agent:
         s = self.settings
         z = self.dekf.z.copy() if self.dekf.initialized else np.full(3, np.nan)
         self._last_command = np.zeros(2)
+        self._sent.append(self._last_command)
         plan = Plan(
             self.vehicle_id,
             inp.stamp_ns,

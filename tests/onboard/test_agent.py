@@ -163,3 +163,41 @@ def test_a_corner_noticed_late_is_swept_from_when_the_target_turned():
             lags.append(abs(agent.reference.value - true_course))
     rate = reference_course_rate(sc.controller, sc.formation)
     assert max(lags) < rate * 0.25  # less than 0.25 s of the sweep behind
+
+
+def test_an_autopilot_that_responds_late_is_planned_for_from_when_it_will_fly():
+    """With a response delay of two periods the agent learns from the command flown over the
+    last period (sent three periods ago), plans from the state the two commands still to be
+    flown lead to, and stamps its plan at the time its first input will be flown."""
+    from fleetmpc.onboard.core.unicycle import advance
+    from fleetmpc.scenario import load_scenario
+
+    paper = load_scenario("scenarios/paper.toml")
+    kwargs = dict(
+        fleet_ids=paper.vehicle_ids,
+        controller=paper.controller,
+        learning=paper.learning,
+        formation=paper.formation,
+        target_observation_std_m=0.05,
+    )
+    late = Agent(1, response_delay_s=0.4, **kwargs)
+    fed = []
+    late.dekf.step = lambda y, u, _step=late.dekf.step: (fed.append(u.copy()), _step(y, u))[1]
+    z = np.array(paper.vehicles[0].initial, float)
+    sent = []
+    for k in range(8):
+        t = k * 0.2
+        observation = paper.target.observe(t, np.random.default_rng(k))
+        out = late.step(AgentInput(k * PERIOD_NS, z, observation))
+        if k >= 1:
+            assert out.plan.stamp_ns == k * PERIOD_NS + 2 * PERIOD_NS
+            pending = sent[-2:] if len(sent) >= 2 else [np.zeros(2)] * (2 - len(sent)) + sent
+            expect = late.dekf.z.tolist()
+            for v, w in pending:
+                expect = advance(*expect, v, w, late.dekf.beta.tolist(), 0.2)
+            assert out.plan.states[0] == pytest.approx(np.array(expect), abs=1e-9)
+        sent.append(out.command.copy())
+    # The DEKF was given, at step k, the command sent at step k - 3 (zeros before any).
+    flown = [np.zeros(2)] * 3 + sent
+    assert len(fed) == 8 and any(np.any(u != 0) for u in fed)
+    assert all(np.array_equal(u, flown[k]) for k, u in enumerate(fed))

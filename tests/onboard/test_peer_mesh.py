@@ -45,6 +45,13 @@ def test_agents_and_target_exchange_plans_as_peers_of_the_mesh(processes, tmp_pa
     )
     assert options.listen == (f"tcp/127.0.0.1:{scenario.network.zenoh_port + 3}",)
     fresh_ns = 400_000_000
+    # As a ground station does, the epoch comes once every vehicle is engaged (taken off).
+    agents = {v.id: processes[f"agent-{v.id}"] for v in scenario.vehicles}
+    assert wait_until(
+        lambda: all(f"vehicle {vid}: engaged" in a.err() for vid, a in agents.items()),
+        timeout_s=60.0,
+        interval_s=0.1,
+    ), [a.tail() for a in agents.values()]
     with open_plan_bus(options, fleet=scenario.name, vehicle_id=GROUND_STATION_ID) as gcs:
         epoch_ns = time.time_ns() + 1_000_000_000
 
