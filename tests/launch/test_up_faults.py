@@ -131,3 +131,19 @@ def test_a_short_cut_in_an_autopilot_link_is_flown_through(fly):
     assert summary["link_faults"]["link_blacked_out"] > 0, summary
     assert summary["mode"] != "HOLD" or not summary["mode_lost"], summary
     assert "mode lost" not in log
+
+
+def test_two_agents_starved_of_cpu_keep_their_distance(fly):
+    """Two agents get no CPU at all for 4 s (SIGSTOP): their vehicles hold (the autopilots'
+    offboard loss), the agents resume late, know it, take their vehicles back, and nobody comes
+    closer than d_safe. (Formation is lost for a while: the held vehicles fall 5-6 m behind.)"""
+    up, rc, m = fly("starve-two-agents")
+    assert rc == 0, up.text()
+    assert "agent-1 frozen" in up.text() and "agent-2 resumed" in up.text()
+    assert m["min_separation_m"] >= 2.0, m
+    assert m["periods_recorded"] == m["periods_expected"], m
+    for vid in (1, 2):
+        log = (up.run_dir / "logs" / f"agent-{vid}.log").read_text()
+        assert f"vehicle {vid}: re-engaged" in log
+        summary = json.loads(log.strip().splitlines()[-1])
+        assert summary["resumes"] >= 1 and summary["failure"] is None, summary
