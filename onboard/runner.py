@@ -177,6 +177,10 @@ class FleetRunner:
         self.next_step_ns = 0
         self.steps = 0
         self.overruns = 0
+        self.late_steps = 0
+        """Steps that ran more than a quarter period after their period boundary."""
+        self.max_late_ns = 0
+        """The latest a step ran after its period boundary [ns of fleet time]."""
         self.step_errors = 0
         self.last_output: AgentOutput | None = None
         self.last_status = "waiting"
@@ -248,9 +252,13 @@ class FleetRunner:
         if self.steps and stamp > self.next_step_ns:
             self.overruns += int((stamp - self.next_step_ns) // period)
         self.next_step_ns = stamp + period
-        return self._step(state, stamp)
+        late_ns = fleet_now - stamp
+        if late_ns * 4 > period:
+            self.late_steps += 1
+        self.max_late_ns = max(self.max_late_ns, late_ns)
+        return self._step(state, stamp, late_ns)
 
-    def _step(self, state: LinkState, stamp_ns: int) -> AgentOutput | None:
+    def _step(self, state: LinkState, stamp_ns: int, late_ns: int = 0) -> AgentOutput | None:
         t0 = time.perf_counter_ns()
         try:
             measurement = None
@@ -269,6 +277,7 @@ class FleetRunner:
                     neighbour_plans=plans,
                     # A held vehicle flies none of the commands: the filter is told so.
                     applied_input=np.zeros(2) if held else None,
+                    late_s=late_ns * 1e-9,
                 )
             )
             if held:
@@ -447,6 +456,8 @@ class FleetRunner:
             "epoch_received_wall_ns": self.epoch_received_wall_ns,
             "steps": self.steps,
             "overruns": self.overruns,
+            "late_steps": self.late_steps,
+            "max_late_ms": self.max_late_ns * 1e-6,
             "step_errors": self.step_errors,
             "qp_fallbacks": self.agent.fallbacks,
             "engaged": self.engaged,

@@ -73,6 +73,9 @@ class AgentInput:
     """Latest assumed trajectory of each neighbour, by vehicle id."""
     applied_input: np.ndarray | None = None
     """Input the vehicle actually flew over the last period (defaults to the last command)."""
+    late_s: float = 0.0
+    """How long after its period boundary this step runs [s] (a starved or stalled process):
+    the vehicle flies its previous command that much longer than the plan assumes."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,6 +318,11 @@ class Agent:
             start_ns, plans, ages, centres, offsets
         )
         weight = s.q_position + n_terms * s.q_formation
+        if inp.late_s > 0.0:
+            # A late step's plan starts later than its stamp says: the vehicle may be up to
+            # v_max x the lateness from where the plan puts it, so it keeps that much more
+            # from every neighbour (its half of each line; docs/design.md, "Safety").
+            inflations = [i + s.speed_max_m_s * inp.late_s for i in inflations]
         here, drift = (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3])
         planes = neighbourhood.planes(
             start_ns, plans, self._last_plan, here, drift, ages, inflations

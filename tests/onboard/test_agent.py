@@ -201,3 +201,25 @@ def test_an_autopilot_that_responds_late_is_planned_for_from_when_it_will_fly():
     flown = [np.zeros(2)] * 3 + sent
     assert len(fed) == 8 and any(np.any(u != 0) for u in fed)
     assert all(np.array_equal(u, flown[k]) for k, u in enumerate(fed))
+
+
+def test_a_late_step_keeps_the_lateness_times_v_max_more_from_every_neighbour(paper):
+    """A step that runs L late widens this vehicle's margin to each neighbour by v_max L."""
+    seen = []
+    for late_s in (0.0, 0.15):
+        agent = _agent(paper)
+        planes = agent.neighbourhood.planes
+        agent.neighbourhood.planes = lambda *a, _p=planes: (seen.append(list(a[-1])), _p(*a))[1]
+        fresh = _plan(2, PERIOD_NS, np.array([12.0, 5.0, 0.0]), np.array([1.0, 1.0]))
+        z = np.array(paper.vehicles[0].initial, float)
+        agent.step(AgentInput(0, z, np.array([5.0, 5.0])))
+        agent.step(
+            AgentInput(
+                PERIOD_NS, z, np.array([5.2, 5.2]), neighbour_plans={2: fresh}, late_s=late_s
+            )
+        )
+    assert len(seen) == 4  # (the inflations handed to planes, two steps of each agent)
+    on_time, late = seen[1], seen[3]
+    assert on_time and late == pytest.approx(
+        [i + paper.controller.speed_max_m_s * 0.15 for i in on_time]
+    )

@@ -81,9 +81,16 @@ def test_runner_counts_overruns_and_stays_on_period_boundaries(paper) -> None:
     link, runner = links[0], runners[0]
     assert runner.tick(link.state()).plan.stamp_ns == 0
     link.advance(730_000_000)  # a stall of more than three periods
+    inputs = []
+    step = runner.agent.step
+    runner.agent.step = lambda inp: (inputs.append(inp), step(inp))[1]
     out = runner.tick(link.state())
     assert out.plan.stamp_ns == 600_000_000
     assert runner.overruns == 2  # the steps at 0.2 s and 0.4 s were skipped
+    # ...and the step at 0.6 s runs 0.13 s late: the agent is told, and it is counted.
+    assert inputs[-1].late_s == pytest.approx(0.13)
+    assert runner.late_steps == 1 and runner.max_late_ns == 130_000_000
+    assert runner.summary()["max_late_ms"] == pytest.approx(130.0)
     assert runner.tick(link.state()) is None  # nothing new before 0.8 s
 
 
