@@ -121,6 +121,16 @@ _START_STD = (2.0, 0.1)
 """Standard deviations of the velocity [m/s] and turn rate [rad/s] at the first observation."""
 
 
+def _mixed_covariance(
+    weights: np.ndarray, xs: np.ndarray, Ps: np.ndarray, means: np.ndarray
+) -> np.ndarray:
+    """For each j, sum_i weights[i, j] (P_i + (x_i - m_j)(x_i - m_j)'): the covariance of the
+    models' estimates (xs, Ps) mixed with weights (models, J) about the means (J, 5); (J, 5, 5)."""
+    d = xs[:, None, :] - means[None, :, :]  # [i, j]: model i's state less mean j
+    spread = d[..., :, None] * d[..., None, :]
+    return (weights[:, :, None, None] * (Ps[:, None] + spread)).sum(axis=0)
+
+
 class TargetEstimator:
     """Tracks the target from position observations; time is integer nanoseconds."""
 
@@ -139,7 +149,7 @@ class TargetEstimator:
         """Each model's state."""
         self._Ps = np.stack([np.eye(5)] * n)
         """Each model's covariance."""
-        self._noise: dict[tuple[int, bool], tuple[np.ndarray, np.ndarray]] = {}
+        self._transitions: dict[tuple[int, bool], tuple[np.ndarray, np.ndarray]] = {}
         self.probabilities = np.full(n, 1.0 / n)
         """Each model's probability after the last observation."""
         self.x = np.zeros(5)
@@ -167,9 +177,7 @@ class TargetEstimator:
     @property
     def P(self) -> np.ndarray:
         """The combined covariance (5, 5), the spread between the models' states included."""
-        d = self._xs - self.x
-        spread = d[:, :, None] * d[:, None, :]
-        return np.tensordot(self.probabilities, self._Ps + spread, axes=(0, 0))
+        return _mixed_covariance(self.probabilities[:, None], self._xs, self._Ps, self.x[None])[0]
 
     def velocity_std_m_s(self) -> float:
         """Standard deviation of the velocity estimate (the larger axis's) [m/s]."""
@@ -181,22 +189,15 @@ class TargetEstimator:
         """True while the innovations say the target leaves the models (a corner)."""
         return self._nis > MANEUVER_NIS
 
-    def _switching(self, dt_ns: int) -> np.ndarray:
-        """The Markov chain's switch probabilities over dt_ns: [i, j] from model i to j (a model
-        left goes to each other one alike); cached with the process noise."""
-        return self._cached(dt_ns, self.manoeuvring)[0]
-
-    def _process_noise(self, dt_ns: int, manoeuvring: bool) -> np.ndarray:
-        """Every model's process noise over dt_ns (models, 5, 5)."""
-        return self._cached(dt_ns, manoeuvring)[1]
-
-    def _cached(self, dt_ns: int, manoeuvring: bool) -> tuple[np.ndarray, np.ndarray]:
-        """The switch probabilities and process noises over dt_ns (one period, mostly)."""
+    def _transition(self, dt_ns: int, manoeuvring: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Over dt_ns: the Markov chain's switch probabilities ([i, j] from model i to j; a model
+        left goes to each other one alike) and every model's process noise (models, 5, 5),
+        cached (one period, mostly)."""
         key = (dt_ns, manoeuvring)
-        found = self._noise.get(key)
+        found = self._transitions.get(key)
         if found is None:
-            if len(self._noise) >= 64:  # irregular stamps: do not grow without bound
-                self._noise.clear()
+            if len(self._transitions) >= 64:  # irregular stamps: do not grow without bound
+                self._transitions.clear()
             dt = dt_ns * 1e-9
             n = len(self.models)
             leave = np.array([1.0 - math.exp(-dt / m.mean_duration_s) for m in self.models])
@@ -207,7 +208,7 @@ class TargetEstimator:
                 [scale * _process_noise(dt, m.accel_std_m_s2, m.turn_accel_std_rad_s2)
                  for m in self.models]
             )  # fmt: skip
-            found = self._noise[key] = (switch, Q)
+            found = self._transitions[key] = (switch, Q)
         return found
 
     def _start(self, stamp_ns: int, p: np.ndarray) -> None:
@@ -235,18 +236,16 @@ class TargetEstimator:
         dt = dt_ns * 1e-9
         # Mixing: each model starts from the estimates of both, weighed by the chance that the
         # target kept to the other one and has switched since ([i, j]: i given j now).
-        switch = self._switching(dt_ns)
+        switch, Q = self._transition(dt_ns, self.manoeuvring)
         prior = self.probabilities.dot(switch)
         mix = switch * self.probabilities[:, None] / prior  # [i, j]
         xs, Ps = self._xs, self._Ps
         x0 = mix.T.dot(xs)
-        d = xs[:, None, :] - x0[None, :, :]  # [i, j]: model i's state less model j's start
-        spread = d[..., :, None] * d[..., None, :]
-        P0 = (mix[:, :, None, None] * (Ps[:, None] + spread)).sum(axis=0)
+        P0 = _mixed_covariance(mix, xs, Ps, x0)
         # Each model's EKF: turn exactly, the covariance through the Jacobian; fuse p.
         F = np.array([_turn_jacobian(vx, vy, w, dt) for _, _, vx, vy, w in x0.tolist()])
         xs = np.array([(*turn_motion(*row[:4], row[4], dt), row[4]) for row in x0.tolist()])
-        Ps = F @ P0 @ F.transpose(0, 2, 1) + self._process_noise(dt_ns, self.manoeuvring)
+        Ps = F @ P0 @ F.transpose(0, 2, 1) + Q
         innovation = (p - xs[:, :2])[:, :, None]  # (models, 2, 1)
         S = Ps[:, :2, :2] + self._R
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
