@@ -155,6 +155,10 @@ class FaultSchedule:
     faults: tuple[Fault, ...]
     seed: int | None = None
 
+    def seed_for(self, run_seed: int) -> int:
+        """The seed of the faults' random numbers in a run seeded `run_seed`."""
+        return run_seed if self.seed is None else self.seed
+
 
 def _vehicle_list(field: str, value: Any, fleet: Sequence[int]) -> tuple[int, ...]:
     if not isinstance(value, list) or not value:
@@ -327,8 +331,7 @@ class FaultLayer:
         self.vehicle_id = vehicle_id
         self._faults = tuple(f for f in schedule.faults if f.network)
         self._clock = clock
-        base = schedule.seed if schedule.seed is not None else seed
-        self._key = f"{base}/{vehicle_id}".encode()
+        self._key = f"{schedule.seed_for(seed)}/{vehicle_id}".encode()
         """Keys the per-payload random numbers: another seed or vehicle, other draws."""
         self._lock = threading.Lock()
         self._held: list[tuple[int, int, str, bytes]] = []
@@ -443,8 +446,7 @@ class LinkFaults:
         self.vehicle_id = vehicle_id
         self._faults = tuple(f for f in schedule.faults if f.kind in LINK_KINDS)
         self._clock = clock
-        base = schedule.seed if schedule.seed is not None else seed
-        self._rng = np.random.default_rng((base, vehicle_id, 1))
+        self._rng = np.random.default_rng((schedule.seed_for(seed), vehicle_id, 1))
         self._lock = threading.Lock()
         self.counts = {"link_lost": 0, "link_blacked_out": 0}
         """Messages the link lost, by fault."""
