@@ -28,10 +28,9 @@ from pathlib import Path
 from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
-from fleetmpc.onboard.core.agent import Agent
 from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
 from fleetmpc.onboard.open_bus import open_fleet_bus
-from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
+from fleetmpc.onboard.runner import FleetRunner, RunnerSettings, agent_for
 from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
 from fleetmpc.scenario import load_scenario, mavlink_url
 
@@ -148,15 +147,7 @@ def run(args: argparse.Namespace) -> int:
         host_offset_ns=round(args.clock_offset * 1e9),
     )
     url = args.mavlink or mavlink_url(scenario.network, spec)
-    agent = Agent(
-        spec.id,
-        fleet_ids=scenario.vehicle_ids,
-        controller=scenario.controller,
-        learning=scenario.learning,
-        formation=scenario.formation,
-        target_observation_std_m=scenario.target.observation_noise_m,
-        response_delay_s=spec.response_delay_s,
-    )
+    agent = agent_for(scenario, spec)
     # The setpoint streamer sends only while it holds the GIL, and Python's default 5 ms switch
     # interval lets the control loop keep it that long past a send's due time: 20 ms of fleet
     # time at x4 on a 50 ms stream period. With 1 ms the stream keeps close to its period.

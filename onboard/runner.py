@@ -52,11 +52,13 @@ from fleetmpc.protocol.messages import (
     VehicleStatus,
 )
 from fleetmpc.protocol.plan import Plan
+from fleetmpc.scenario import Scenario, VehicleSpec
 
 __all__ = [
     "FleetRunner",
     "RunnerSettings",
     "TargetFeed",
+    "agent_for",
 ]
 
 _MAX_NEIGHBOURS = 8
@@ -104,6 +106,21 @@ class RunnerSettings:
 _OWN_GAP_WINDOW_S = 5.0
 """How far back (fleet time) a setpoint gap counts as the cause of a lost mode [s]: PX4 leaves
 offboard 1 s (COM_OF_LOSS_T) and ArduCopter's guided mode 3 s (GUID_TIMEOUT) into a gap."""
+
+
+def agent_for(scenario: Scenario, vehicle: VehicleSpec, *, learning: bool = True) -> Agent:
+    """The agent of one vehicle of a scenario, as every runner builds it (the live agent and the
+    lockstep simulation); `learning` False turns the scenario's learning off."""
+    enabled = learning and scenario.learning.enabled
+    return Agent(
+        vehicle.id,
+        fleet_ids=scenario.vehicle_ids,
+        controller=scenario.controller,
+        learning=dataclasses.replace(scenario.learning, enabled=enabled),
+        formation=scenario.formation,
+        target_observation_std_m=scenario.target.observation_noise_m,
+        response_delay_s=vehicle.response_delay_s,
+    )
 
 
 class TargetFeed:
@@ -258,7 +275,7 @@ class FleetRunner:
         self.max_late_ns = max(self.max_late_ns, late_ns)
         return self._step(state, stamp, late_ns)
 
-    def _step(self, state: LinkState, stamp_ns: int, late_ns: int = 0) -> AgentOutput | None:
+    def _step(self, state: LinkState, stamp_ns: int, late_ns: int) -> AgentOutput | None:
         t0 = time.perf_counter_ns()
         try:
             measurement = None

@@ -13,7 +13,6 @@ them; the run's FlightRecord stacks them, and any telemetry sinks given (a Rerun
 viewer) are handed them as the ground station hands its own, every `FLUSH_S` of flight.
 """
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -27,7 +26,7 @@ from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
-from fleetmpc.onboard.runner import RunnerSettings, TargetFeed
+from fleetmpc.onboard.runner import RunnerSettings, TargetFeed, agent_for
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.plant import TruthPlant
@@ -37,19 +36,7 @@ __all__ = ["build_agents", "run_lockstep"]
 
 def build_agents(scenario: Scenario, *, learning: bool = True) -> list[Agent]:
     """One Agent per vehicle of the scenario."""
-    learn = dataclasses.replace(scenario.learning, enabled=learning and scenario.learning.enabled)
-    return [
-        Agent(
-            v.id,
-            fleet_ids=scenario.vehicle_ids,
-            controller=scenario.controller,
-            learning=learn,
-            formation=scenario.formation,
-            target_observation_std_m=scenario.target.observation_noise_m,
-            response_delay_s=v.response_delay_s,
-        )
-        for v in scenario.vehicles
-    ]
+    return [agent_for(scenario, v, learning=learning) for v in scenario.vehicles]
 
 
 def run_lockstep(

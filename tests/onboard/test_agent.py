@@ -170,17 +170,11 @@ def test_an_autopilot_that_responds_late_is_planned_for_from_when_it_will_fly():
     last period (sent three periods ago), plans from the state the two commands still to be
     flown lead to, and stamps its plan at the time its first input will be flown."""
     from fleetmpc.onboard.core.unicycle import advance
+    from fleetmpc.onboard.runner import agent_for
     from fleetmpc.scenario import load_scenario
 
     paper = load_scenario("scenarios/paper.toml")
-    kwargs = dict(
-        fleet_ids=paper.vehicle_ids,
-        controller=paper.controller,
-        learning=paper.learning,
-        formation=paper.formation,
-        target_observation_std_m=0.05,
-    )
-    late = Agent(1, response_delay_s=0.4, **kwargs)
+    late = agent_for(paper, dataclasses.replace(paper.vehicles[0], response_delay_s=0.4))
     fed = []
     late.dekf.step = lambda y, u, _step=late.dekf.step: (fed.append(u.copy()), _step(y, u))[1]
     z = np.array(paper.vehicles[0].initial, float)
