@@ -58,10 +58,10 @@ class VehicleLink:
 
     @property
     def engaged(self) -> bool:
-        """Armed, in offboard/guided, and able to fly the agent's setpoints: ArduCopter reads
-        no guided target until its takeoff is over, so it must report itself in the air (when it
-        reports a landed state at all); PX4 flies offboard setpoints from the ground, but not
-        through a takeoff."""
+        """Armed, in offboard/guided, and able to fly the agent's setpoints: ArduCopter's agent
+        sends none until its takeoff is over (a guided target would end the takeoff), so it must
+        report itself in the air (when it reports a landed state at all); PX4 flies offboard
+        setpoints from the ground, but not through a takeoff."""
         if not (self.armed and self.mode == FlightMode.OFFBOARD):
             return False
         if self.autopilot == Autopilot.ARDUPILOTMEGA:

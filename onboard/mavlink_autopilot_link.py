@@ -133,9 +133,9 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._mavutil = mavutil
         self.url = url
         self._want_system = system_id
+        """The autopilot's system id to insist on; None: the first autopilot heard."""
         self._setpoints_paused = False
         """True while an ArduPilot takeoff is under way: setpoints would cancel it."""
-        """The autopilot's system id to insist on; None: the first autopilot heard."""
         self._heard_systems: set[int] = set()
         """System ids of every autopilot heartbeat heard on the link."""
         self._log = log or (lambda _text: None)
@@ -399,11 +399,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             )
             self._setpoints_paused = ok
             try:
-                ok = (
-                    ok
-                    and self._retry(22, (0,) * 6 + (_TAKEOFF_ALT_M,), timeout_s=timeout_s)
-                    and self._wait_airborne(timeout_s=timeout_s)
-                )
+                ok = ok and self._take_off(_TAKEOFF_ALT_M, timeout_s=timeout_s)
             finally:
                 self._setpoints_paused = False
         elif st.landed_state == LandedState.ON_GROUND:
@@ -411,8 +407,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             # first (AUTO_TAKEOFF to MIS_TAKEOFF_ALT, param 7 NaN), then holds (AUTO_LOITER).
             ok = (
                 self._retry(400, (1.0,), timeout_s=timeout_s)
-                and self._retry(22, (0,) * 6 + (math.nan,), timeout_s=timeout_s)
-                and self._wait_airborne(timeout_s=timeout_s)
+                and self._take_off(math.nan, timeout_s=timeout_s)
                 and self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
             )
         else:
@@ -423,11 +418,17 @@ class MavlinkAutopilotLink(AutopilotLink):
             self._update(engaged=True, mode_lost=False)
         return ok
 
+    def _take_off(self, altitude: float, *, timeout_s: float) -> bool:
+        """MAV_CMD_NAV_TAKEOFF to `altitude` (param 7; NaN: the autopilot's own), retried until
+        accepted, then wait until the vehicle is airborne."""
+        accepted = self._retry(22, (0,) * 6 + (altitude,), timeout_s=timeout_s)
+        return accepted and self._wait_airborne(timeout_s=timeout_s)
+
     def _wait_airborne(self, *, timeout_s: float) -> bool:
-        """Until the takeoff is over (landed state IN_AIR): ArduCopter reads no GUIDED target
-        while it climbs (its landed state is TAKEOFF), PX4 reports TAKEOFF until its takeoff
-        setpoint is reached and it loiters, so the vehicle is not the agent's until then. An
-        autopilot that reports no landed state within a second is taken at its word."""
+        """Until the takeoff is over (landed state IN_AIR): ArduCopter's landed state is TAKEOFF
+        while it climbs (a GUIDED target would end the takeoff), PX4's until its takeoff setpoint
+        is reached and it loiters, so the vehicle is not the agent's until then. An autopilot
+        that reports no landed state within a second is taken at its word."""
         climbing_modes = (
             (FlightMode.OFFBOARD,)
             if self.state().autopilot == Autopilot.ARDUPILOTMEGA
@@ -435,9 +436,9 @@ class MavlinkAutopilotLink(AutopilotLink):
         )
         deadline = time.monotonic() + timeout_s
         quiet_until = time.monotonic() + 1.0
+        # A real ArduPilot sends HEARTBEAT once a second: the state may not show the arming and
+        # mode the acknowledged commands set until one comes.
         climbing_seen = False
-        """(A real ArduPilot sends HEARTBEAT once a second: the state may not show the arming
-        and mode the acknowledged commands set until one comes.)"""
         with self._cond:
             while not self._stop.is_set():
                 st = self._state

@@ -137,9 +137,9 @@ class Agent:
         self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation, controller))
         self._reference_stamp_ns = 0
         self._course_locked = False
+        """True once the target's course was known well enough to rate-limit the reference."""
         self._reference_history: deque[tuple[int, float]] = deque(maxlen=REFERENCE_HISTORY)
         """(stamp, value) of the reference course over the last periods outside manoeuvres."""
-        """True once the target's course was known well enough to rate-limit the reference."""
         self.u_max = self.mpc.u_max
         M = controller.horizon
         self._input_box = (np.tile(self.mpc.u_min, (M, 1)), np.tile(self.u_max, (M, 1)))
@@ -159,7 +159,6 @@ class Agent:
         N = len(self.neighbour_ids)
         self._full_weight = controller.q_position + N * controller.q_formation
         """Stage position weight with every formation term (the terminal P's)."""
-        self._last_command = np.zeros(2)
         self._delay_periods = max(0, round(response_delay_s / controller.period_s))
         """Periods between a command and the autopilot flying it (the vehicle's
         `response_delay_s`; docs/design.md, "Response delay")."""
@@ -167,7 +166,7 @@ class Agent:
             [np.zeros(2)] * (self._delay_periods + 1), maxlen=self._delay_periods + 1
         )
         """The last commands sent, oldest first: the oldest is the one flown over the last
-        period, the others are still to be flown."""
+        period, the others are still to be flown; the newest is `_last_command`."""
         self._last_plan: Plan | None = None
         self.fallbacks = 0
         self.steps = 0
@@ -176,6 +175,11 @@ class Agent:
         self._last_stamp_ns: int | None = None
         self._resuming = False
         """Periods were missed and no measurement has come since."""
+
+    @property
+    def _last_command(self) -> np.ndarray:
+        """The command sent last (zero before any)."""
+        return self._sent[-1]
 
     # -- pieces of a period ---------------------------------------------------------------------
     # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
@@ -382,8 +386,7 @@ class Agent:
         states[:, 2] = [wrap(h) for h in states[:, 2].tolist()]
         plan = Plan(self.vehicle_id, start_ns, s.period_ns, states, inputs)
         self._last_plan = plan
-        self._last_command = inputs[0].copy()
-        self._sent.append(self._last_command)
+        self._sent.append(inputs[0].copy())
         return AgentOutput(
             command=inputs[0].copy(),
             plan=plan,
@@ -402,8 +405,7 @@ class Agent:
         """Zero command and a standing plan while the agent lacks telemetry or a target."""
         s = self.settings
         z = self.dekf.z.copy() if self.dekf.initialized else np.full(3, np.nan)
-        self._last_command = np.zeros(2)
-        self._sent.append(self._last_command)
+        self._sent.append(np.zeros(2))
         plan = Plan(
             self.vehicle_id,
             inp.stamp_ns,
