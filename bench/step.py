@@ -36,8 +36,10 @@ import numpy as np
 
 from fleetmpc.errors import FleetMpcError
 from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
+from fleetmpc.onboard.core.agent import vehicle_mpc
 from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.dekf import DualEkf
+from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
 from fleetmpc.scenario import load_scenario
@@ -197,6 +199,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " checkout DIR, side by side, --repeats rounds of one run each (fleetmpc.bench.baseline)",
     )
     parser.add_argument(
+        "--scale",
+        action="store_true",
+        help="instead: agent step, QP size and lockstep real-time factor against the fleet's"
+        " size (fleetmpc.bench.scale)",
+    )
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="+",
+        default=[10, 25, 50, 100],
+        metavar="N",
+        help="with --scale: the fleet sizes (default 10 25 50 100)",
+    )
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=20.0,
+        metavar="S",
+        help="with --scale: simulated seconds per run (default 20)",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=2,
+        metavar="J",
+        help="with --scale: worker processes of the second run of each size (default 2)",
+    )
+    parser.add_argument(
         "--gcs-logging",
         action="store_true",
         help="instead: the ground station logging cost per vehicle-period"
@@ -230,8 +260,12 @@ def load_average() -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.baseline and args.gcs_logging:
-        raise FleetMpcError("--baseline and --gcs-logging: one at a time")
+    if sum(map(bool, (args.baseline, args.gcs_logging, args.scale))) > 1:
+        raise FleetMpcError("--baseline, --gcs-logging and --scale: one at a time")
+    if args.scale:
+        from fleetmpc.bench import scale
+
+        return scale.run(args)
     if args.baseline:
         from fleetmpc.bench import baseline as bench_baseline
 
@@ -292,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
     total = sum(len(q) for q in sequences)
     stride = max(1, total // max(args.cvxpy_samples, 1))
     for seq in sequences:
-        mpc = TubeLbmpc(sc.controller, n_neighbours=len(sc.vehicles) - 1)
+        mpc = vehicle_mpc(sc.controller, Formation(sc.formation))
         times, solutions = [], []
         for d in seq:  # ours alone, in flight order (warm start as in flight)
             t0 = time.perf_counter_ns()
@@ -300,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
             times.append(time.perf_counter_ns() - t0)
             solutions.append(sol)
             iterations.append(sol.iterations)
-        rebuild = _cvxpy_rebuild(TubeLbmpc(sc.controller, n_neighbours=len(sc.vehicles) - 1))
+        rebuild = _cvxpy_rebuild(vehicle_mpc(sc.controller, Formation(sc.formation)))
         for i in range(0, len(seq), stride):
             t0 = time.perf_counter_ns()
             c_ref = rebuild(_as_arrays(seq[i]))

@@ -23,9 +23,8 @@ import numpy as np
 
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
-from fleetmpc.onboard.core.agent import reference_course_rate
+from fleetmpc.onboard.core.agent import reference_course_rate, vehicle_mpc
 from fleetmpc.onboard.core.formation import Formation, ReferenceCourse, TrueReference
-from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.scenario import Scenario, load_scenario
 
@@ -130,7 +129,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
     ]
     problems: list[str] = []
     try:
-        mpc = TubeLbmpc(c, n_neighbours=len(sc.vehicles) - 1)
+        mpc = vehicle_mpc(c, Formation(sc.formation))
     except InfeasibleError as e:
         return FeasibilityReport(False, (str(e),), (*lines, "tightened input sets: EMPTY"))
     v_bound = c.speed_max_m_s - float(mpc.tightening[-1, 0])

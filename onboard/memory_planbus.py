@@ -37,6 +37,8 @@ class MemoryHub:
         self._lock = threading.RLock()
         self._subscribers: list[tuple[tuple[str, ...], object, Callable[[str, bytes], None]]] = []
         self._queue: list[tuple[str, bytes, object]] = []
+        self._routes: dict[tuple[str, int], list[Callable[[str, bytes], None]]] = {}
+        """The callbacks a key reaches from an origin (by id), found once per key and origin."""
 
     def attach(
         self, patterns: tuple[str, ...], owner: object, callback: Callable[[str, bytes], None]
@@ -44,10 +46,12 @@ class MemoryHub:
         """Deliver payloads on keys matching `patterns` to `callback`, except `owner`'s own."""
         with self._lock:
             self._subscribers.append((tuple(patterns), owner, callback))
+            self._routes.clear()
 
     def detach(self, owner: object) -> None:
         with self._lock:
             self._subscribers = [s for s in self._subscribers if s[1] is not owner]
+            self._routes.clear()
 
     def put(self, key: str, payload: bytes, *, origin: object = None) -> None:
         """Publish raw bytes on `key`; origin None (an outside sender) reaches every bus."""
@@ -72,11 +76,13 @@ class MemoryHub:
 
     def _dispatch(self, key: str, payload: bytes, origin: object) -> None:
         with self._lock:
-            targets = [
-                cb
-                for patterns, owner, cb in self._subscribers
-                if owner is not origin and any(_matches(p, key) for p in patterns)
-            ]
+            targets = self._routes.get((key, id(origin)))
+            if targets is None:
+                targets = self._routes[(key, id(origin))] = [
+                    cb
+                    for patterns, owner, cb in self._subscribers
+                    if owner is not origin and any(_matches(p, key) for p in patterns)
+                ]
         for callback in targets:
             callback(key, payload)
 

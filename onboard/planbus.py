@@ -21,6 +21,8 @@ each accepted message, on the transport's thread, outside the bus's lock. A bus 
 network faults); payloads it holds back reach the receive rules when the bus is next read.
 """
 
+import functools
+import math
 import numbers
 import threading
 from abc import ABC, abstractmethod
@@ -30,7 +32,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Self
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.protocol.codec import DecodeError, decode, encode
+from fleetmpc.protocol.codec import DecodeError, decode, encode, plan_origin
 from fleetmpc.protocol.keys import (
     KeyFormatError,
     all_plans_key,
@@ -82,7 +84,7 @@ class PlanBusClosedError(PlanBusError):
 class BusCounters:
     """A snapshot of a bus's counters.
 
-    received == accepted + duplicates + out_of_order + own_ignored + rejected_total.
+    received == accepted + duplicates + out_of_order + own_ignored + filtered + rejected_total.
     """
 
     published: int = 0
@@ -103,6 +105,8 @@ class BusCounters:
     """Valid messages carrying this bus's own vehicle id (another process using the same id)."""
     listener_errors: int = 0
     """Accepted messages whose `on_accept` listener raised (a bug in the listener)."""
+    filtered: int = 0
+    """Plans dropped unread: their sender was beyond the bus's interest (`PlanBus.listen_near`)."""
     rejected: Mapping[RejectReason, int] = field(default_factory=lambda: MappingProxyType({}))
     """Rejected payloads by reason."""
 
@@ -151,10 +155,38 @@ class _Inbox:
         self._latest: dict[tuple[MessageKind, int], Message] = {}
         self._rejected: dict[RejectReason, int] = {}
         self._received = self._accepted = self._duplicates = 0
-        self._out_of_order = self._restarts = self._own_ignored = 0
+        self._out_of_order = self._restarts = self._own_ignored = self._filtered = 0
+        self._interest: tuple[float, float, float, frozenset[int]] | None = None
+
+    def listen_near(
+        self, centre: tuple[float, float], radius_m: float, always: frozenset[int]
+    ) -> None:
+        """From now on, drop unread the plans of senders not in `always` whose first position
+        is farther than `radius_m` from `centre`, and forget such a sender's last plan."""
+        self._interest = (float(centre[0]), float(centre[1]), float(radius_m), always)
+
+    def _far(self, payload: bytes) -> int | None:
+        """The sender of a plan beyond the interest, else None."""
+        if self._interest is None:
+            return None
+        origin = _plan_origin(payload)
+        if origin is None:
+            return None
+        cx, cy, radius, always = self._interest
+        sender, x, y = origin
+        if sender in always or not math.hypot(x - cx, y - cy) > radius:
+            return None
+        return sender
 
     def receive(self, key: str, payload: bytes) -> None:
         """Handle one payload that arrived on `key`; never raises."""
+        far = self._far(payload) if isinstance(payload, bytes) else None
+        if far is not None:
+            with self._lock:
+                self._received += 1
+                self._filtered += 1
+                self._latest.pop((MessageKind.PLAN, far), None)
+            return
         try:
             reason, message = self._check(key, payload)
         except Exception:  # a bug in the checks must not kill a transport thread
@@ -177,13 +209,16 @@ class _Inbox:
 
     def _check(self, key: str, payload: bytes) -> tuple[RejectReason | None, Message | None]:
         try:
-            parsed = parse_key(key)
+            parsed = _parse_key(key)
         except KeyFormatError:
             return RejectReason.KEY, None
         if parsed.fleet != self._fleet:
             return RejectReason.KEY, None
         try:
-            message = decode(payload, expect=parsed.kind)
+            if isinstance(payload, bytes):
+                message = _decode_once(payload, parsed.kind)
+            else:
+                message = decode(payload, expect=parsed.kind)
         except DecodeError as e:
             return e.reason, None
         if parsed.vehicle_id is not None and message.sender_id != parsed.vehicle_id:
@@ -228,8 +263,24 @@ class _Inbox:
                 sender_restarts=self._restarts,
                 own_ignored=self._own_ignored,
                 listener_errors=self._listener_errors,
+                filtered=self._filtered,
                 rejected=MappingProxyType(dict(sorted(self._rejected.items()))),
             )
+
+
+_parse_key = functools.lru_cache(maxsize=4096)(parse_key)
+"""`parse_key`, remembered: a fleet has a few keys, each heard every period."""
+
+_plan_origin = functools.lru_cache(maxsize=4096)(plan_origin)
+"""`plan_origin`, remembered by payload as `_decode_once` is."""
+
+
+@functools.lru_cache(maxsize=4096)
+def _decode_once(payload: bytes, kind: MessageKind) -> Message:
+    """`decode`, remembered by payload: a process whose buses all hear one message (the
+    lockstep simulation's fleet) decodes it once, not once per bus. Messages are immutable, so
+    the buses may share one; a payload that does not decode is not remembered."""
+    return decode(payload, expect=kind)
 
 
 class PlanBus(ABC):
@@ -384,6 +435,16 @@ class PlanBus(ABC):
         """Latest accepted plan message per neighbour, if |now_ns - stamp| <= max_age_ns."""
         self._release_held()
         return self._inbox.latest(MessageKind.PLAN, now_ns, max_age_ns)
+
+    def listen_near(
+        self, centre: tuple[float, float], radius_m: float, always: frozenset[int] = frozenset()
+    ) -> None:
+        """Subscribe by distance: from now on the plans of vehicles (other than those in
+        `always`) that start farther than `radius_m` from `centre` are dropped before they are
+        decoded (counted as `filtered`), and such a vehicle's last plan is forgotten. An agent
+        calls it every period with where its vehicle is, so its cost per period grows with its
+        neighbourhood, not with the fleet."""
+        self._inbox.listen_near(centre, radius_m, always)
 
     def latest_plans(self, now_ns: int, max_age_ns: int) -> dict[int, Plan]:
         """Latest accepted plan per neighbour id whose age is at most `max_age_ns`.

@@ -59,6 +59,7 @@ __all__ = [
     "RunnerSettings",
     "TargetFeed",
     "agent_for",
+    "listen_for",
 ]
 
 _MAX_NEIGHBOURS = 8
@@ -106,6 +107,13 @@ class RunnerSettings:
 _OWN_GAP_WINDOW_S = 5.0
 """How far back (fleet time) a setpoint gap counts as the cause of a lost mode [s]: PX4 leaves
 offboard 1 s (COM_OF_LOSS_T) and ArduCopter's guided mode 3 s (GUID_TIMEOUT) into a gap."""
+
+
+def listen_for(agent: Agent, bus: PlanBus) -> None:
+    """Narrow the plan bus to what the agent now needs to hear (`Agent.interest`)."""
+    interest = agent.interest()
+    if interest is not None:
+        bus.listen_near(*interest)
 
 
 def agent_for(scenario: Scenario, vehicle: VehicleSpec, *, learning: bool = True) -> Agent:
@@ -308,6 +316,7 @@ class FleetRunner:
         self.steps += 1
         self.last_output = out
         self.last_status = out.status
+        listen_for(self.agent, self.bus)
         self._publish(state, out, stamp_ns, step_ns)
         if self._record is not None:
             self._record(self._row(state, out, stamp_ns, step_ns * 1e-6))

@@ -13,8 +13,6 @@ them; the run's FlightRecord stacks them, and any telemetry sinks given (a Rerun
 viewer) are handed them as the ground station hands its own, every `FLUSH_S` of flight.
 """
 
-import math
-import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -29,6 +27,7 @@ from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
 from fleetmpc.onboard.runner import RunnerSettings, TargetFeed, agent_for
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
+from fleetmpc.sim.agent_pool import AgentPool
 from fleetmpc.sitl.plant import TruthPlant
 
 __all__ = ["build_agents", "run_lockstep"]
@@ -49,10 +48,25 @@ def run_lockstep(
     sinks: Sequence[TelemetrySink] = (),
     run_info: dict | None = None,
     faults: FaultSchedule | None = None,
+    jobs: int = 1,
 ) -> FlightRecord:
     """Fly the scenario in lockstep and return its record; the sinks (opened with `run_info`,
-    closed at the end) get every period's sample; `faults` are injected into the plan bus."""
-    sc = scenario
+    closed at the end) get every period's sample; `faults` are injected into the plan bus; the
+    agents step in `jobs` processes (`fleetmpc.sim.agent_pool`: the same figures for any)."""
+    with AgentPool(scenario, learning=learning, jobs=jobs) as pool:
+        return _fly(scenario, pool, duration_s, seed, progress, sinks, run_info, faults)
+
+
+def _fly(
+    sc: Scenario,
+    pool: AgentPool,
+    duration_s: float | None,
+    seed: int | None,
+    progress: Callable[[float, float], None] | None,
+    sinks: Sequence[TelemetrySink],
+    run_info: dict | None,
+    faults: FaultSchedule | None,
+) -> FlightRecord:
     duration_s = sc.duration_s if duration_s is None else duration_s
     seed = sc.seed if seed is None else seed
     period_ns, tick_ns, ticks = sc.controller.period_ns, sc.tick_ns, sc.plant_steps_per_period
@@ -64,7 +78,6 @@ def run_lockstep(
         TruthPlant(v.truth, x_m=v.initial[0], y_m=v.initial[1], yaw_rad=v.initial[2])
         for v in sc.vehicles
     ]
-    agents = build_agents(sc, learning=learning)
     truth_formation = Formation(sc.formation)
     truth_course = TrueReference(reference_course_rate(sc.controller, sc.formation))
     """The slots the run is judged against: the formation at the rate-limited reference course
@@ -111,7 +124,7 @@ def run_lockstep(
     samples: list[PeriodSample] = []
     predictions: list[np.ndarray] = []
     min_sep = np.inf
-    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
+    upper = np.triu_indices(n, 1)
     for k in range(periods):
         t_ns = now_ns = k * period_ns
         t_s = t_ns * 1e-9
@@ -129,19 +142,23 @@ def run_lockstep(
                 noise_std_m=float(sc.target.observation_noise_m),
             )
             hub.flush()
-        outs = []
-        for i, (agent, plant) in enumerate(zip(agents, plants, strict=True)):
+        inputs = []
+        for i, plant in enumerate(plants):
             observation, observed_ns = targets[i].take(t_ns)
-            inp = AgentInput(
-                stamp_ns=t_ns,
-                measurement=plant.measure(rngs[i]),
-                target_observation=observation,
-                target_stamp_ns=observed_ns,
-                neighbour_plans=buses[i].latest_plans(t_ns, runner.plan_max_age_ns),
+            inputs.append(
+                AgentInput(
+                    stamp_ns=t_ns,
+                    measurement=plant.measure(rngs[i]),
+                    target_observation=observation,
+                    target_stamp_ns=observed_ns,
+                    neighbour_plans=buses[i].latest_plans(t_ns, runner.plan_max_age_ns),
+                )
             )
-            t0 = time.perf_counter_ns()
-            out = agent.step(inp)
-            outs.append((out, (time.perf_counter_ns() - t0) * 1e-6))
+        outs = []
+        for bus, (out, step_ms, interest) in zip(buses, pool.step(inputs), strict=True):
+            outs.append((out, step_ms))
+            if interest is not None:
+                bus.listen_near(*interest)
         course = truth_course.follow(tgt_vel.tolist(), period_ns * 1e-9)
         trail_x, trail_y, offsets = truth_formation.placement(course)
         cx, cy = float(tgt_pos[0]) - trail_x, float(tgt_pos[1]) - trail_y
@@ -196,10 +213,12 @@ def run_lockstep(
         tracks: list[list[tuple[float, float]]] = [[] for _ in plants]
         for plant, track in zip(plants, tracks, strict=True):  # the plants are independent
             plant.advance(tick_ns, ticks, track=track)
-        for a, b in pairs:  # the closest approach, checked at every plant tick
-            for (xa, ya), (xb, yb) in zip(tracks[a], tracks[b], strict=True):
-                dx, dy = xa - xb, ya - yb
-                min_sep = min(min_sep, math.sqrt(dx * dx + dy * dy))
+        if n > 1:  # the closest approach, checked at every plant tick
+            xy = np.array(tracks)  # (vehicle, tick, 2)
+            dx = xy[:, None, :, 0] - xy[None, :, :, 0]
+            dy = xy[:, None, :, 1] - xy[None, :, :, 1]
+            gaps = np.sqrt(dx * dx + dy * dy)[upper]
+            min_sep = min(min_sep, float(gaps.min()))
         if progress is not None:
             progress((k + 1) * period_ns * 1e-9, duration_s)
     for sink in sinks:

@@ -44,6 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="inject the network faults of a fault file (TOML, see faults/README.md) into the"
         " plan bus",
     )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="J",
+        help="step the agents in J processes (default 1; the figures are the same for any J)",
+    )
     add_telemetry_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -52,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario)
     if args.duration is not None and not args.duration > 0:
         raise ConfigError("--duration", f"must be > 0, got {args.duration}")
+    if args.jobs < 1:
+        raise ConfigError("--jobs", f"must be >= 1, got {args.jobs}")
     report = check_scenario(sc)
     if not report.feasible:
         print("WARNING: this scenario is infeasible; the run will show it:")
@@ -78,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
             progress=bar,
             sinks=sinks,
             run_info={**run_info, "source": "lockstep"},
+            jobs=args.jobs,
             faults=faults,
         )
     finally:

@@ -34,7 +34,7 @@ from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
 from fleetmpc.protocol.plan import Plan
 
-__all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_rate"]
+__all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_rate", "vehicle_mpc"]
 
 REFERENCE_HISTORY = 50
 """Periods of reference course kept to restart a sweep where a manoeuvre began."""
@@ -43,8 +43,19 @@ REFERENCE_HISTORY = 50
 def reference_course_rate(controller: ControllerSettings, formation: FormationSettings) -> float:
     """How fast the formation's reference course may turn [rad/s], as every agent of the fleet
     computes it (from its tube-tightened input bounds and the formation's lever arms)."""
-    mpc = TubeLbmpc(controller, n_neighbours=len(formation.slots_m) - 1)
-    return _course_rate(mpc, Formation(formation), controller)
+    shape = Formation(formation)
+    return _course_rate(vehicle_mpc(controller, shape), shape, controller)
+
+
+def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbmpc:
+    """The tube LBMPC every agent of the fleet builds: separation rows for K = min(
+    neighbours_max, N - 1) neighbours, its tube computed with the formation graph's largest
+    number of formation terms."""
+    return TubeLbmpc(
+        controller,
+        n_neighbours=min(controller.neighbours_max, formation.size - 1),
+        formation_terms=formation.max_degree,
+    )
 
 
 def _course_rate(mpc: TubeLbmpc, formation: Formation, controller: ControllerSettings) -> float:
@@ -100,6 +111,8 @@ class AgentOutput:
     """This vehicle's current slot position (2,), nan while the target is unknown."""
     neighbour_ages_s: dict[int, float]
     """Age of each neighbour's plan [s]."""
+    neighbours: tuple[int, ...]
+    """The vehicles this step kept its separation from (its neighbourhood), nearest first."""
     formation_terms: int
     """Neighbours whose formation term entered the cost."""
     target_prediction_m: np.ndarray
@@ -127,13 +140,13 @@ class Agent:
         self.vehicle_id = vehicle_id
         self.fleet_ids = fleet_ids
         self.index = fleet_ids.index(vehicle_id)
-        self.neighbour_ids = tuple(i for i in fleet_ids if i != vehicle_id)
+        self.neighbour_ids = frozenset(fleet_ids) - {vehicle_id}
         self.settings = controller
         self.learning = learning
         self.dekf = DualEkf(learning, tau=controller.period_s)
         self.target = TargetEstimator(observation_std_m=target_observation_std_m)
         self.formation = Formation(formation)
-        self.mpc = TubeLbmpc(controller, n_neighbours=len(self.neighbour_ids))
+        self.mpc = vehicle_mpc(controller, self.formation)
         self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation, controller))
         self._reference_stamp_ns = 0
         self._course_locked = False
@@ -147,18 +160,19 @@ class Agent:
         self.neighbourhood = Neighbourhood(
             vehicle_id,
             fleet_ids=fleet_ids,
+            formation_links=self.formation.links[self.index],
             controller=controller,
             tube_radius_m=float(self.mpc.tube_radius_m[-1]),
         )
         self.seeder = Seeder(controller, self.mpc.input_box)
+        terms = self.formation.max_degree
         self._position_weights = [
-            np.full(M, controller.q_position + n * controller.q_formation)
-            for n in range(len(self.neighbour_ids) + 1)
+            np.full(M, controller.q_position + n * controller.q_formation) for n in range(terms + 1)
         ]
         """Stage position weights by number of formation terms (read-only arrays)."""
-        N = len(self.neighbour_ids)
-        self._full_weight = controller.q_position + N * controller.q_formation
-        """Stage position weight with every formation term (the terminal P's)."""
+        self._full_weight = controller.q_position + terms * controller.q_formation
+        """Stage position weight with every formation term the tube assumes (the terminal
+        P's)."""
         self._delay_periods = max(0, round(response_delay_s / controller.period_s))
         """Periods between a command and the autopilot flying it (the vehicle's
         `response_delay_s`; docs/design.md, "Response delay")."""
@@ -175,6 +189,16 @@ class Agent:
         self._last_stamp_ns: int | None = None
         self._resuming = False
         """Periods were missed and no measurement has come since."""
+
+    def interest(self) -> tuple[tuple[float, float], float, frozenset[int]] | None:
+        """What this agent needs to hear, for its plan bus (`PlanBus.listen_near`): the plans
+        of vehicles within twice its safety radius of where it is, and always its formation
+        neighbours'; None before its state is known (it needs everything)."""
+        if not self.dekf.initialized:
+            return None
+        x, y = self.dekf.z[:2].tolist()
+        hood = self.neighbourhood
+        return (x, y), 2.0 * hood.radius_m, frozenset(hood.formation_ids)
 
     @property
     def _last_command(self) -> np.ndarray:
@@ -195,7 +219,8 @@ class Agent:
         most at its rate limit, now and along the prediction. A target that never moved leaves
         the course at 0 (North).
         """
-        ref, v0, turn_rate = self.reference, velocities[0], self.target.turn_rate_rad_s
+        ref, v0 = self.reference, velocities[0]
+        turn_rate = self.target.significant_turn_rate_rad_s
         onset_ns = self.target.manoeuvre_onset_ns
         if self._course_locked and onset_ns is not None and self._reference_history:
             # A manoeuvre (a corner) noticed only now began at onset_ns: the reference turns as
@@ -318,18 +343,16 @@ class Agent:
         ]
         u_s, heading_s = self.seeder.steady_inputs(mine, beta_f, z0_f[2])
         neighbourhood, plans = self.neighbourhood, inp.neighbour_plans
-        inflations, pull, n_terms = neighbourhood.inflations_and_pull(
-            start_ns, plans, ages, centres, offsets
-        )
+        pull, n_terms = neighbourhood.pull(start_ns, plans, ages, centres, offsets)
         weight = s.q_position + n_terms * s.q_formation
-        if inp.late_s > 0.0:
-            # A late step's plan starts later than its stamp says: the vehicle may be up to
-            # v_max x the lateness from where the plan puts it, so it keeps that much more
-            # from every neighbour (its half of each line; docs/design.md, "Safety").
-            inflations = [i + s.speed_max_m_s * inp.late_s for i in inflations]
+        # A late step's plan starts later than its stamp says: the vehicle may be up to
+        # v_max x the lateness from where the plan puts it, so it keeps that much more from
+        # every neighbour (its half of each line; docs/design.md, "Safety").
+        inflations = neighbourhood.inflations(ages, inp.late_s)
         here, drift = (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3])
+        neighbours = neighbourhood.nearest(start_ns, plans, here, inflations)
         planes = neighbourhood.planes(
-            start_ns, plans, self._last_plan, here, drift, ages, inflations
+            start_ns, neighbours, plans, self._last_plan, here, drift, ages, inflations
         )
         goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
         goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])
@@ -397,6 +420,7 @@ class Agent:
             beta=beta,
             slot_m=np.array(mine[0]),
             neighbour_ages_s=ages,
+            neighbours=tuple(neighbours),
             formation_terms=n_terms,
             target_prediction_m=np.array(track[M]),
         )
@@ -426,6 +450,7 @@ class Agent:
             else np.array(self.learning.beta_initial),
             slot_m=np.full(2, np.nan),
             neighbour_ages_s=ages,
+            neighbours=(),
             formation_terms=0,
             target_prediction_m=np.full(2, np.nan),
         )

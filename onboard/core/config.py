@@ -46,6 +46,10 @@ class ControllerSettings:
     """Plan age beyond which a neighbour's formation term is dropped [s]."""
     plan_forget_s: float = 10.0
     """Plan age beyond which a neighbour is ignored entirely [s]."""
+    neighbours_max: int = 12
+    """K: at most this many neighbours get separation constraints in a vehicle's QP, the
+    nearest of those within its safety radius (docs/design.md, "Neighbourhood"); the QP's size
+    does not grow with the fleet beyond it."""
     r_yaw_rate_change: float = 1.0
     """Input weight on the change of yaw rate from one step to the next [s^2/rad^2]: smooths the
     yaw-rate command (0: no such term)."""
@@ -94,6 +98,11 @@ class ControllerSettings:
             positive(f"controller.{name}", getattr(self, name), allow_zero=True)
         in_range("controller.solver_eps", self.solver_eps, 1e-12, 1e-5)
         in_range("controller.seed_switch_ratio", self.seed_switch_ratio, 0.0, 1.0)
+        if not isinstance(self.neighbours_max, int) or self.neighbours_max < 1:
+            raise ConfigError(
+                "controller.neighbours_max",
+                f"must be an integer >= 1, got {self.neighbours_max!r}",
+            )
         if not isinstance(self.solver_max_iter, int) or self.solver_max_iter < 10:
             raise ConfigError(
                 "controller.solver_max_iter",
@@ -190,6 +199,10 @@ class FormationSettings:
     frame."""
     trail_m: float = 5.0
     """Distance d_s by which the formation centre trails the target along its course [m]."""
+    neighbours: int = 8
+    """The formation graph: each slot is linked to this many nearest slots (all of them in a
+    formation of at most this many and one); a vehicle's cost holds a formation term for each
+    slot its own is linked to."""
 
     def __post_init__(self) -> None:
         if self.frame not in _FRAMES:
@@ -199,3 +212,7 @@ class FormationSettings:
             raise ConfigError("formation.slots_m", "needs at least one slot")
         object.__setattr__(self, "slots_m", slots)
         finite("formation.trail_m", self.trail_m)
+        if not isinstance(self.neighbours, int) or self.neighbours < 1:
+            raise ConfigError(
+                "formation.neighbours", f"must be an integer >= 1, got {self.neighbours!r}"
+            )

@@ -64,6 +64,12 @@ class Formation:
         self.settings = settings
         self._offsets = np.array(settings.slots_m)
         self._offsets_list = [(float(x), float(y)) for x, y in settings.slots_m]
+        self.links = _nearest_links(self.desired_distances(), settings.neighbours)
+        """The formation graph: the slots each slot is linked to, by index, in increasing
+        order (docs/design.md, "Neighbourhood")."""
+        self.max_degree = max(map(len, self.links))
+        """The most links any slot has: every agent sizes its stage weights by it, so that the
+        whole fleet computes the same tube and reference-course rate."""
 
     @property
     def size(self) -> int:
@@ -101,6 +107,19 @@ class Formation:
         """Desired distance between every pair of slots (N, N) [m]."""
         d = self._offsets[:, None, :] - self._offsets[None, :, :]
         return np.hypot(d[..., 0], d[..., 1])
+
+
+def _nearest_links(distances: np.ndarray, count: int) -> tuple[tuple[int, ...], ...]:
+    """Each slot linked to its `count` nearest slots (ties broken by index)."""
+    n = distances.shape[0]
+    return tuple(
+        tuple(
+            sorted(
+                sorted((j for j in range(n) if j != i), key=lambda j: (distances[i, j], j))[:count]
+            )
+        )
+        for i in range(n)
+    )
 
 
 def course_rate_limit(

@@ -70,9 +70,13 @@ class QpSolution:
 
 
 class TubeLbmpc:
-    """Tube LBMPC for one vehicle with `n_neighbours` neighbours; the QP is built once."""
+    """Tube LBMPC for one vehicle with separation constraints against `n_neighbours` neighbours
+    and formation terms toward at most `formation_terms` (default: as many); the QP is built
+    once. The tube's gain is computed with every formation term in the stage weight."""
 
-    def __init__(self, settings: ControllerSettings, *, n_neighbours: int) -> None:
+    def __init__(
+        self, settings: ControllerSettings, *, n_neighbours: int, formation_terms: int | None = None
+    ) -> None:
         s = settings
         self.settings = s
         self.M = M = s.horizon
@@ -82,7 +86,8 @@ class TubeLbmpc:
         self.u_min = np.array([0.0, -s.yaw_rate_max_rad_s])
         """U's lower corner: the vehicle flies forward (docs/design.md, "Input set")."""
         self.A0, self.B0 = cruise_linearization(s.reference_speed_m_s, s.period_s)
-        q_pos = s.q_position + n_neighbours * s.q_formation
+        terms = n_neighbours if formation_terms is None else formation_terms
+        q_pos = s.q_position + terms * s.q_formation
         self.Q0 = np.diag([q_pos, q_pos, s.q_heading])
         self.R = np.diag([s.r_speed, s.r_yaw_rate])
         self.K0, self.P0 = dare_gain(self.A0, self.B0, self.Q0, self.R)

@@ -2,8 +2,10 @@
 "Formation reference"; the plan ages of "The plan bus").
 
 From the neighbours' latest plans and their ages: the margin inflation of each (v_max x the age
-beyond one period; a forgotten plan drops its neighbour), the formation terms of the fresh ones
-and their pull on this vehicle's goal, the separation half-planes against each
+beyond one period; a forgotten plan drops its neighbour); the formation terms of the linked
+vehicles (the formation graph) whose plans are fresh, and their pull on this vehicle's goal; the
+nearest vehicles within the safety radius, at most K (a neighbourhood whose size does not grow
+with the fleet), and the separation half-planes against each
 (`fleetmpc.onboard.core.separation` places them) and the give-way rule that breaks a deadlock
 between two vehicles stopped nose to nose. Plain floats throughout: the horizon is a handful of
 points.
@@ -25,19 +27,27 @@ __all__ = ["Neighbourhood"]
 
 
 class Neighbourhood:
-    """The neighbours of vehicle `vehicle_id` in the fleet `fleet_ids`; `tube_radius_m` (the
-    tube's widest position radius) widens every separation margin."""
+    """The neighbours of vehicle `vehicle_id` in the fleet `fleet_ids`: the vehicles it is
+    linked to in the formation graph (`formation_links`, fleet indices), whose plans pull its
+    goal, and the nearest vehicles within its safety radius, at most `controller.neighbours_max`,
+    whose plans bound it. `tube_radius_m` (the tube's widest position radius) widens every
+    separation margin."""
 
     def __init__(
         self,
         vehicle_id: int,
         *,
         fleet_ids: tuple[int, ...],
+        formation_links: tuple[int, ...],
         controller: ControllerSettings,
         tube_radius_m: float,
     ) -> None:
         self.settings = controller
-        self.neighbour_ids = tuple(i for i in fleet_ids if i != vehicle_id)
+        self.vehicle_id = vehicle_id
+        self.formation_ids = tuple(fleet_ids[k] for k in formation_links)
+        """The vehicles whose slots this vehicle's slot is linked to."""
+        self.size = min(controller.neighbours_max, len(fleet_ids) - 1)
+        """K: how many neighbours the QP has separation rows for."""
         M = controller.horizon
         self._no_planes = [NO_PLANE] * M
         between = intersample_allowance(
@@ -50,82 +60,114 @@ class Neighbourhood:
         (`fleetmpc.onboard.core.separation`) [m]."""
         self._alone_margin_m = controller.d_safe_m + between + tube_radius_m
         """Distance kept from a stale neighbour's position before the plan-age inflation [m]."""
+        self.radius_m = (
+            self._alone_margin_m
+            + tube_radius_m
+            + 2.0 * controller.speed_max_m_s * (M + 1) * controller.period_s
+        )
+        """The safety radius: a vehicle farther than this (less its plan's inflation) cannot
+        come within the alone margin of this one before the end of the horizon and the next
+        period's choice, both flying at v_max toward each other (docs/design.md,
+        "Neighbourhood")."""
         self._fleet_index = {vid: i for i, vid in enumerate(fleet_ids)}
+        self.crowded = 0
+        """Periods in which more than K vehicles were within the safety radius (the farthest
+        of them were left out)."""
 
-    def inflations_and_pull(
+    def inflations(self, ages: Mapping[int, float], late_s: float) -> dict[int, float]:
+        """The margin inflation of each neighbour whose plan is not forgotten [m]: v_max x (its
+        plan's age beyond one period, plus how late this step runs)."""
+        s = self.settings
+        return {
+            nid: s.speed_max_m_s * (max(0.0, age - s.period_s) + late_s)
+            for nid, age in ages.items()
+            if nid != self.vehicle_id and nid in self._fleet_index and abs(age) <= s.plan_forget_s
+        }
+
+    def nearest(
         self,
         stamp_ns: int,
         neighbour_plans: Mapping[int, Plan],
-        ages: dict[int, float],
+        here: tuple[float, float],
+        inflations: Mapping[int, float],
+    ) -> list[int]:
+        """The vehicles within the safety radius of `here`, nearest first (by distance less
+        inflation, then id), at most K of them."""
+        hx, hy = here
+        near = []
+        for nid, inflation in inflations.items():
+            px, py = neighbour_plans[nid].position_at(stamp_ns)
+            gap = math.hypot(px - hx, py - hy) - inflation
+            if gap <= self.radius_m:
+                near.append((gap, nid))
+        near.sort()
+        if len(near) > self.size:
+            self.crowded += 1
+        return [nid for _, nid in near[: self.size]]
+
+    def pull(
+        self,
+        stamp_ns: int,
+        neighbour_plans: Mapping[int, Plan],
+        ages: Mapping[int, float],
         centres: list[tuple[float, float]],
         offsets: list[list[tuple[float, float]]],
-    ) -> tuple[list[float], list[tuple[float, float]] | None, int]:
-        """The neighbours' plan-age inflations and their pull on this vehicle's goal.
-
-        Returns the margin inflation v_max x (age beyond one period) of each neighbour [m]
-        (infinite for an absent or forgotten one), the pull sum_k (p_kj - slot_kj) at
-        j = 1..M over the neighbours whose plan is fresh (None if there is none) and their
-        count. `centres` and `offsets` are the formation's centre and every vehicle's
-        offset at j = 0..M+1.
-        """
+    ) -> tuple[list[tuple[float, float]] | None, int]:
+        """The formation neighbours' pull on this vehicle's goal: sum_k (p_kj - slot_kj) at
+        j = 1..M over the linked vehicles whose plan is fresh (None if there is none), and their
+        count. `centres` and `offsets` are the formation's centre and every vehicle's offset at
+        j = 0..M+1."""
         s, M = self.settings, self.settings.horizon
-        when_ns = stamp_ns + s.period_ns
-        inflations: list[float] = []
         pull: list[tuple[float, float]] | None = None
         n_terms = 0
         steps = list(zip(centres[1 : M + 1], offsets[1 : M + 1], strict=True))
-        for nid in self.neighbour_ids:
-            plan = neighbour_plans.get(nid)
-            age = ages.get(nid, math.inf)
-            if plan is None or abs(age) > s.plan_forget_s:
-                inflations.append(math.inf)
+        for nid in self.formation_ids:
+            plan, age = neighbour_plans.get(nid), ages.get(nid, math.inf)
+            if plan is None or abs(age) > s.plan_forget_s or age > s.plan_stale_s:
                 continue
-            inflations.append(s.speed_max_m_s * max(0.0, age - s.period_s))
-            if age <= s.plan_stale_s:
-                reach = s.plan_extrapolation_s
-                positions = plan.position_list(when_ns, M, max_extrapolation_s=reach)
-                k = self._fleet_index[nid]
-                terms = [
-                    (px - (cx + o[k][0]), py - (cy + o[k][1]))
-                    for (px, py), ((cx, cy), o) in zip(positions, steps, strict=True)
-                ]
-                pull = (
-                    terms
-                    if pull is None
-                    else [(a + b, c + d) for (a, c), (b, d) in zip(pull, terms, strict=True)]
-                )
-                n_terms += 1
-        return inflations, pull, n_terms
+            positions = plan.position_list(
+                stamp_ns + s.period_ns, M, max_extrapolation_s=s.plan_extrapolation_s
+            )
+            k = self._fleet_index[nid]
+            terms = [
+                (px - (cx + o[k][0]), py - (cy + o[k][1]))
+                for (px, py), ((cx, cy), o) in zip(positions, steps, strict=True)
+            ]
+            pull = (
+                terms
+                if pull is None
+                else [(a + b, c + d) for (a, c), (b, d) in zip(pull, terms, strict=True)]
+            )
+            n_terms += 1
+        return pull, n_terms
 
     def planes(
         self,
         stamp_ns: int,
+        neighbours: list[int],
         neighbour_plans: Mapping[int, Plan],
         last_plan: Plan | None,
         here: tuple[float, float],
         drift: tuple[float, float],
-        ages: dict[int, float],
-        inflations: list[float],
+        ages: Mapping[int, float],
+        inflations: Mapping[int, float],
     ) -> list[list[Plane]]:
-        """Separation half-planes against each neighbour at j = 1..M (`separation_planes`),
-        between where this vehicle's previous plan `last_plan` (or, without one, the vehicle)
-        and the neighbour's plan are now; the distance is shared while the neighbour's plan is at
-        most two periods old."""
+        """Separation half-planes against each of `neighbours` at j = 1..M
+        (`separation_planes`), between where this vehicle's previous plan `last_plan` (or,
+        without one, the vehicle) and the neighbour's plan are now; the distance is shared while
+        the neighbour's plan is at most two periods old. Padded to K neighbours with no planes."""
         s, M = self.settings, self.settings.horizon
         own = here if last_plan is None else last_plan.position_at(stamp_ns)
         drift_steps = [
             (drift[0] * j * s.period_s, drift[1] * j * s.period_s) for j in range(1, M + 1)
         ]
         planes = []
-        for nid, inflation in zip(self.neighbour_ids, inflations, strict=True):
-            plan = neighbour_plans.get(nid)
-            if plan is None or not math.isfinite(inflation):
-                planes.append(self._no_planes)
-                continue
+        for nid in sorted(neighbours, key=self._fleet_index.__getitem__):  # (in fleet order)
             shared = ages[nid] <= 2.0 * s.period_s + 1e-9
-            margin = (self.margin_m if shared else self._alone_margin_m) + inflation
-            theirs = plan.position_at(stamp_ns)
+            margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
+            theirs = neighbour_plans[nid].position_at(stamp_ns)
             planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
+        planes.extend([self._no_planes] * (self.size - len(planes)))
         return planes
 
     def goal(

@@ -1,39 +1,123 @@
-"""The neighbours' plans by age: a plan from a sender whose clock runs ahead is kept."""
+"""A vehicle's neighbourhood: plan ages, the formation graph, the safety radius and its cap K."""
 
 import math
 
 import numpy as np
+import pytest
 
-from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings
+from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.onboard.core.neighbourhood import Neighbourhood
 from fleetmpc.protocol.plan import Plan
+from fleetmpc.scenario import pattern_slots
 
 SETTINGS = ControllerSettings()
 PERIOD_NS = SETTINGS.period_ns
 M = SETTINGS.horizon
+NOW = 20 * 10**9
 
 
-def _plan(vehicle_id: int, stamp_ns: int, x: float) -> Plan:
-    states = np.array([(x + 0.2 * j, 10.0, 0.0) for j in range(M + 1)])
+def _plan(vehicle_id: int, stamp_ns: int, x: float, y: float = 10.0) -> Plan:
+    states = np.array([(x + 0.2 * j, y, 0.0) for j in range(M + 1)])
     return Plan(vehicle_id, stamp_ns, PERIOD_NS, states, np.tile((1.0, 0.0), (M, 1)))
 
 
-def _inflations(age_s: float) -> list[float]:
-    hood = Neighbourhood(1, fleet_ids=(1, 2), controller=SETTINGS, tube_radius_m=0.1)
-    now = 20 * 10**9
-    plan = _plan(2, now - round(age_s * 1e9), 0.0)
-    centres = [(0.0, 0.0)] * (M + 2)
-    offsets = [[(0.0, 0.0), (0.0, 10.0)]] * (M + 2)
-    inflations, _, _ = hood.inflations_and_pull(now, {2: plan}, {2: age_s}, centres, offsets)
-    return inflations
+def _hood(fleet_ids: tuple[int, ...], settings: ControllerSettings = SETTINGS) -> Neighbourhood:
+    return Neighbourhood(
+        1,
+        fleet_ids=fleet_ids,
+        formation_links=tuple(range(1, len(fleet_ids))),
+        controller=settings,
+        tube_radius_m=0.1,
+    )
+
+
+def _inflation(age_s: float) -> float:
+    inflations = _hood((1, 2)).inflations({2: age_s}, 0.0)
+    return inflations.get(2, math.inf)
 
 
 def test_a_plan_stamped_in_the_future_is_kept_without_inflation():
-    assert _inflations(-0.5) == [0.0]  # a clock 0.5 s fast: kept, as fresh
-    assert _inflations(0.2) == [0.0]
-    assert _inflations(1.2) == [SETTINGS.speed_max_m_s * 1.0]
+    assert _inflation(-0.5) == 0.0  # a clock 0.5 s fast: kept, as fresh
+    assert _inflation(0.2) == 0.0
+    assert _inflation(1.2) == SETTINGS.speed_max_m_s * 1.0
 
 
 def test_a_plan_beyond_the_forget_age_either_way_is_ignored():
-    assert math.isinf(_inflations(SETTINGS.plan_forget_s + 1.0)[0])
-    assert math.isinf(_inflations(-SETTINGS.plan_forget_s - 1.0)[0])
+    assert math.isinf(_inflation(SETTINGS.plan_forget_s + 1.0))
+    assert math.isinf(_inflation(-SETTINGS.plan_forget_s - 1.0))
+
+
+def test_a_late_step_inflates_every_neighbour_by_v_max_times_its_lateness():
+    inflations = _hood((1, 2, 3)).inflations({2: 0.2, 3: 1.2}, 0.5)
+    assert inflations[2] == pytest.approx(SETTINGS.speed_max_m_s * 0.5)
+    assert inflations[3] == pytest.approx(SETTINGS.speed_max_m_s * 1.5)
+
+
+def test_the_safety_radius_covers_both_vehicles_closing_at_v_max_over_the_horizon():
+    hood = _hood((1, 2))
+    closing = 2.0 * SETTINGS.speed_max_m_s * (M + 1) * SETTINGS.period_s
+    assert hood.radius_m >= SETTINGS.d_safe_m + closing
+
+
+def test_only_vehicles_within_the_radius_are_planned_against_nearest_first_at_most_k():
+    settings = ControllerSettings(neighbours_max=3)
+    ids = tuple(range(1, 8))
+    hood = _hood(ids, settings)
+    r = hood.radius_m
+    gaps = {2: 0.5 * r, 3: 0.9 * r, 4: 0.3 * r, 5: 1.1 * r, 6: 3.0 * r, 7: 0.99 * r}
+    plans = {k: _plan(k, NOW, gap, 0.0) for k, gap in gaps.items()}
+    inflations = hood.inflations(dict.fromkeys(gaps, 0.2), 0.0)
+    near = hood.nearest(NOW, plans, (0.0, 0.0), inflations)
+    assert near == [4, 2, 3]  # within the radius: 4, 2, 3, 7; K = 3 keeps the nearest three
+    assert hood.crowded == 1
+    planes = hood.planes(NOW, near, plans, None, (0.0, 0.0), (0.0, 0.0), inflations, inflations)
+    assert len(planes) == hood.size == 3
+    assert all(math.isfinite(p[0][2]) for p in planes)
+
+
+def test_a_stale_plans_inflation_brings_its_vehicle_into_the_radius():
+    hood = _hood((1, 2))
+    far = hood.radius_m + 1.0
+    plans = {2: _plan(2, NOW, far, 0.0)}
+    fresh = hood.inflations({2: 0.2}, 0.0)
+    stale = hood.inflations({2: 1.2}, 0.0)  # 1 s old: it may be 2 m nearer
+    assert hood.nearest(NOW, plans, (0.0, 0.0), fresh) == []
+    assert hood.nearest(NOW, plans, (0.0, 0.0), stale) == [2]
+
+
+def test_planes_are_padded_to_k_with_no_planes():
+    hood = _hood((1, 2, 3, 4))
+    plans = {2: _plan(2, NOW, 3.0, 0.0)}
+    inflations = hood.inflations({2: 0.2}, 0.0)
+    planes = hood.planes(NOW, [2], plans, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
+    assert len(planes) == 3
+    assert all(math.isinf(b) for _, _, b in planes[1] + planes[2])
+
+
+def test_the_formation_graph_links_each_grid_slot_to_its_eight_nearest():
+    slots = tuple(pattern_slots("grid", 25, 5.0, 5))
+    shape = Formation(FormationSettings(slots_m=slots))
+    centre = 12  # the middle of the 5 x 5 grid: its 8 surrounding slots
+    assert shape.links[centre] == (6, 7, 8, 11, 13, 16, 17, 18)
+    assert {1, 5, 6} <= set(shape.links[0])  # a corner: its three neighbours among them
+    assert all(len(linked) == 8 and i not in linked for i, linked in enumerate(shape.links))
+    assert shape.max_degree == 8
+
+
+def test_a_small_formation_is_linked_all_to_all():
+    shape = Formation(FormationSettings(slots_m=((0.0, 0.0), (5.0, 0.0), (0.0, 5.0))))
+    assert shape.links == ((1, 2), (0, 2), (0, 1))
+
+
+@pytest.mark.parametrize(
+    ("make", "field"),
+    [
+        (lambda: ControllerSettings(neighbours_max=0), "controller.neighbours_max"),
+        (lambda: FormationSettings(slots_m=((0.0, 0.0),), neighbours=0), "formation.neighbours"),
+    ],
+)
+def test_neighbourhood_settings_are_validated(make, field):
+    with pytest.raises(ConfigError, match=field):
+        make()

@@ -63,7 +63,9 @@ def raw_plan(vehicle_id: int, seq: int, stamp_ns: int) -> bytes:
 
 def check_balance(bus: PlanBus) -> None:
     c = bus.counters()
-    parts = c.accepted + c.duplicates + c.out_of_order + c.own_ignored + c.rejected_total
+    parts = (
+        c.accepted + c.duplicates + c.out_of_order + c.own_ignored + c.filtered + c.rejected_total
+    )
     assert c.received == parts, c
 
 
@@ -92,6 +94,29 @@ def test_three_buses_on_one_hub_exchange_plans(hub_buses) -> None:
         assert (c.published, c.received, c.accepted, c.own_ignored) == (1, 2, 2, 0)
         assert bus.latest_plan_messages(2 * S, 0)[next(iter(got))].status.first_c_norm == 0.5
         check_balance(bus)
+
+
+def test_a_bus_listening_near_drops_far_plans_unread_and_forgets_their_senders(hub_buses) -> None:
+    hub, (bus, *_) = hub_buses
+    bus.listen_near((0.0, 0.0), 20.0, always=frozenset({9}))
+    near, far, linked = (
+        make_plan(7, 2 * S, offset=0.0),  # starts at (7, 0): near
+        make_plan(8, 2 * S, offset=50.0),  # starts at (58, 0): far
+        make_plan(9, 2 * S, offset=50.0),  # far, but always heard (a formation neighbour)
+    )
+    for seq, plan in enumerate((near, far, linked), start=1):
+        hub.put(plan_key(FLEET, plan.vehicle_id), encode(PlanMessage(seq=seq, plan=plan)))
+    assert sorted(bus.latest_plans(2 * S, S)) == [7, 9]
+    assert bus.counters().filtered == 1
+    # Vehicle 7 flies away: its next plan is dropped and its last one forgotten.
+    gone = make_plan(7, 3 * S, offset=100.0)
+    hub.put(plan_key(FLEET, 7), encode(PlanMessage(seq=10, plan=gone)))
+    assert sorted(bus.latest_plans(3 * S, 2 * S)) == [9]
+    # Garbage on a plan key is still rejected, not filtered.
+    hub.put(plan_key(FLEET, 7), b"FM\x02\x01\x07" + bytes(60))
+    c = bus.counters()
+    assert (c.filtered, c.rejected_total) == (2, 1)
+    check_balance(bus)
 
 
 def test_duplicates_and_out_of_order_are_dropped_and_counted(hub_buses) -> None:
