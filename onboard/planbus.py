@@ -32,7 +32,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Self
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.protocol.codec import DecodeError, decode, encode, plan_origin
+from fleetmpc.protocol.codec import DecodeError, decode, encode
 from fleetmpc.protocol.keys import (
     KeyFormatError,
     all_plans_key,
@@ -106,7 +106,7 @@ class BusCounters:
     listener_errors: int = 0
     """Accepted messages whose `on_accept` listener raised (a bug in the listener)."""
     filtered: int = 0
-    """Plans dropped unread: their sender was beyond the bus's interest (`PlanBus.listen_near`)."""
+    """Valid plans dropped: their sender was beyond the bus's interest (`PlanBus.listen_near`)."""
     rejected: Mapping[RejectReason, int] = field(default_factory=lambda: MappingProxyType({}))
     """Rejected payloads by reason."""
 
@@ -161,32 +161,22 @@ class _Inbox:
     def listen_near(
         self, centre: tuple[float, float], radius_m: float, always: frozenset[int]
     ) -> None:
-        """From now on, drop unread the plans of senders not in `always` whose first position
-        is farther than `radius_m` from `centre`, and forget such a sender's last plan."""
+        """From now on, drop the valid plans of senders not in `always` that start farther than
+        `radius_m` from `centre`, and forget such a sender's last plan."""
         self._interest = (float(centre[0]), float(centre[1]), float(radius_m), always)
 
-    def _far(self, payload: bytes) -> int | None:
-        """The sender of a plan beyond the interest, else None."""
-        if self._interest is None:
-            return None
-        origin = _plan_origin(payload)
-        if origin is None:
-            return None
+    def _far(self, message: Message) -> bool:
+        """True for a plan beyond the interest."""
+        if self._interest is None or message.kind != MessageKind.PLAN:
+            return False
         cx, cy, radius, always = self._interest
-        sender, x, y = origin
-        if sender in always or not math.hypot(x - cx, y - cy) > radius:
-            return None
-        return sender
+        if message.sender_id in always:
+            return False
+        x, y = message.plan.states[0, :2].tolist()
+        return math.hypot(x - cx, y - cy) > radius
 
     def receive(self, key: str, payload: bytes) -> None:
         """Handle one payload that arrived on `key`; never raises."""
-        far = self._far(payload) if isinstance(payload, bytes) else None
-        if far is not None:
-            with self._lock:
-                self._received += 1
-                self._filtered += 1
-                self._latest.pop((MessageKind.PLAN, far), None)
-            return
         try:
             reason, message = self._check(key, payload)
         except Exception:  # a bug in the checks must not kill a transport thread
@@ -198,6 +188,9 @@ class _Inbox:
                 self._rejected[reason] = self._rejected.get(reason, 0) + 1
             elif message.sender_id == self._own:
                 self._own_ignored += 1
+            elif self._far(message):  # (only a valid plan, true to its key, is dropped so)
+                self._filtered += 1
+                self._latest.pop((MessageKind.PLAN, message.sender_id), None)
             else:
                 accepted = self._store(message)
         if accepted and self._on_accept is not None:
@@ -270,9 +263,6 @@ class _Inbox:
 
 _parse_key = functools.lru_cache(maxsize=4096)(parse_key)
 """`parse_key`, remembered: a fleet has a few keys, each heard every period."""
-
-_plan_origin = functools.lru_cache(maxsize=4096)(plan_origin)
-"""`plan_origin`, remembered by payload as `_decode_once` is."""
 
 
 @functools.lru_cache(maxsize=4096)
@@ -440,10 +430,11 @@ class PlanBus(ABC):
         self, centre: tuple[float, float], radius_m: float, always: frozenset[int] = frozenset()
     ) -> None:
         """Subscribe by distance: from now on the plans of vehicles (other than those in
-        `always`) that start farther than `radius_m` from `centre` are dropped before they are
-        decoded (counted as `filtered`), and such a vehicle's last plan is forgotten. An agent
-        calls it every period with where its vehicle is, so its cost per period grows with its
-        neighbourhood, not with the fleet."""
+        `always`) that start farther than `radius_m` from `centre` are dropped once checked
+        (counted as `filtered`, never stored), and such a vehicle's last plan is forgotten. An
+        agent calls it every period with where its vehicle is, so that what it holds and reads
+        grows with its neighbourhood, not with the fleet. (Only a plan that decodes and matches
+        its key makes a vehicle forget: a forged far payload cannot erase a neighbour.)"""
         self._inbox.listen_near(centre, radius_m, always)
 
     def latest_plans(self, now_ns: int, max_age_ns: int) -> dict[int, Plan]:

