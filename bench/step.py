@@ -215,9 +215,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration",
         type=float,
-        default=20.0,
+        default=30.0,
         metavar="S",
-        help="with --scale: simulated seconds per run (default 20)",
+        help="with --scale: simulated seconds per run (default 30)",
     )
     parser.add_argument(
         "--jobs",
