@@ -6,11 +6,12 @@ A `MemoryHub` is a broadcast medium matching keys the way Zenoh does for the fle
 Delivery is synchronous, or queued until `MemoryHub.flush` for a lockstep simulation.
 """
 
+import functools
 import threading
 from collections.abc import Callable
 
 from fleetmpc.onboard.faults import FaultLayer
-from fleetmpc.onboard.planbus import PlanBus
+from fleetmpc.onboard.planbus import PlanBus, decode_as
 from fleetmpc.protocol.keys import validate_fleet
 from fleetmpc.protocol.messages import Message
 
@@ -39,6 +40,10 @@ class MemoryHub:
         self._queue: list[tuple[str, bytes, object]] = []
         self._routes: dict[tuple[str, int], list[Callable[[str, bytes], None]]] = {}
         """The callbacks a key reaches from an origin (by id), found once per key and origin."""
+        self.decode = functools.lru_cache(maxsize=4096)(decode_as)
+        """The buses' decoder, remembered by payload: every bus of the hub hears one payload
+        object, which is decoded once, not once per bus (messages are immutable; a payload that
+        does not decode is not remembered)."""
 
     def attach(
         self, patterns: tuple[str, ...], owner: object, callback: Callable[[str, bytes], None]
@@ -115,7 +120,13 @@ class InMemoryPlanBus(PlanBus):
         on_accept: Callable[[Message], None] | None = None,
         faults: FaultLayer | None = None,
     ) -> None:
-        super().__init__(fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept, faults=faults)
+        super().__init__(
+            fleet=fleet,
+            vehicle_id=vehicle_id,
+            on_accept=on_accept,
+            faults=faults,
+            decoder=hub.decode,
+        )
         self._hub = hub
         hub.attach(self._subscriptions(), self, self._deliver)
 

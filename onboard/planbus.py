@@ -137,6 +137,15 @@ def _check_ns(name: str, value: int, *, minimum: int | None = None) -> int:
     return int(value)
 
 
+Decoder = Callable[[bytes, MessageKind], Message]
+"""Decodes a payload expected to be of a kind (`fleetmpc.protocol.codec.decode`)."""
+
+
+def decode_as(payload: bytes, kind: MessageKind) -> Message:
+    """`decode` with the kind the payload's key announces."""
+    return decode(payload, expect=kind)
+
+
 class _Inbox:
     """Thread-safe receive side: validation, duplicate rules, latest message per sender."""
 
@@ -146,9 +155,11 @@ class _Inbox:
         fleet: str,
         vehicle_id: int | None,
         on_accept: Callable[[Message], None] | None = None,
+        decoder: Decoder = decode_as,
     ) -> None:
         self._fleet = fleet
         self._own = vehicle_id
+        self._decoder = decoder
         self._on_accept = on_accept
         self._listener_errors = 0
         self._lock = threading.Lock()
@@ -209,7 +220,7 @@ class _Inbox:
             return RejectReason.KEY, None
         try:
             if isinstance(payload, bytes):
-                message = _decode_once(payload, parsed.kind)
+                message = self._decoder(payload, parsed.kind)
             else:
                 message = decode(payload, expect=parsed.kind)
         except DecodeError as e:
@@ -265,14 +276,6 @@ _parse_key = functools.lru_cache(maxsize=4096)(parse_key)
 """`parse_key`, remembered: a fleet has a few keys, each heard every period."""
 
 
-@functools.lru_cache(maxsize=4096)
-def _decode_once(payload: bytes, kind: MessageKind) -> Message:
-    """`decode`, remembered by payload: a process whose buses all hear one message (the
-    lockstep simulation's fleet) decodes it once, not once per bus. Messages are immutable, so
-    the buses may share one; a payload that does not decode is not remembered."""
-    return decode(payload, expect=kind)
-
-
 class PlanBus(ABC):
     """Publish this vehicle's plan, status and target observations; read the neighbours' latest.
 
@@ -287,10 +290,13 @@ class PlanBus(ABC):
         vehicle_id: int | None,
         on_accept: Callable[[Message], None] | None = None,
         faults: "FaultLayer | None" = None,
+        decoder: Decoder = decode_as,
     ) -> None:
         self._fleet = validate_fleet(fleet)
         self._vehicle_id = _check_vehicle_id(vehicle_id)
-        self._inbox = _Inbox(fleet=self._fleet, vehicle_id=self._vehicle_id, on_accept=on_accept)
+        self._inbox = _Inbox(
+            fleet=self._fleet, vehicle_id=self._vehicle_id, on_accept=on_accept, decoder=decoder
+        )
         self.faults = faults
         """The injected faults payloads pass through on arrival (None: none)."""
         self._send_lock = threading.Lock()
