@@ -27,6 +27,7 @@ __all__ = [
     "VehicleSpec",
     "load_scenario",
     "mavlink_url",
+    "vehicle_host",
     "parse_scenario",
     "pattern_slots",
     "PATTERN_KINDS",
@@ -64,7 +65,14 @@ class Network:
     """Loopback ports of a fleet; vehicle (system id) i uses the base ports plus (i - 1)."""
 
     host: str = "127.0.0.1"
-    """Address every process binds to or sends to."""
+    """Address every process binds to or sends to, unless the fields below (and a vehicle's
+    `host`) place some of them on other machines."""
+    router_host: str | None = None
+    """Address of the Zenoh router (it binds there; every fleet process connects there);
+    None: `host`."""
+    ground_station_host: str | None = None
+    """Address of the ground station (every vehicle streams its telemetry there); None:
+    `host`."""
     offboard_base_port: int = 14540
     """PX4 offboard-API UDP port of vehicle 1 (vehicle i: + i - 1)."""
     gcs_port: int = 14550
@@ -81,8 +89,14 @@ class Network:
     None: PX4's 18570, moved with `gcs_port`."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.host, str) or not self.host:
-            raise ConfigError("network.host", f"must be a host name or address, got {self.host!r}")
+        for name in ("host", "router_host", "ground_station_host"):
+            value = getattr(self, name)
+            if value is None and name != "host":
+                continue
+            if not isinstance(value, str) or not value:
+                raise ConfigError(
+                    f"network.{name}", f"must be a host name or address, got {value!r}"
+                )
         for name in (
             "offboard_base_port",
             "gcs_port",
@@ -96,6 +110,16 @@ class Network:
                 continue
             if not isinstance(port, int) or not 1 <= port <= 65535:
                 raise ConfigError(f"network.{name}", f"must be a port number, got {port!r}")
+
+    @property
+    def router_address(self) -> str:
+        """Where the Zenoh router is."""
+        return self.router_host or self.host
+
+    @property
+    def ground_station_address(self) -> str:
+        """Where the ground station listens for the vehicles' telemetry."""
+        return self.ground_station_host or self.host
 
     def offboard_port(self, vehicle_id: int) -> int:
         """PX4: the offboard-API UDP port vehicle `vehicle_id` streams to (agents listen here)."""
@@ -213,6 +237,9 @@ class VehicleSpec:
     response_delay_s: float = 0.0
     """How long the vehicle's autopilot takes to fly a command [s]: its agent plans from the
     state the commands already sent lead to (0 for the simulated vehicles)."""
+    host: str | None = None
+    """Address of the vehicle's companion computer, where its agent and its autopilot's link
+    are (a simulated vehicle's SITL binds there); None: `network.host`."""
 
     def __post_init__(self) -> None:
         if self.autopilot not in AUTOPILOTS:
@@ -223,6 +250,8 @@ class VehicleSpec:
         integer = isinstance(sid, int) and not isinstance(sid, bool)
         if sid is not None and not (integer and 1 <= sid <= 250):
             raise ConfigError("system_id", f"must be an integer in [1, 250], got {sid!r}")
+        if self.host is not None and (not isinstance(self.host, str) or not self.host):
+            raise ConfigError("host", f"must be a host name or address, got {self.host!r}")
         delay = self.response_delay_s
         if isinstance(delay, bool) or not isinstance(delay, int | float) or not 0 <= delay <= 5:
             raise ConfigError("response_delay_s", f"must be a number in [0, 5] s, got {delay!r}")
@@ -243,9 +272,15 @@ def mavlink_url(network: Network, vehicle: VehicleSpec) -> str:
     PX4: ``udpin:HOST:offboard_base_port + i - 1`` (the SITL streams there, the agent listens);
     ArduPilot: ``tcp:HOST:ardupilot_tcp_base_port + 10 (i - 1)``; i is the vehicle's system id.
     """
+    host = vehicle_host(network, vehicle)
     if vehicle.autopilot == "ardupilot":
-        return f"tcp:{network.host}:{network.ardupilot_tcp_port(vehicle.id)}"
-    return f"udpin:{network.host}:{network.offboard_port(vehicle.id)}"
+        return f"tcp:{host}:{network.ardupilot_tcp_port(vehicle.id)}"
+    return f"udpin:{host}:{network.offboard_port(vehicle.id)}"
+
+
+def vehicle_host(network: Network, vehicle: VehicleSpec) -> str:
+    """The address of a vehicle's companion computer (its agent and autopilot link)."""
+    return vehicle.host or network.host
 
 
 @dataclass(frozen=True)
@@ -327,6 +362,7 @@ _VEHICLE_KEYS = {
     "autopilot",
     "system_id",
     "response_delay_s",
+    "host",
 }
 
 _TOP_KEYS = {
@@ -491,6 +527,7 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
                 autopilot=raw.get("autopilot", "px4"),
                 system_id=raw.get("system_id"),
                 response_delay_s=raw.get("response_delay_s", 0.0),
+                host=raw.get("host"),
             )
         except ConfigError as e:
             raise ConfigError(f"{prefix}.{e.field}", str(e).split(": ", 1)[1]) from None

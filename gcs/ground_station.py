@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
             )
     spawn, viewer_url = _viewer(args.viewer)
     net = scenario.network
-    url = args.mavlink or f"udpin:{net.host}:{net.gcs_port}"
+    url = args.mavlink or f"udpin:{net.ground_station_address}:{net.gcs_port}"
     every = series_every(flush_s=args.flush_s, series_flush_s=args.series_flush_s)
     sinks: list[TelemetrySink] = [open_sink(u, series_every=every) for u in args.telemetry]
     if args.rrd is not None or spawn or viewer_url is not None:

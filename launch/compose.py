@@ -128,7 +128,7 @@ def _labels(spec: ProcessSpec, scenario: Scenario) -> dict[str, str]:
     net = scenario.network
     labels = {"fleetmpc.role": spec.role}
     if spec.role == "router":
-        labels["fleetmpc.zenoh"] = f"tcp/{net.host}:{net.zenoh_port}"
+        labels["fleetmpc.zenoh"] = f"tcp/{net.router_address}:{net.zenoh_port}"
     elif spec.role in ("sitl", "agent"):
         vehicle_id = int(spec.argv[spec.argv.index("--vehicle") + 1])
         vehicle = scenario.vehicle(vehicle_id)
@@ -136,7 +136,7 @@ def _labels(spec: ProcessSpec, scenario: Scenario) -> dict[str, str]:
         labels["fleetmpc.autopilot"] = vehicle.autopilot
         labels["fleetmpc.mavlink"] = mavlink_url(net, vehicle)
     elif spec.role == "gcs":
-        labels["fleetmpc.mavlink"] = f"udpin:{net.host}:{net.gcs_port}"
+        labels["fleetmpc.mavlink"] = f"udpin:{net.ground_station_address}:{net.gcs_port}"
     return labels
 
 
@@ -196,7 +196,7 @@ def compose_document(scenario: Scenario, *, scenario_name: str, options: Compose
             ]
         service["command"] = [_escape(a) for a in argv]
         if spec.role == "router":
-            probe = _HEALTH_PROBE.format(host=net.host, port=net.zenoh_port)
+            probe = _HEALTH_PROBE.format(host=net.router_address, port=net.zenoh_port)
             service["healthcheck"] = {
                 "test": ["CMD", "python", "-c", probe],
                 "interval": "1s",

@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import PurePath
 
-from fleetmpc.scenario import Scenario
+from fleetmpc.scenario import Scenario, vehicle_host
 
 __all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
 
@@ -30,6 +30,10 @@ class ProcessSpec:
     """Arguments after ``fleetmpc``."""
     role: str
     """``router``, ``target``, ``sitl``, ``agent`` or ``gcs``."""
+    host: str = "127.0.0.1"
+    """The address of the machine it runs on: the router's for the router, the ground
+    station's for the target and the ground station, a vehicle's (its companion computer's) for
+    its SITL and agent."""
 
 
 @dataclass(frozen=True)
@@ -69,34 +73,35 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     fleet = options.fleet or scenario.name
     duration = scenario.duration_s if options.duration_s is None else options.duration_s
     common = ("--scenario", options.scenario_path)
-    bus = ("--zenoh-connect", f"{net.host}:{net.zenoh_port}", "--fleet", fleet)
+    bus = ("--zenoh-connect", f"{net.router_address}:{net.zenoh_port}", "--fleet", fleet)
     speed = ("--speed", _num(options.speed))
     procs = [
         ProcessSpec(
             "zenoh-router",
-            ("zenoh-router", "--host", net.host, "--port", str(net.zenoh_port)),
+            ("zenoh-router", "--host", net.router_address, "--port", str(net.zenoh_port)),
             "router",
+            net.router_address,
         ),
         ProcessSpec(
             "target",
             ("target", *common, *bus, *speed, "--wait-epoch", "--duration", _num(duration + 1.0)),
             "target",
+            net.ground_station_address,
         ),
     ]
     external = options.external_autopilots
     for v in scenario.vehicles:
         if v.id in external:
             continue
-        procs.append(
-            ProcessSpec(f"sitl-{v.id}", ("sitl", *common, "--vehicle", str(v.id), *speed), "sitl")
-        )
+        argv = ("sitl", *common, "--vehicle", str(v.id), *speed)
+        procs.append(ProcessSpec(f"sitl-{v.id}", argv, "sitl", vehicle_host(net, v)))
     for v in scenario.vehicles:
         argv = ["agent", *common, "--vehicle", str(v.id), *bus, *speed, "--wait-epoch"]
         if v.id in external:
             argv += ["--mavlink", external[v.id]]
         if options.agent_records_dir is not None:
             argv += ["--record", str(PurePath(options.agent_records_dir) / f"agent-{v.id}.jsonl")]
-        procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent"))
+        procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(net, v)))
     gcs = ["gcs", *common, *bus, *speed, "--duration", _num(duration), "--viewer", options.viewer]
     for flag, value in (
         ("--rrd", options.rrd),
@@ -105,5 +110,5 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     ):
         if value is not None:
             gcs += [flag, value]
-    procs.append(ProcessSpec("gcs", tuple(gcs), "gcs"))
+    procs.append(ProcessSpec("gcs", tuple(gcs), "gcs", net.ground_station_address))
     return procs

@@ -21,6 +21,7 @@ Exit status: 0 if the run completed and its gates held, 1 if a gate broke or a p
 """
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -428,7 +429,7 @@ def run(args: argparse.Namespace) -> int:
     )
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
     gcs_argv += gcs_options
-    specs = [s if s.role != "gcs" else ProcessSpec(s.name, tuple(gcs_argv), s.role) for s in specs]
+    specs = [s if s.role != "gcs" else dataclasses.replace(s, argv=tuple(gcs_argv)) for s in specs]
     faults = None
     if args.faults is not None:
         schedule = load_faults(
@@ -443,7 +444,7 @@ def run(args: argparse.Namespace) -> int:
             if f.kind == "clock_offset":  # (at launch: the process starts with it)
                 extra[f.process] = (*extra.get(f.process, ()), "--clock-offset", f"{f.offset_s:g}")
                 print(f"fleetmpc up: fault: {f.describe()}", flush=True)
-        specs = [ProcessSpec(s.name, (*s.argv, *extra.get(s.name, ())), s.role) for s in specs]
+        specs = [dataclasses.replace(s, argv=(*s.argv, *extra.get(s.name, ()))) for s in specs]
         faults = _process_faults(schedule, fleet, speed=args.speed)
     interrupted = threading.Event()
     previous = {

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
-from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario
+from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario, vehicle_host
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
@@ -42,7 +42,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
     parser.add_argument(
-        "--host", help="address to bind and stream to (default: scenario network.host)"
+        "--host",
+        help="address to bind and stream to (default: the vehicle's host in the scenario, else"
+        " network.host)",
+    )
+    parser.add_argument(
+        "--gcs-host",
+        help="address to stream ground-station telemetry to (default: --host if given, else the"
+        " scenario's network.ground_station_host, else network.host)",
     )
     parser.add_argument("--port-offset", type=int, default=0, help="added to every default port")
     parser.add_argument(
@@ -153,7 +160,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         tick_ns=scenario.tick_ns,
         autopilot=autopilot,
         seed=scenario.seed,
-        host=args.host or scenario.network.host,
+        host=args.host or vehicle_host(scenario.network, spec),
     )
     gcs_port = pick("--gcs-port", args.gcs_port, d.gcs_port, allow_zero=True)
     gcs_link = ()
@@ -161,7 +168,10 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         gcs_local = pick("--gcs-local-port", args.gcs_local_port, d.gcs_local_port, allow_zero=True)
         # PX4 streams to a ground station by default; ArduPilot only what it is asked for.
         rates = PX4_GCS_RATES_HZ if profile == Profile.PX4 else {}
-        gcs_link = (UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(rates)),)
+        gcs_host = args.gcs_host or args.host or scenario.network.ground_station_address
+        gcs_link = (
+            UdpEndpoint("gcs", gcs_local, gcs_port, _with_heartbeat(rates), remote_host=gcs_host),
+        )
     if profile == Profile.ARDUPILOT:
         return ServerConfig(
             **common,

@@ -52,6 +52,8 @@ class UdpEndpoint:
     """Port the vehicle streams to on the host; None: only answer peers that talk to it."""
     rates_hz: tuple[tuple[int, float], ...] = _HEARTBEAT_ONLY
     """Default message rates of this link: (message id, Hz) pairs."""
+    remote_host: str | None = None
+    """Address the vehicle streams to; None: the address it binds (`ServerConfig.host`)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.local_port <= 65535:
@@ -154,7 +156,7 @@ class VehicleServer:
     def _open(self) -> None:
         c = self.config
         for ep in c.udp:
-            remote = None if ep.remote_port is None else (c.host, ep.remote_port)
+            remote = None if ep.remote_port is None else (ep.remote_host or c.host, ep.remote_port)
             try:
                 link = UdpLink.open(ep.name, host=c.host, local_port=ep.local_port, remote=remote)
             except OSError as e:

@@ -76,6 +76,12 @@ def test_paper_scenario_holds_the_issue_truth(paper):
         ({"network": {"gcs_port": 0}}, "network.gcs_port"),
         ({"network": {"offboard_base_port": 65535}}, "network.offboard_base_port"),
         ({"network": {"ardupilot_tcp_base_port": 65530}}, "network.ardupilot_tcp_base_port"),
+        ({"network": {"router_host": ""}}, "network.router_host"),
+        ({"network": {"ground_station_host": 7}}, "network.ground_station_host"),
+        (
+            {"vehicles": [BASE["vehicles"][0], {**BASE["vehicles"][1], "host": ""}]},
+            "vehicles[1].host",
+        ),
     ],
 )
 def test_errors_name_the_field(changes, field):
@@ -117,6 +123,33 @@ def test_each_vehicle_gets_the_url_of_its_autopilot():
         "tcp:127.0.0.1:5770",
         "udpin:127.0.0.1:14542",
     ]
+
+
+def test_hosts_place_the_router_the_ground_station_and_each_vehicle():
+    from fleetmpc.launch.fleet import FleetOptions, fleet_processes
+
+    network = {"router_host": "10.0.0.1", "ground_station_host": "10.0.0.2"}
+    vehicles = [{**BASE["vehicles"][0], "host": "10.0.0.11"}, BASE["vehicles"][1]]
+    sc = _with(vehicles=vehicles, network=network)
+    assert [mavlink_url(sc.network, v) for v in sc.vehicles] == [
+        "udpin:10.0.0.11:14540",
+        "udpin:127.0.0.1:14541",  # (no host of its own: network.host)
+    ]
+    specs = fleet_processes(sc, FleetOptions("s.toml"))
+    assert {p.name: p.host for p in specs} == {
+        "zenoh-router": "10.0.0.1",
+        "target": "10.0.0.2",
+        "sitl-1": "10.0.0.11",
+        "sitl-2": "127.0.0.1",
+        "agent-1": "10.0.0.11",
+        "agent-2": "127.0.0.1",
+        "gcs": "10.0.0.2",
+    }
+    argv = {p.name: p.argv for p in specs}
+    assert argv["zenoh-router"][1:3] == ("--host", "10.0.0.1")
+    for name in ("target", "agent-1", "agent-2", "gcs"):
+        assert "10.0.0.1:7447" in argv[name], name
+    assert sc.network.ground_station_address == "10.0.0.2"
 
 
 def test_mixed_autopilots_is_the_paper_fleet_with_an_ardupilot_vehicle(paper):
