@@ -338,8 +338,12 @@ class PlanBus(ABC):
                 self._inbox.receive(k, p)
 
     def _subscriptions(self) -> tuple[str, ...]:
+        """What the bus hears: plans, the target, the epoch, and, on a listen-only bus (a ground
+        station's), the vehicles' statuses, which no agent reads (in a fleet of N they are half
+        of what each agent would otherwise decode)."""
         f = self._fleet
-        return (all_plans_key(f), all_statuses_key(f), target_observation_key(f), epoch_key(f))
+        keys = (all_plans_key(f), target_observation_key(f), epoch_key(f))
+        return keys if self._vehicle_id is not None else (*keys, all_statuses_key(f))
 
     @property
     def fleet(self) -> str:

@@ -19,7 +19,7 @@ from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub, MemoryHu
 from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.onboard.planbus import PlanBus, PlanBusClosedError, PlanBusError
 from fleetmpc.protocol.codec import encode
-from fleetmpc.protocol.keys import plan_key, status_key, target_observation_key
+from fleetmpc.protocol.keys import plan_key, target_observation_key
 from fleetmpc.protocol.messages import (
     LearnedParams,
     PlanMessage,
@@ -384,7 +384,7 @@ def test_zenoh_garbage_is_counted_while_valid_plans_keep_flowing(zenoh_mesh) -> 
             step[0] += 1
             intruder.put(plan_key(FLEET, 2), b"\x00garbage-that-is-not-a-plan")
             intruder.put(f"fleetmpc/{FLEET}/uav/x/plan", raw_plan(2, 0, 0))
-            intruder.put(status_key(FLEET, 2), raw_plan(2, 0, 0))
+            intruder.put(target_observation_key(FLEET), raw_plan(2, 0, 0))  # (wrong kind)
             intruder.put(target_observation_key(FLEET), b"FM")
             two.publish_plan(make_plan(2, step[0] * PERIOD_NS))
 
