@@ -25,6 +25,7 @@ from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.onboard.core.agent import reference_course_rate, vehicle_mpc
 from fleetmpc.onboard.core.formation import Formation, ReferenceCourse, TrueReference
+from fleetmpc.onboard.core.neighbourhood import safety_radius
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.scenario import Scenario, load_scenario
 
@@ -181,8 +182,23 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"{behind_m:.1f} m behind, {back} (the formation itself sweeps round at "
             f"{course_rate:.3f} rad/s)"
         )
-    reach = c.horizon * c.period_s * c.speed_max_m_s
     formation = Formation(sc.formation)
+    radius = safety_radius(c, float(mpc.tube_radius_m[-1]))
+    within = (formation.desired_distances() <= radius).sum(axis=1) - 1  # (not itself)
+    crowded = int(np.argmax(within))
+    lines.append(
+        f"neighbourhood: separation against at most K = {mpc.n_neighbours} vehicles within the"
+        f" safety radius {radius:.2f} m; up to {within[crowded]} other slots lie within it of a"
+        " slot"
+    )
+    if within[crowded] > mpc.n_neighbours:
+        problems.append(
+            f"vehicle {sc.vehicles[crowded].id}'s slot has {within[crowded]} other slots within"
+            f" the safety radius {radius:.2f} m, more than controller.neighbours_max ="
+            f" {c.neighbours_max}: the farthest of them would get no separation constraint;"
+            f" raise controller.neighbours_max to {within[crowded]} or space the formation out"
+        )
+    reach = c.horizon * c.period_s * c.speed_max_m_s
     p0, v0 = sc.target.state_at(0.0)
     course0 = ReferenceCourse.course_of(v0.tolist())  # (None: the target starts still)
     slots0 = formation.slots(p0[None, :], [0.0 if course0 is None else course0])[0]

@@ -23,7 +23,21 @@ from fleetmpc.onboard.core.separation import (
 )
 from fleetmpc.protocol.plan import Plan
 
-__all__ = ["Neighbourhood"]
+__all__ = ["Neighbourhood", "safety_radius"]
+
+
+def safety_radius(controller: ControllerSettings, tube_radius_m: float) -> float:
+    """R [m]: a vehicle farther than this cannot come within the alone margin (d_safe, the
+    inter-sample allowance and the tube) of this one before the end of the horizon and the next
+    period's choice, both flying at v_max toward each other, each within the tube of its
+    prediction (docs/design.md, "Safety")."""
+    between = intersample_allowance(
+        speed_max_m_s=controller.speed_max_m_s,
+        period_s=controller.period_s,
+        d_safe_m=controller.d_safe_m,
+    )
+    closing = 2.0 * controller.speed_max_m_s * (controller.horizon + 1) * controller.period_s
+    return controller.d_safe_m + between + 2.0 * tube_radius_m + closing
 
 
 class Neighbourhood:
@@ -60,15 +74,9 @@ class Neighbourhood:
         (`fleetmpc.onboard.core.separation`) [m]."""
         self._alone_margin_m = controller.d_safe_m + between + tube_radius_m
         """Distance kept from a stale neighbour's position before the plan-age inflation [m]."""
-        self.radius_m = (
-            self._alone_margin_m
-            + tube_radius_m
-            + 2.0 * controller.speed_max_m_s * (M + 1) * controller.period_s
-        )
-        """The safety radius: a vehicle farther than this (less its plan's inflation) cannot
-        come within the alone margin of this one before the end of the horizon and the next
-        period's choice, both flying at v_max toward each other (docs/design.md,
-        "Neighbourhood")."""
+        self.radius_m = safety_radius(controller, tube_radius_m)
+        """The safety radius (`safety_radius`), which a vehicle's distance less its plan's
+        inflation must be within for it to be planned against."""
         self._fleet_index = {vid: i for i, vid in enumerate(fleet_ids)}
         self.crowded = 0
         """Periods in which more than K vehicles were within the safety radius (the farthest

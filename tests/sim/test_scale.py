@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import fleetmpc.sim.lockstep as lockstep
+from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.scenario import load_scenario, parse_scenario
 from fleetmpc.sim.agent_pool import AgentPool
@@ -102,3 +103,14 @@ def test_no_vehicle_left_out_of_a_neighbourhood_comes_within_d_safe(seed, monkey
                 gaps = np.linalg.norm(xy[t : t + reach + 1, i] - xy[t : t + reach + 1, j], axis=1)
                 assert gaps.min() >= sc.controller.d_safe_m, (t, ids[i], other, gaps.min())
     assert left_out > 1000  # (the neighbourhoods did leave vehicles out)
+
+
+def test_check_refuses_a_formation_packing_more_than_k_slots_within_the_safety_radius():
+    doc = tomllib.loads(GRID50.read_text())
+    doc["formation"]["pattern"].update(count=25, columns=5, spacing_m=2.5)
+    report = check_scenario(parse_scenario(doc))
+    assert not report.feasible
+    (problem,) = [p for p in report.problems if "neighbours_max" in p]
+    assert "other slots within the safety radius" in problem, problem
+    doc["controller"]["neighbours_max"] = 24
+    assert check_scenario(parse_scenario(doc)).feasible
