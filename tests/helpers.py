@@ -139,7 +139,10 @@ def scenario_on_free_ports(source: Path, dest: Path) -> Path:
     doc = tomllib.loads(text)
     if "network" in doc:
         raise ValueError(f"{source} has a [network] table already")
-    n = max(v["id"] for v in doc["vehicles"])
+    if "vehicles" in doc:
+        n = max(v["id"] for v in doc["vehicles"])
+    else:  # (a pattern: vehicles 1..count)
+        n = doc["formation"]["pattern"]["count"]
     px4 = Network()
     offboard_bound = PX4_OFFBOARD_LOCAL_BASE_PORT - px4.offboard_base_port
     gcs_bound = PX4_GCS_LOCAL_BASE_PORT - px4.gcs_port

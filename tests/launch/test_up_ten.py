@@ -33,6 +33,7 @@ from fleetmpc.scenario import Scenario, load_scenario
 from fleetmpc.sim.suite import SLOT_RMS_MAX_M
 
 GRID10 = Path(__file__).resolve().parent / "data" / "grid10.toml"
+GRID25 = Path(__file__).resolve().parent / "data" / "grid25.toml"
 GATE_FORMATION_M = ComposeOptions.gate_formation_m
 """The formation gate of a composed fleet's ground station [m]."""
 ENGAGE_TIMEOUT_S = 120.0
@@ -65,8 +66,8 @@ def fleet(tmp_path, processes):
     its scenario). At teardown `up` gets SIGTERM, then anything left of the fleet is killed."""
     started: list[tuple[Path, Scenario]] = []
 
-    def start(speed: float) -> tuple[Child, Path, Scenario]:
-        copy = scenario_on_free_ports(GRID10, tmp_path / "grid10-up.toml")
+    def start(speed: float, source: Path = GRID10) -> tuple[Child, Path, Scenario]:
+        copy = scenario_on_free_ports(source, tmp_path / f"{source.stem}-up.toml")
         scenario = load_scenario(copy)
         started.append((copy, scenario))
         up = processes.fleetmpc(
@@ -121,3 +122,23 @@ def test_up_records_every_period_of_ten_vehicles_within_the_gates(fleet, tmp_pat
     assert len(m["separation_error_m"]) == 45, m["separation_pairs"]  # every pair of the ten
     assert gate_failures(m, scenario, formation_m=GATE_FORMATION_M) == [], m
     assert m["formation_rms_m"] <= SLOT_RMS_MAX_M, m
+
+
+@pytest.mark.slow
+def test_up_flies_twenty_five_vehicles_recording_every_period_and_keeping_d_safe(fleet, tmp_path):
+    """Twenty-five vehicles at x1 (53 processes): on two cores the machine is overloaded (the
+    agents' steps come late), which may cost formation quality but never separation."""
+    up, copy, scenario = fleet(1.0, GRID25)
+    rc = up.proc.wait(timeout=ENGAGE_TIMEOUT_S + scenario.duration_s + MARGIN_S)
+    run_dir = tmp_path / "run"
+    assert rc == 0, _verdict(up, run_dir)
+    assert _fleet_processes(copy, scenario) == []
+    m = json.loads((run_dir / "metrics.json").read_text())
+    expected = round(scenario.duration_s / scenario.controller.period_s) + 1
+    assert m["periods_recorded"] == m["periods_expected"] == expected, m
+    assert m["min_separation_m"] >= scenario.controller.d_safe_m, m
+    for log in sorted((run_dir / "logs").glob("agent-*.log")):
+        summary = json.loads(log.read_text().splitlines()[-1])
+        assert not summary["mode_lost"], (log.stem, summary)
+    if (os.cpu_count() or 1) >= X4_CORES:  # (on two cores the formation gates are not met)
+        assert gate_failures(m, scenario, formation_m=GATE_FORMATION_M) == [], m
