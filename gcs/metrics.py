@@ -263,6 +263,15 @@ def _network_rows(metrics: dict) -> list[tuple[str, str]]:
             f" {got['out_of_order']}",
         )
     )
+    each = network.get("per_agent_period")
+    if each is not None:
+        rows.append(
+            (
+                "plan bus per agent",
+                f"{each['accepted']:.1f} messages kept and {each['filtered']:.1f} plans dropped"
+                " as beyond its neighbourhood, per period",
+            )
+        )
     return rows
 
 

@@ -45,6 +45,7 @@ from fleetmpc.protocol.keys import (
     validate_fleet,
 )
 from fleetmpc.protocol.messages import (
+    GROUND_STATION_ID,
     MAX_SENDER_ID,
     MIN_SENDER_ID,
     FleetEpoch,
@@ -338,12 +339,14 @@ class PlanBus(ABC):
                 self._inbox.receive(k, p)
 
     def _subscriptions(self) -> tuple[str, ...]:
-        """What the bus hears: plans, the target, the epoch, and, on a listen-only bus (a ground
-        station's), the vehicles' statuses, which no agent reads (in a fleet of N they are half
-        of what each agent would otherwise decode)."""
+        """What the bus hears: plans, the target, the epoch, and, on a ground station's bus (or
+        a listen-only one), the vehicles' statuses, which no agent reads (in a fleet of N they
+        are half of what each agent would otherwise decode)."""
         f = self._fleet
         keys = (all_plans_key(f), target_observation_key(f), epoch_key(f))
-        return keys if self._vehicle_id is not None else (*keys, all_statuses_key(f))
+        if self._vehicle_id in (None, GROUND_STATION_ID):
+            return (*keys, all_statuses_key(f))
+        return keys
 
     @property
     def fleet(self) -> str:

@@ -223,7 +223,7 @@ def _fly(
             progress((k + 1) * period_ns * 1e-9, duration_s)
     for sink in sinks:
         sink.close()
-    network = _network_report(buses, faults)
+    network = _network_report(buses, faults, periods)
     for bus in (*buses, target_bus):
         bus.close()
     return record_of(
@@ -236,9 +236,13 @@ def _fly(
     )
 
 
-def _network_report(buses: list[InMemoryPlanBus], faults: FaultSchedule | None) -> dict:
-    """What the plan bus did: the faults injected and what the receivers counted."""
+def _network_report(
+    buses: list[InMemoryPlanBus], faults: FaultSchedule | None, periods: int
+) -> dict:
+    """What the plan bus did: the faults injected and what the receivers counted (and, per agent
+    and period, what each kept and what it dropped as beyond its neighbourhood)."""
     counters = [bus.counters() for bus in buses]
+    agent_periods = max(1, len(buses) * periods)
     report = {
         "faults": [] if faults is None else [f.describe() for f in faults.faults],
         "received": {
@@ -246,6 +250,11 @@ def _network_report(buses: list[InMemoryPlanBus], faults: FaultSchedule | None) 
             "accepted": sum(c.accepted for c in counters),
             "duplicates": sum(c.duplicates for c in counters),
             "out_of_order": sum(c.out_of_order for c in counters),
+            "filtered": sum(c.filtered for c in counters),
+        },
+        "per_agent_period": {
+            "accepted": sum(c.accepted for c in counters) / agent_periods,
+            "filtered": sum(c.filtered for c in counters) / agent_periods,
         },
     }
     if faults is not None:

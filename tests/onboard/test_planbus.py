@@ -21,6 +21,7 @@ from fleetmpc.onboard.planbus import PlanBus, PlanBusClosedError, PlanBusError
 from fleetmpc.protocol.codec import encode
 from fleetmpc.protocol.keys import plan_key, target_observation_key
 from fleetmpc.protocol.messages import (
+    GROUND_STATION_ID,
     LearnedParams,
     PlanMessage,
     PlanStatus,
@@ -117,6 +118,20 @@ def test_a_bus_listening_near_drops_far_plans_unread_and_forgets_their_senders(h
     c = bus.counters()
     assert (c.filtered, c.rejected_total) == (2, 1)
     check_balance(bus)
+
+
+def test_statuses_reach_the_ground_station_and_not_the_agents() -> None:
+    hubs = MemoryHubs()
+    agent = open_plan_bus("mem://s", fleet=FLEET, vehicle_id=1, hubs=hubs)
+    ground = open_plan_bus("mem://s", fleet=FLEET, vehicle_id=GROUND_STATION_ID, hubs=hubs)
+    other = open_plan_bus("mem://s", fleet=FLEET, vehicle_id=2, hubs=hubs)
+    try:
+        other.publish_status(VehicleStatus(mode=VehicleMode.OFFBOARD, armed=True), stamp_ns=2 * S)
+        assert 2 in ground.latest_statuses(2 * S, S)
+        assert agent.latest_statuses(2 * S, S) == {} and agent.counters().received == 0
+    finally:
+        for bus in (agent, ground, other):
+            bus.close()
 
 
 def test_duplicates_and_out_of_order_are_dropped_and_counted(hub_buses) -> None:
