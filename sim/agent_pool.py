@@ -18,11 +18,20 @@ from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
 from fleetmpc.onboard.runner import agent_for
 from fleetmpc.scenario import Scenario
 
-__all__ = ["AgentPool", "Stepped"]
+__all__ = ["AgentPool", "Stepped", "build_agents"]
 
 Interest = tuple[tuple[float, float], float, frozenset[int]] | None
 Stepped = tuple[AgentOutput, float, Interest]
 """What one agent's period gives: its output, its step time [ms] and its plan-bus interest."""
+
+
+def build_agents(
+    scenario: Scenario, *, learning: bool = True, indices: Sequence[int] | None = None
+) -> list[Agent]:
+    """The Agents of the scenario's vehicles (all of them, or those at `indices`)."""
+    vehicles = scenario.vehicles
+    chosen = vehicles if indices is None else [vehicles[i] for i in indices]
+    return [agent_for(scenario, v, learning=learning) for v in chosen]
 
 
 def _step(agent: Agent, inp: AgentInput) -> Stepped:
@@ -33,7 +42,7 @@ def _step(agent: Agent, inp: AgentInput) -> Stepped:
 
 def _worker(conn: Connection, scenario: Scenario, indices: list[int], learning: bool) -> None:
     """A worker's life: build its agents, then step them on each batch of inputs received."""
-    agents = [agent_for(scenario, scenario.vehicles[i], learning=learning) for i in indices]
+    agents = build_agents(scenario, learning=learning, indices=indices)
     try:
         while True:
             inputs = conn.recv()
@@ -55,7 +64,7 @@ class AgentPool:
         self._shares: list[list[int]] = []
         self._workers: list[tuple[mp.process.BaseProcess, Connection]] = []
         if self.jobs == 1:
-            self._agents = [agent_for(scenario, v, learning=learning) for v in scenario.vehicles]
+            self._agents = build_agents(scenario, learning=learning)
             return
         context = mp.get_context("spawn")  # (no state of this process leaks into a worker)
         self._shares = [list(range(j, n, self.jobs)) for j in range(self.jobs)]

@@ -19,23 +19,18 @@ import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord, RunConstants
 from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
-from fleetmpc.onboard.core.agent import Agent, AgentInput, reference_course_rate
+from fleetmpc.onboard.core.agent import AgentInput, reference_course_rate
 from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
-from fleetmpc.onboard.runner import RunnerSettings, TargetFeed, agent_for
+from fleetmpc.onboard.runner import RunnerSettings, TargetFeed
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
-from fleetmpc.sim.agent_pool import AgentPool
+from fleetmpc.sim.agent_pool import AgentPool, build_agents
 from fleetmpc.sitl.plant import TruthPlant
 
 __all__ = ["build_agents", "run_lockstep"]
-
-
-def build_agents(scenario: Scenario, *, learning: bool = True) -> list[Agent]:
-    """One Agent per vehicle of the scenario."""
-    return [agent_for(scenario, v, learning=learning) for v in scenario.vehicles]
 
 
 def run_lockstep(

@@ -158,7 +158,6 @@ class Agent:
         self._input_box = (np.tile(self.mpc.u_min, (M, 1)), np.tile(self.u_max, (M, 1)))
         """U's bounds for the M planned inputs (full shape: broadcasting costs a ufunc more)."""
         self.neighbourhood = Neighbourhood(
-            vehicle_id,
             fleet_ids=fleet_ids,
             formation_links=self.formation.links[self.index],
             controller=controller,

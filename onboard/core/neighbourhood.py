@@ -41,15 +41,14 @@ def safety_radius(controller: ControllerSettings, tube_radius_m: float) -> float
 
 
 class Neighbourhood:
-    """The neighbours of vehicle `vehicle_id` in the fleet `fleet_ids`: the vehicles it is
-    linked to in the formation graph (`formation_links`, fleet indices), whose plans pull its
+    """A vehicle's neighbours in the fleet `fleet_ids` (its own id among them): the vehicles it
+    is linked to in the formation graph (`formation_links`, fleet indices), whose plans pull its
     goal, and the nearest vehicles within its safety radius, at most `controller.neighbours_max`,
     whose plans bound it. `tube_radius_m` (the tube's widest position radius) widens every
     separation margin."""
 
     def __init__(
         self,
-        vehicle_id: int,
         *,
         fleet_ids: tuple[int, ...],
         formation_links: tuple[int, ...],
@@ -57,7 +56,6 @@ class Neighbourhood:
         tube_radius_m: float,
     ) -> None:
         self.settings = controller
-        self.vehicle_id = vehicle_id
         self.formation_ids = tuple(fleet_ids[k] for k in formation_links)
         """The vehicles whose slots this vehicle's slot is linked to."""
         self.size = min(controller.neighbours_max, len(fleet_ids) - 1)
@@ -83,13 +81,14 @@ class Neighbourhood:
         of them were left out)."""
 
     def inflations(self, ages: Mapping[int, float], late_s: float) -> dict[int, float]:
-        """The margin inflation of each neighbour whose plan is not forgotten [m]: v_max x (its
-        plan's age beyond one period, plus how late this step runs)."""
+        """The margin inflation of each neighbour (by its plan's age, `ages` holding only the
+        fleet's other vehicles) whose plan is not forgotten [m]: v_max x (its plan's age beyond
+        one period, plus how late this step runs)."""
         s = self.settings
         return {
             nid: s.speed_max_m_s * (max(0.0, age - s.period_s) + late_s)
             for nid, age in ages.items()
-            if nid != self.vehicle_id and nid in self._fleet_index and abs(age) <= s.plan_forget_s
+            if abs(age) <= s.plan_forget_s
         }
 
     def nearest(

@@ -25,7 +25,6 @@ def _plan(vehicle_id: int, stamp_ns: int, x: float, y: float = 10.0) -> Plan:
 
 def _hood(fleet_ids: tuple[int, ...], settings: ControllerSettings = SETTINGS) -> Neighbourhood:
     return Neighbourhood(
-        1,
         fleet_ids=fleet_ids,
         formation_links=tuple(range(1, len(fleet_ids))),
         controller=settings,

@@ -13,7 +13,7 @@ import pytest
 import fleetmpc.sim.lockstep as lockstep
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.scenario import load_scenario, parse_scenario
+from fleetmpc.scenario import load_scenario, parse_scenario, pattern_slots
 from fleetmpc.sim.agent_pool import AgentPool
 
 GRID50 = Path("scenarios/scale/grid50.toml")
@@ -60,7 +60,7 @@ def _random_fleet(seed: int, count: int = 16):
     doc["seed"] = seed
     doc["controller"]["neighbours_max"] = 4
     pattern = doc["formation"].pop("pattern")
-    columns = 4
+    slots = pattern_slots("grid", count, pattern["spacing_m"], 4)
     starts: list[tuple[float, float]] = []
     while len(starts) < count:
         p = tuple(rng.uniform(-36.0, 0.0, 2))
@@ -70,11 +70,7 @@ def _random_fleet(seed: int, count: int = 16):
         {
             "id": i + 1,
             "initial": [*starts[i], float(rng.uniform(-math.pi, math.pi))],
-            "slot_m": [
-                (count // columns - 1) / 2 * pattern["spacing_m"]
-                - (i // columns) * pattern["spacing_m"],
-                (i % columns - (columns - 1) / 2) * pattern["spacing_m"],
-            ],
+            "slot_m": list(slots[i]),
         }
         for i in range(count)
     ]
