@@ -53,6 +53,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
         "fleetmpc.launch.compose",
         "the fleet as a docker compose file (one service per process)",
     ),
+    "keys": ("fleetmpc.launch.keys", "a fleet's secrets: one MAVLink signing key per vehicle"),
 }
 
 

@@ -56,6 +56,7 @@ from fleetmpc.gcs.telemetry import (
     open_sink,
 )
 from fleetmpc.onboard.open_bus import open_fleet_bus
+from fleetmpc.protocol.mavlink_signing import KeyRing, read_key_dir
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
 )
@@ -90,6 +91,13 @@ def series_every(*, flush_s: float, series_flush_s: float = SERIES_FLUSH_S) -> i
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
     parser.add_argument("--mavlink", help="MAVLink URL to listen on (default udpin:HOST:gcs_port)")
+    parser.add_argument(
+        "--mavlink-keys",
+        type=Path,
+        metavar="DIR",
+        help="the vehicles' MAVLink signing keys (`fleetmpc keys`): a vehicle with a key file"
+        " is heard only signed with it, and asked for telemetry signed (default: unsigned)",
+    )
     zenoh = parser.add_mutually_exclusive_group()
     zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
     zenoh.add_argument(
@@ -169,7 +177,7 @@ GCS_DATA_STREAMS_HZ = {6: 5, 2: 1}
 EXTENDED_STATUS at 1 Hz)."""
 
 
-def _ask_for_streams(mav, system_id: int) -> None:
+def _ask_for_streams(mav, system_id: int, keys: KeyRing) -> None:
     """Ask the autopilot of MAVLink system `system_id` for the messages the ground station
     reads, on this link (a real ArduPilot streams nothing to a ground station until asked). A
     UDP server link writes to every vehicle it hears; the commands' target system picks the
@@ -183,7 +191,7 @@ def _ask_for_streams(mav, system_id: int) -> None:
     ]
     for message in messages:
         with contextlib.suppress(OSError):
-            mav.write(message.pack(mav.mav))
+            mav.write(keys.pack(mav.mav, message, system_id))
 
 
 def _log(text: str) -> None:
@@ -214,6 +222,13 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(
             RerunSink(path=args.rrd, viewer_url=viewer_url, spawn_viewer=spawn, series_every=every)
         )
+    keys = KeyRing({}, report=None)
+    if args.mavlink_keys is not None:
+        by_vehicle = read_key_dir(args.mavlink_keys, scenario.vehicle_ids)
+        keys = KeyRing(
+            {scenario.vehicle(v).mavlink_system_id: k for v, k in by_vehicle.items()},
+            report=lambda _reason, text: _log(text),
+        )
     gs = GroundStation(scenario, speed=args.speed, duration_s=duration)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -233,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
         while not stop.is_set():
             msg = mav.recv_match(blocking=True, timeout=0.02)
             now = time.monotonic()
-            if msg is not None:
+            if msg is not None and keys.admit(msg):
                 gs.on_mavlink(msg, time.time_ns())
             if gs.epoch_ns is None:
                 if all(link.engaged for link in gs.links.values()):
@@ -260,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
                 gs.drain_bus()
                 gs.check_links(time.time())
                 for vid in gs.links_to_ask(time.time()):
-                    _ask_for_streams(mav, scenario.vehicle(vid).mavlink_system_id)
+                    _ask_for_streams(mav, scenario.vehicle(vid).mavlink_system_id, keys)
                 if args.status_file is not None:
                     phase = "waiting" if gs.epoch_ns is None else "flying"
                     _write_json(args.status_file, gs.status_snapshot(phase))

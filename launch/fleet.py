@@ -9,12 +9,18 @@ Ports and system ids come from the scenario (`[network]` and the vehicles' ids).
 member is a client of the one router (peers do not relay for each other with gossip off). No
 process is given an epoch: the ground station announces it on the bus once every vehicle is
 engaged, and the target and the agents wait for it (`--wait-epoch`).
+
+Secrets (`FleetOptions.secrets_dir`, made by `fleetmpc.launch.keys`): each simulated vehicle's
+SITL and agent get that vehicle's MAVLink signing key file, the ground station the folder of
+them all; a vehicle flown on an external autopilot keeps an unsigned link (its key is the
+user's to set up on the autopilot). Only file paths are passed, never a secret.
 """
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import PurePath
 
+from fleetmpc.protocol.mavlink_signing import key_file_name
 from fleetmpc.scenario import Scenario, vehicle_host
 
 __all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
@@ -61,6 +67,9 @@ class FleetOptions:
     external_autopilots: Mapping[int, str] = field(default_factory=dict)
     """Vehicle id -> MAVLink URL of an autopilot outside the fleet (a real PX4 or ArduPilot, or
     their SITL): that vehicle's agent flies it, and no simulated vehicle is started for it."""
+    secrets_dir: str | None = None
+    """The folder of the run's secrets (`fleetmpc.launch.keys`) as the processes see it; None:
+    an insecure fleet (unsigned MAVLink)."""
 
 
 def _num(x: float) -> str:
@@ -90,19 +99,28 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
         ),
     ]
     external = options.external_autopilots
+    secrets = None if options.secrets_dir is None else PurePath(options.secrets_dir)
+
+    def key(vid: int) -> tuple[str, ...]:
+        if secrets is None or vid in external:
+            return ()
+        return ("--mavlink-key", str(secrets / key_file_name(vid)))
+
     for v in scenario.vehicles:
         if v.id in external:
             continue
-        argv = ("sitl", *common, "--vehicle", str(v.id), *speed)
+        argv = ("sitl", *common, "--vehicle", str(v.id), *speed, *key(v.id))
         procs.append(ProcessSpec(f"sitl-{v.id}", argv, "sitl", vehicle_host(net, v)))
     for v in scenario.vehicles:
-        argv = ["agent", *common, "--vehicle", str(v.id), *bus, *speed, "--wait-epoch"]
+        argv = ["agent", *common, "--vehicle", str(v.id), *bus, *speed, "--wait-epoch", *key(v.id)]
         if v.id in external:
             argv += ["--mavlink", external[v.id]]
         if options.agent_records_dir is not None:
             argv += ["--record", str(PurePath(options.agent_records_dir) / f"agent-{v.id}.jsonl")]
         procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(net, v)))
     gcs = ["gcs", *common, *bus, *speed, "--duration", _num(duration), "--viewer", options.viewer]
+    if secrets is not None:
+        gcs += ["--mavlink-keys", str(secrets)]
     for flag, value in (
         ("--rrd", options.rrd),
         ("--metrics", options.metrics),

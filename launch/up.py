@@ -16,6 +16,10 @@ HOLD) and the target, then the SITLs and the router; anything still alive after 
 is killed. Nothing this launcher started outlives it (a viewer spawned with ``--viewer spawn`` is
 the user's window and stays open).
 
+Security is on by default: the run's secrets (`fleetmpc.launch.keys`: a MAVLink signing key per
+simulated vehicle) are made fresh in ``<run-dir>/secrets`` (mode 0700) unless ``--keys DIR``
+names a set; each process is given the path of its own. ``--insecure`` flies without them.
+
 Exit status: 0 if the run completed and its gates held, 1 if a gate broke or a process failed,
 130 after Ctrl-C, 2 on a configuration error.
 """
@@ -45,6 +49,7 @@ from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
+from fleetmpc.launch.keys import make_keys
 from fleetmpc.launch.process_faults import ProcessFaults
 from fleetmpc.onboard.faults import LINK_KINDS, FaultSchedule, load_faults
 from fleetmpc.scenario import flight_time, load_scenario
@@ -123,6 +128,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="each agent writes one JSON line per step to RUN_DIR/agents/agent-<id>.jsonl"
         " (pose, command, neighbour plan ages, mode, ...)",
+    )
+    security = parser.add_mutually_exclusive_group()
+    security.add_argument(
+        "--keys",
+        type=Path,
+        metavar="DIR",
+        help="the fleet's secrets made by `fleetmpc keys` (default: a fresh set in"
+        " RUN_DIR/secrets)",
+    )
+    security.add_argument(
+        "--insecure",
+        action="store_true",
+        help="no MAVLink signing (anyone who reaches a port can fly a vehicle)",
     )
     parser.add_argument("--quiet", action="store_true", help="no status table")
 
@@ -371,6 +389,13 @@ def _external_autopilots(items: list[str], scenario) -> dict[int, str]:
     return out
 
 
+def _fresh_secrets(scenario, directory: Path) -> Path:
+    """A new set of the run's secrets in `directory` (a run directory used again: replaced)."""
+    if directory.exists():
+        shutil.rmtree(directory)
+    return make_keys(scenario, directory)
+
+
 def _epoch_of(status_file: Path) -> int | None:
     """The fleet epoch in the ground station's status file, None before it has one."""
     try:
@@ -413,6 +438,11 @@ def run(args: argparse.Namespace) -> int:
     viewer = args.viewer or _default_viewer()
     fleet = Fleet(run_dir)
     status_file.unlink(missing_ok=True)  # (a run dir used again: not the last run's epoch)
+    if args.keys is not None and not args.keys.is_dir():
+        raise ConfigError("--keys", f"no such directory: {args.keys}")
+    secrets = None
+    if not args.insecure:
+        secrets = args.keys or _fresh_secrets(scenario, run_dir / "secrets")
     specs = fleet_processes(
         scenario,
         FleetOptions(
@@ -425,6 +455,7 @@ def run(args: argparse.Namespace) -> int:
             viewer=viewer,
             agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
             external_autopilots=_external_autopilots(args.mavlink, scenario),
+            secrets_dir=None if secrets is None else str(secrets),
         ),
     )
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]

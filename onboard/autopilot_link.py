@@ -144,6 +144,7 @@ def open_autopilot_link(
     vehicle_id: int | None = None,
     log: Callable[[str], None] | None = None,
     home_deg: tuple[float, float] | None = None,
+    signing_key: bytes | None = None,
 ) -> AutopilotLink:
     """The AutopilotLink a URL names (see the module docstring). `system_id`: the autopilot's
     MAVLink system id to insist on (None: the first autopilot heard); a fake autopilot takes it,
@@ -161,4 +162,6 @@ def open_autopilot_link(
         if kind not in autopilots:
             raise ConfigError("mavlink_url", f"fake://{kind}: known fakes are px4, ardupilot")
         return FakeAutopilotLink(autopilot=autopilots[kind], system_id=system_id or vehicle_id or 1)
-    return MavlinkAutopilotLink(url, system_id=system_id, log=log, home_deg=home_deg)
+    return MavlinkAutopilotLink(
+        url, system_id=system_id, log=log, home_deg=home_deg, signing_key=signing_key
+    )

@@ -32,6 +32,7 @@ from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_fau
 from fleetmpc.onboard.open_bus import open_fleet_bus
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings, agent_for
 from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
+from fleetmpc.protocol.mavlink_signing import read_key_file
 from fleetmpc.scenario import load_scenario, mavlink_url
 
 __all__ = ["add_arguments", "run"]
@@ -46,6 +47,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--mavlink",
         help="pymavlink URL of the autopilot (default: the vehicle's SITL per the scenario)",
+    )
+    parser.add_argument(
+        "--mavlink-key",
+        type=Path,
+        metavar="FILE",
+        help="MAVLink 2 signing key file (a passphrase, mode 0600; see `fleetmpc keys`): sign"
+        " what is sent to the autopilot and hear only frames signed with it (default: unsigned)",
     )
     parser.add_argument(
         "--target-system",
@@ -147,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         host_offset_ns=round(args.clock_offset * 1e9),
     )
     url = args.mavlink or mavlink_url(scenario.network, spec)
+    signing_key = None if args.mavlink_key is None else read_key_file(args.mavlink_key)
     agent = agent_for(scenario, spec)
     # The setpoint streamer sends only while it holds the GIL, and Python's default 5 ms switch
     # interval lets the control loop keep it that long past a send's due time: 20 ms of fleet
@@ -177,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
             vehicle_id=spec.id,
             log=_log,
             home_deg=(scenario.site.home_lat_deg, scenario.site.home_lon_deg),
+            signing_key=signing_key,
         )
         if faults is not None and any(f.kind in LINK_KINDS for f in faults.faults):
             link.faults = LinkFaults(

@@ -41,6 +41,7 @@ from fleetmpc.protocol.mavlink_setpoint import (
     encode_setpoint,
     setpoint_message_args,
 )
+from fleetmpc.protocol.mavlink_signing import SigningGuard, sign_outgoing
 
 __all__ = ["MavlinkAutopilotLink"]
 
@@ -118,6 +119,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         log: Callable[[str], None] | None = None,
         now_ns: Callable[[], int] = time.time_ns,
         home_deg: tuple[float, float] | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
         super().__init__()
         self._now_ns = now_ns
@@ -148,6 +150,11 @@ class MavlinkAutopilotLink(AutopilotLink):
             )
         except Exception as e:
             raise AutopilotLinkError(f"cannot open MAVLink connection {url!r}: {e}") from None
+        self.signing: SigningGuard | None = None
+        """With a key: signs what is sent, and only frames signed with the key are heard."""
+        if signing_key is not None:
+            self.signing = SigningGuard(signing_key, report=lambda _r, text: self._log(text))
+            sign_outgoing(self._conn.mav, signing_key)
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._acks: dict[int, int] = {}
@@ -172,6 +179,9 @@ class MavlinkAutopilotLink(AutopilotLink):
     def _handle(self, msg) -> None:
         if self.faults is not None and self.faults.cut():
             return  # (an injected link fault: the message never came)
+        if self.signing is not None and not self.signing.admit(msg):
+            self._update(rejected=self.state().rejected + 1)
+            return
         kind = msg.get_type()
         src = msg.get_srcSystem()
         st = self.state()
@@ -280,6 +290,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         if self.faults is not None and self.faults.cut():
             return False  # (an injected link fault: the message is lost on the way)
         with self._send_lock:
+            if self.signing is not None:
+                self.signing.refresh(self._conn.mav)
             try:
                 fn(*args)
             except Exception:

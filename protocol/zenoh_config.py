@@ -20,9 +20,11 @@ Examples: ``zenoh://127.0.0.1:7447?mode=client`` (client of a router),
 ``zenoh://127.0.0.1:7447?listen=127.0.0.1:7448`` (a peer of a mesh).
 
 Processes of a fleet take their options from the command line with `options_from_args`: a
-config file, or ``--zenoh-connect HOST:PORT[,...]`` (a client of a router), or by default a
-member of the fleet's full peer mesh on the scenario's ``network.host`` and ``network.zenoh_port``
-(`peer_mesh_index`: the vehicles in scenario order, then the target, then the ground station).
+config file (on a secured bus, the process's ``zenoh-<user>.json5`` of
+`fleetmpc.protocol.zenoh_security`), or ``--zenoh-connect HOST:PORT[,...]`` (a client of a
+router), or by default a member of the fleet's full peer mesh on the scenario's ``network.host``
+and ``network.zenoh_port`` (`peer_mesh_index`: the vehicles in scenario order, then the target,
+then the ground station).
 """
 
 import re
@@ -92,7 +94,8 @@ class ZenohOptions:
     """Endpoints to listen on (peers only), e.g. ("tcp/127.0.0.1:7448",)."""
     config_file: str | None = None
     """A Zenoh JSON5 config file used as the base; mode and endpoints given here override it,
-    and scouting is turned off regardless."""
+    and scouting is turned off regardless. Its other sections are kept, e.g. the user, password
+    and TLS files of a secured bus (``zenoh-<user>.json5``, `fleetmpc.protocol.zenoh_security`)."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in _MODES:

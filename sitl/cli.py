@@ -21,6 +21,7 @@ from pathlib import Path
 
 from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.mavlink_signing import read_key_file
 from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario, vehicle_host
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
@@ -52,6 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " scenario's network.ground_station_host, else network.host)",
     )
     parser.add_argument("--port-offset", type=int, default=0, help="added to every default port")
+    parser.add_argument(
+        "--mavlink-key",
+        type=Path,
+        metavar="FILE",
+        help="MAVLink 2 signing key file (a passphrase, mode 0600; see `fleetmpc keys`): sign"
+        " every frame and act only on frames signed with it (default: signing off)",
+    )
     parser.add_argument(
         "--boot-origin",
         metavar="NORTH,EAST",
@@ -161,6 +169,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         autopilot=autopilot,
         seed=scenario.seed,
         host=args.host or vehicle_host(scenario.network, spec),
+        signing_key=None if args.mavlink_key is None else read_key_file(args.mavlink_key),
     )
     gcs_port = pick("--gcs-port", args.gcs_port, d.gcs_port, allow_zero=True)
     gcs_link = ()
@@ -213,7 +222,11 @@ def run(args: argparse.Namespace) -> int:
     server = VehicleServer(config, clock=clock)
     try:
         endpoints = ", ".join(f"{k} {v}" for k, v in server.addresses.items())
-        who = f"vehicle {config.vehicle.id} ({config.autopilot.profile.value}, x{clock.speed:g})"
+        signed = ", signed" if config.signing_key is not None else ""
+        who = (
+            f"vehicle {config.vehicle.id} ({config.autopilot.profile.value}, x{clock.speed:g}"
+            f"{signed})"
+        )
         print(f"fleetmpc sitl: {who} ready: {endpoints}", flush=True)
         server.run(stop)
     finally:

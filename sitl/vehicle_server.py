@@ -7,6 +7,15 @@ message. Mode and arming changes are announced at once with a HEARTBEAT, events 
 A parked vehicle (on the ground and not flying) does not move: wind only drifts a flying one, and
 only while it flies a velocity demand; otherwise the autopilot holds or flies to a point.
 Nothing raises out of the loop: a failing handler is counted and the loop goes on.
+
+Signing (`ServerConfig.signing_key`): every frame sent is signed, and a frame received is acted
+on only if `SigningGuard` accepts it (docs/design.md, "Security"); each reason for a rejection is
+announced once in STATUSTEXT. SETUP_SIGNING changes the key only on a trusted link, one whose
+frame passed the guard (signed with the current key), and only while disarmed (ArduPilot's
+rule); an all-zero key with a zero timestamp turns signing off. Without a key no link is
+trusted: the first key comes from the key file. (PX4 takes SETUP_SIGNING only over USB, which
+a simulated vehicle lacks; ArduPilot takes it on any link while signing is off, so one hostile
+frame could lock its owner out.)
 """
 
 import contextlib
@@ -18,6 +27,12 @@ import numpy as np
 from fleetmpc.clock import Clock
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_map import Autopilot as AutopilotType
+from fleetmpc.protocol.mavlink_signing import (
+    KEY_BYTES,
+    Rejection,
+    SigningGuard,
+    sign_outgoing,
+)
 from fleetmpc.scenario import Site, VehicleSpec
 from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
 from fleetmpc.sitl.handlers import MessageHandler
@@ -86,6 +101,8 @@ class ServerConfig:
     """Default message rates of each TCP client link."""
     peer_timeout_ns: int = 10_000_000_000
     """A UDP peer silent for this long stops receiving telemetry [ns]."""
+    signing_key: bytes | None = None
+    """MAVLink 2 signing secret key (32 bytes); None: signing off until a SETUP_SIGNING."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.tick_ns, int) or self.tick_ns <= 0:
@@ -94,6 +111,8 @@ class ServerConfig:
             raise ConfigError("links", "a vehicle needs at least one UDP link or a TCP port")
         if self.tcp_port is not None and not 0 <= self.tcp_port <= 65535:
             raise ConfigError("tcp_port", f"must be a port, got {self.tcp_port}")
+        if self.signing_key is not None and len(self.signing_key) != KEY_BYTES:
+            raise ConfigError("signing_key", f"must be {KEY_BYTES} bytes")
 
 
 @dataclass
@@ -139,6 +158,12 @@ class VehicleServer:
         self._decoder = FrameDecoder(self.stats)
         self._selector = selectors.DefaultSelector()
         self._announced: tuple | None = None
+        self.signing: SigningGuard | None = None
+        """Checks incoming frames while signing is on; None while it is off."""
+        self.signing_rejected = 0
+        """Frames refused by signing, over every key this vehicle has had."""
+        if config.signing_key is not None:
+            self._set_signing_key(config.signing_key, timestamp=0)
         self.handler = MessageHandler(
             self.autopilot,
             self.ident,
@@ -294,6 +319,12 @@ class VehicleServer:
         for tcp in self._links.tcp:
             incoming.extend(tcp.receive(now_ns))
         for inc in incoming:
+            if self.signing is not None and not self.signing.admit(inc.message):
+                self.signing_rejected += 1
+                continue
+            if inc.message.get_msgId() == mavlink.MAVLINK_MSG_ID_SETUP_SIGNING:
+                self._setup_signing(inc.message)
+                continue
             try:
                 replies = self.handler.handle(inc, now_ns)
             except Exception as e:
@@ -317,6 +348,40 @@ class VehicleServer:
         for notice in ap.take_notices():
             self._broadcast(statustext(self.encoder.mav, notice.severity, notice.text))
 
+    # ----------------------------------------------------------------------------- signing
+    def _set_signing_key(self, key: bytes | None, *, timestamp: int) -> None:
+        """Sign with `key` from now on (None: signing off)."""
+        mav = self.encoder.mav
+        if key is None:
+            self.signing = None
+            mav.signing.secret_key = None
+            mav.signing.sign_outgoing = False
+            return
+        self.signing = SigningGuard(key, report=self._signing_notice)
+        sign_outgoing(mav, key)
+        mav.signing.timestamp = max(mav.signing.timestamp, timestamp)
+
+    def _signing_notice(self, _reason: Rejection, text: str) -> None:
+        self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_WARNING, text))
+
+    def _setup_signing(self, m) -> None:
+        """SETUP_SIGNING (already passed the guard): refused while armed or while signing is off
+        (module docstring); a zero key turns signing off."""
+        if m.target_system not in (0, self.ident.system_id):
+            return
+        if self.signing is None:
+            text = "signing: SETUP_SIGNING refused: no trusted link (start with a key file)"
+            self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_WARNING, text))
+            return
+        if self.autopilot.armed:
+            self._signing_notice(Rejection.UNSIGNED, "ERROR: Won't setup signing when armed")
+            return
+        key = bytes(m.secret_key)
+        off = m.initial_timestamp == 0 and not any(key)
+        self._set_signing_key(None if off else key, timestamp=int(m.initial_timestamp))
+        text = "signing off" if off else "signing key set"
+        self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_INFO, text))
+
     def _housekeeping(self, now_ns: int) -> None:
         for link in self._links.udp:
             stale = [a for a, t in link.peers.items() if now_ns - t > self.config.peer_timeout_ns]
@@ -335,6 +400,8 @@ class VehicleServer:
             self._send(message, link)
 
     def _send(self, message, link: UdpLink | TcpLink, peer=None) -> None:
+        if self.signing is not None:
+            self.signing.refresh(self.encoder.mav)
         frame = self.encoder.pack(message)
         link.send(frame, peer)
         self.counters.sent += 1
@@ -349,6 +416,9 @@ class VehicleServer:
             f"and {s.unknown} unknown, {self.handler.commands} commands, sent {c.sent}; "
             f"setpoints rejected: {rejected}; loop errors: {c.loop_errors}"
         )
+        if self.signing is not None or self.signing_rejected:
+            text += "; " + (self.signing.summary() if self.signing else "signing off")
+            text += f" ({self.signing_rejected} refused in all)"
         return text + (f" (last: {c.last_error})" if c.last_error else "")
 
     def close(self) -> None:

@@ -7,6 +7,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import closing
+from pathlib import Path
 
 import pytest
 
@@ -391,3 +392,84 @@ def test_the_local_origin_is_placed_from_global_fixes() -> None:
     assert origin.value == (pytest.approx(0.0, abs=0.005), pytest.approx(12.0, abs=0.005))
     origin.global_fix(30 * 200_000_000 + 10**9, 99.0, 99.0)  # a fix a second off: not compared
     assert origin.value == (pytest.approx(0.0, abs=0.005), pytest.approx(12.0, abs=0.005))
+
+
+def test_a_signed_link_flies_a_signed_vehicle_and_ignores_forged_telemetry() -> None:
+    """Agent and SITL share a key: the agent engages the vehicle; forged frames (no key, a
+    wrong key with a far-future timestamp) claiming the vehicle left offboard change nothing,
+    and the real stream is still heard after them."""
+    from fleetmpc.clock import RealTimeClock
+    from fleetmpc.protocol.mavlink_signing import (
+        Rejection,
+        key_from_passphrase,
+        sign_outgoing,
+        signing_timestamp,
+    )
+    from fleetmpc.scenario import load_scenario
+    from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
+    from fleetmpc.sitl.mavlink_io import MavlinkEncoder
+    from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
+
+    key = key_from_passphrase("vehicle 1")
+    scenario = load_scenario(Path(__file__).parents[1] / "sitl" / "data" / "ideal.toml")
+    spec = scenario.vehicle(1)
+    port = _free_udp_port()
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", system_id=1, signing_key=key)
+    config = ServerConfig(
+        vehicle=spec,
+        site=scenario.site,
+        tick_ns=scenario.tick_ns,
+        autopilot=AutopilotConfig(
+            profile=Profile.PX4,
+            speed_limit_m_s=2.0,
+            yaw_rate_limit_rad_s=1.0,
+            takeoff_altitude_m=2.0,
+            position_ready_ns=0,
+        ),
+        udp=(UdpEndpoint("offboard", 0, port, ((0, 2.0), (32, 20.0), (30, 20.0))),),
+        signing_key=key,
+    )
+    server = VehicleServer(config, clock=RealTimeClock(speed=1.0))
+    stop = threading.Event()
+    thread = threading.Thread(target=server.run, args=(stop.is_set,), daemon=True)
+    thread.start()
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def stream() -> None:  # PX4 enters offboard only on a live setpoint stream
+        while not stop.wait(0.1):
+            link.send_setpoint(speed_m_s=0.5, yaw_rate_rad_s=0.0)
+
+    streamer = threading.Thread(target=stream, daemon=True)
+    try:
+        link.connect(timeout_s=5.0)
+        streamer.start()
+        assert link.engage(timeout_s=10.0)
+        hold = custom_mode_of(FlightMode.HOLD, Autopilot.PX4)
+        for enc_key, stamp in ((None, None), (key_from_passphrase("guess"), 10**12)):
+            enc = MavlinkEncoder(system_id=1, component_id=1)
+            if enc_key is not None:
+                sign_outgoing(enc.mav, enc_key)
+                enc.mav.signing.timestamp = signing_timestamp(time.time_ns()) + stamp
+            hb = enc.mav.heartbeat_encode(
+                2, 12, base_mode(armed=False, mode=FlightMode.HOLD), hold, 3
+            )
+            for _ in range(5):
+                forger.sendto(enc.pack(hb), ("127.0.0.1", port))
+        heard = link.state().heartbeats
+        deadline = time.monotonic() + 3.0
+        while link.state().heartbeats < heard + 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        state = link.state()
+        assert state.heartbeats >= heard + 2, "the real stream is still heard"
+        assert state.mode == FlightMode.OFFBOARD and state.armed and not state.mode_lost
+        assert link.signing.rejected[Rejection.UNSIGNED] == 5
+        assert link.signing.rejected[Rejection.BAD_SIGNATURE] == 5
+        assert server.signing.rejected == {}, "everything the agent sent was signed"
+    finally:
+        forger.close()
+        stop.set()
+        thread.join(timeout=2.0)
+        if streamer.is_alive():
+            streamer.join(timeout=2.0)
+        link.close()
+        server.close()

@@ -88,9 +88,15 @@ def spawn() -> Iterator:
     """Start child processes; every one is stopped (then killed) when the test ends."""
     children: list[Child] = []
 
-    def _spawn(argv: list[str], *, cwd: Path = ROOT) -> Child:
+    def _spawn(argv: list[str], *, cwd: Path = ROOT, env: dict | None = None) -> Child:
         proc = subprocess.Popen(
-            argv, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1
+            argv,
+            cwd=cwd,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            bufsize=1,
         )
         child = Child(proc)
         children.append(child)

@@ -1,0 +1,554 @@
+"""A secured Zenoh bus for a fleet: a password per process, a default-deny access list on the
+router, and TLS to the router with a run-local certificate authority.
+
+    security = make_zenoh_security(
+        Path("runs/demo/secrets"), fleet="paper", vehicle_ids=(1, 2, 3),
+        router_host="127.0.0.1", router_port=7447,
+    )
+    fleetmpc zenoh-router --security runs/demo/secrets        # listens on tls/127.0.0.1:7447
+    fleetmpc agent ... --zenoh-config runs/demo/secrets/zenoh-agent-1.json5
+
+Every process of the fleet is a user (`zenoh_user`): ``agent-<id>`` for vehicle <id>, ``target``
+and ``gcs``; SITLs do not use the bus and have none. `make_zenoh_security` writes into one
+directory (mode 0700, every file 0600, nothing overwritten):
+
+- ``zenoh-users.txt``: the router's user dictionary (zenoh's
+  ``transport/auth/usrpwd/dictionary_file``), one ``user:password`` line per user;
+- ``zenoh-<user>.json5``: a client config per user (`ZenohSecurity.client_config`): mode client,
+  the router's endpoint (``tls/HOST:PORT``, or ``tcp/`` without TLS), the user's password, the CA,
+  and with mutual TLS the user's certificate and key. A process loads it with ``--zenoh-config``
+  (`fleetmpc.protocol.zenoh_config.ZenohOptions`, which keeps these sections);
+- ``zenoh-router.json5``: a whole router config (endpoint, users, access list, TLS), whose
+  authentication, access list and TLS sections `router_security_config` puts into a router's;
+- ``zenoh-ca.pem``, ``zenoh-router.pem``/``.key`` and with mutual TLS ``zenoh-<user>.pem``/``.key``:
+  certificates of a CA made for this directory (its key is deleted once they are signed);
+- ``zenoh-security.json``: what was made (fleet, vehicles, router address, TLS), for
+  `ZenohSecurity.load`.
+
+Paths inside the configs are absolute: every process must see the directory at the same path.
+
+The access list (`fleet_access_control`) denies everything it does not allow, per user name
+(and, with mutual TLS, also per certificate common name, which is the user name):
+
+- agent <i> publishes under ``fleetmpc/<fleet>/uav/<i>/**`` and reads every vehicle's plans and
+  statuses, the target observation and the epoch;
+- the target publishes ``fleetmpc/<fleet>/target/observation`` and reads the epoch;
+- the ground station publishes the epoch and reads everything under ``fleetmpc/<fleet>/``.
+
+Through a router, a sample enters it from the publisher's session (ingress) and leaves it to each
+subscriber's session (egress). Tried with eclipse-zenoh 1.10.2, a flow needs exactly: ``put``
+(and ``delete``) ingress for the publisher on its keys; ``declare_subscriber`` ingress for the
+subscriber on its subscriptions and ``put`` (``delete``) egress to it on them; and
+``declare_subscriber`` *egress* to the publisher on the subscriptions: a client session sends a
+sample only where the router has told it a subscriber exists, so without that nothing leaves the
+publisher. Every user may hear of the fleet's subscriptions. Queries, replies, queryables and
+liveliness are not used by the fleet and stay denied.
+
+Passwords are random (192 bits) and stored in clear: zenoh 1.10's usrpwd authentication cannot
+take hashed passwords. The router checks an HMAC of its challenge keyed with the password itself,
+so it must hold the password (a hash in the dictionary would just be the password). The
+dictionary and each user's config are the only files that hold a password; the challenge keeps
+it off the wire even without TLS. No secret is ever put on a command line: keys and certificates
+are made by the ``openssl`` command line, which writes the keys to files itself.
+"""
+
+import ipaddress
+import json
+import os
+import re
+import secrets
+import shutil
+import stat
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.keys import (
+    all_plans_key,
+    all_statuses_key,
+    epoch_key,
+    fleet_key,
+    plan_key,
+    target_observation_key,
+    validate_fleet,
+)
+from fleetmpc.protocol.messages import GROUND_STATION_ID, MAX_SENDER_ID, MIN_SENDER_ID, TARGET_ID
+from fleetmpc.protocol.zenoh_config import RECONNECT_RETRY, endpoint
+
+__all__ = [
+    "CERTIFICATE_DAYS",
+    "ZenohSecurity",
+    "fleet_access_control",
+    "make_zenoh_security",
+    "router_security_config",
+    "zenoh_user",
+]
+
+CERTIFICATE_DAYS = 30
+"""Validity of the run-local CA and of the certificates it signs [days]."""
+
+TARGET_USER = "target"
+GROUND_STATION_USER = "gcs"
+_MANIFEST = "zenoh-security.json"
+_NEW_KEY = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes")
+"""openssl req's options for a fresh unencrypted P-256 key (written by openssl, mode 0600)."""
+_LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_DNS_RE = re.compile(rf"(?=.{{1,253}}$){_LABEL}(\.{_LABEL})*")
+
+
+def zenoh_user(sender_id: int) -> str:
+    """The bus user of a sender: ``agent-<id>`` for a vehicle, ``target``, or ``gcs``."""
+    if sender_id == TARGET_ID:
+        return TARGET_USER
+    if sender_id == GROUND_STATION_ID:
+        return GROUND_STATION_USER
+    return f"agent-{_vehicle_id('sender_id', sender_id)}"
+
+
+@dataclass(frozen=True)
+class ZenohSecurity:
+    """The files of a secured bus, all in `directory` (see the module docstring)."""
+
+    directory: Path
+    """Where the files are (mode 0700); absolute."""
+    fleet: str
+    """The fleet whose keys the access list covers."""
+    vehicle_ids: tuple[int, ...]
+    """The vehicles that have a user (``agent-<id>``)."""
+    router_host: str
+    """The router's address as clients connect to it (and its certificate names it)."""
+    router_port: int
+    """The router's port."""
+    tls: bool
+    """Clients connect over TLS and check the router's certificate against the run's CA."""
+    mutual_tls: bool
+    """Clients also show a certificate of the run's CA, whose common name is their user."""
+
+    @property
+    def users(self) -> tuple[str, ...]:
+        """Every user: the agents in `vehicle_ids` order, then ``target`` and ``gcs``."""
+        return (*(f"agent-{v}" for v in self.vehicle_ids), TARGET_USER, GROUND_STATION_USER)
+
+    @property
+    def router_endpoint(self) -> str:
+        """The endpoint clients connect to, e.g. ``tls/127.0.0.1:7447``."""
+        return endpoint(self.router_host, self.router_port, proto="tls" if self.tls else "tcp")
+
+    @property
+    def manifest_file(self) -> Path:
+        """``zenoh-security.json``: what `make_zenoh_security` made (no secret)."""
+        return self.directory / _MANIFEST
+
+    @property
+    def dictionary_file(self) -> Path:
+        """``zenoh-users.txt``: the router's ``user:password`` lines."""
+        return self.directory / "zenoh-users.txt"
+
+    @property
+    def router_file(self) -> Path:
+        """``zenoh-router.json5``: the router's config (auth, access list, TLS, endpoint)."""
+        return self.directory / "zenoh-router.json5"
+
+    @property
+    def ca_certificate(self) -> Path | None:
+        """The run's CA certificate (None without TLS)."""
+        return self.directory / "zenoh-ca.pem" if self.tls else None
+
+    @property
+    def router_certificate(self) -> Path | None:
+        """The router's certificate, for `router_host` and ``localhost`` (None without TLS)."""
+        return self.directory / "zenoh-router.pem" if self.tls else None
+
+    @property
+    def router_private_key(self) -> Path | None:
+        """The router's private key (None without TLS)."""
+        return self.directory / "zenoh-router.key" if self.tls else None
+
+    def client_config(self, user: str) -> Path:
+        """``zenoh-<user>.json5``: the Zenoh client config of `user` (see `zenoh_user`)."""
+        return self.directory / f"zenoh-{self._user(user)}.json5"
+
+    def client_certificate(self, user: str) -> Path | None:
+        """The certificate of `user` (None without mutual TLS)."""
+        return self.directory / f"zenoh-{self._user(user)}.pem" if self.mutual_tls else None
+
+    def client_private_key(self, user: str) -> Path | None:
+        """The private key of `user`'s certificate (None without mutual TLS)."""
+        return self.directory / f"zenoh-{self._user(user)}.key" if self.mutual_tls else None
+
+    def files(self) -> tuple[Path, ...]:
+        """Every file of the bus's security in `directory`."""
+        paths = [self.manifest_file, self.dictionary_file, self.router_file]
+        paths += [self.ca_certificate, self.router_certificate, self.router_private_key]
+        for user in self.users:
+            paths += [self.client_config(user)]
+            paths += [self.client_certificate(user), self.client_private_key(user)]
+        return tuple(p for p in paths if p is not None)
+
+    def _user(self, user: str) -> str:
+        if user not in self.users:
+            raise ConfigError("user", f"no bus user {user!r} (users: {', '.join(self.users)})")
+        return user
+
+    @classmethod
+    def load(cls, directory: str | Path, *, field: str = "security") -> "ZenohSecurity":
+        """The security `make_zenoh_security` wrote into `directory`; ConfigError naming
+        `field` if it is missing or malformed."""
+        directory = Path(directory).absolute()
+        path = directory / _MANIFEST
+        try:
+            manifest = json.loads(path.read_text(encoding="utf-8"))
+            security = cls(
+                directory=directory,
+                fleet=validate_fleet(manifest["fleet"]),
+                vehicle_ids=_vehicle_ids(manifest["vehicle_ids"]),
+                router_host=str(manifest["router_host"]),
+                router_port=_port("router_port", manifest["router_port"]),
+                tls=bool(manifest["tls"]),
+                mutual_tls=bool(manifest["mutual_tls"]),
+            )
+        except OSError as e:
+            raise ConfigError(field, f"cannot read {path}: {e.strerror}") from None
+        except (ValueError, KeyError, TypeError) as e:
+            raise ConfigError(field, f"{path} is not a zenoh security manifest: {e}") from None
+        return security
+
+
+def make_zenoh_security(
+    directory: Path,
+    *,
+    fleet: str,
+    vehicle_ids: Sequence[int],
+    router_host: str,
+    router_port: int,
+    tls: bool = True,
+    mutual_tls: bool = False,
+) -> ZenohSecurity:
+    """Write a secured bus's passwords, configs and certificates into `directory` and name them.
+
+    `directory` is created with mode 0700 (an existing one is set to 0700; it may hold other
+    files, e.g. `fleetmpc keys`' MAVLink keys, but none of these: nothing is overwritten). Every
+    file is written with mode 0600. `router_host` is the address clients connect to; the router's
+    certificate names it and ``localhost``. `mutual_tls` needs `tls`.
+    """
+    fleet = validate_fleet(fleet)
+    ids = _vehicle_ids(vehicle_ids)
+    port = _port("router_port", router_port)
+    host, san = _router_host(router_host)
+    if mutual_tls and not tls:
+        raise ConfigError("mutual_tls", "needs tls")
+    directory = Path(directory).absolute()
+    security = ZenohSecurity(directory, fleet, ids, host, port, bool(tls), bool(mutual_tls))
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(directory, 0o700)
+    for path in security.files():
+        if path.exists() or path.is_symlink():
+            raise ConfigError("directory", f"{path} exists; not overwriting the bus's secrets")
+
+    passwords = {user: secrets.token_urlsafe(24) for user in security.users}
+    if tls:
+        _make_certificates(security, san)
+    _write_private(security.dictionary_file, "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    for user, password in passwords.items():
+        _write_private(
+            security.client_config(user),
+            f"// Zenoh client of fleet {fleet!r} as user {user!r}. Secret: holds its password.\n"
+            + json.dumps(_client_config(security, user, password), indent=2)
+            + "\n",
+        )
+    _write_private(
+        security.router_file,
+        f"// Zenoh router of fleet {fleet!r}: users, access list, TLS. No password inside.\n"
+        + json.dumps(_router_config(security), indent=2)
+        + "\n",
+    )
+    manifest = {
+        "fleet": fleet,
+        "vehicle_ids": list(ids),
+        "router_host": host,
+        "router_port": port,
+        "tls": security.tls,
+        "mutual_tls": security.mutual_tls,
+    }
+    _write_private(security.manifest_file, json.dumps(manifest, indent=2) + "\n")
+    return security
+
+
+def fleet_access_control(
+    fleet: str, vehicle_ids: Sequence[int], *, mutual_tls: bool = False
+) -> dict:
+    """The router's ``access_control`` section for a fleet (see the module docstring).
+
+    Default deny; one subject, policy and publish rule per user, matched by user name and, with
+    `mutual_tls`, also by the common name of the session's certificate.
+    """
+    fleet = validate_fleet(fleet)
+    ids = _vehicle_ids(vehicle_ids)
+    everything = fleet_key(fleet)
+    reads = {
+        "agent": [
+            all_plans_key(fleet),
+            all_statuses_key(fleet),
+            target_observation_key(fleet),
+            epoch_key(fleet),
+        ],
+        "target": [epoch_key(fleet)],
+        "gcs": [everything],
+    }
+    members = [
+        (f"agent-{v}", "agent", [plan_key(fleet, v).removesuffix("/plan") + "/**"]) for v in ids
+    ]
+    members += [
+        (TARGET_USER, "target", [target_observation_key(fleet)]),
+        (GROUND_STATION_USER, "gcs", [epoch_key(fleet)]),
+    ]
+    # A client sends a sample only where the router told it of a subscriber.
+    rules = [_rule("learn-subscribers", ["declare_subscriber"], "egress", [everything])]
+    for role, keys in reads.items():
+        rules.append(_rule(f"subscribe-{role}", ["declare_subscriber"], "ingress", keys))
+        rules.append(_rule(f"receive-{role}", ["put", "delete"], "egress", keys))
+    subjects, policies = [], []
+    for user, role, publishes in members:
+        rules.append(_rule(f"publish-{user}", ["put", "delete"], "ingress", publishes))
+        subject = {"id": user, "usernames": [user]}
+        if mutual_tls:
+            subject["cert_common_names"] = [user]
+        subjects.append(subject)
+        policies.append(
+            {
+                "id": user,
+                "rules": [
+                    "learn-subscribers",
+                    f"subscribe-{role}",
+                    f"receive-{role}",
+                    f"publish-{user}",
+                ],
+                "subjects": [user],
+            }
+        )
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def router_security_config(conf: zenoh.Config, security_dir: str | Path) -> zenoh.Config:
+    """Secure a router's config `conf` (in place) with `security_dir`'s bus and return it.
+
+    Sessions must then log in as one of the bus's users, the fleet's access list applies, and
+    with TLS the router's ``tcp/`` listen endpoints become ``tls/`` ones on the same address,
+    with the router's certificate (and with mutual TLS, client certificates of the run's CA
+    required). The dictionary and the router's key must not be readable by group or others.
+    """
+    security = ZenohSecurity.load(security_dir)
+    for path in (security.dictionary_file, security.router_private_key):
+        if path is not None:
+            _check_private(path)
+    try:
+        pieces = zenoh.Config.from_file(str(security.router_file))
+    except zenoh.ZError as e:
+        raise ConfigError("security", f"{security.router_file}: {e}") from None
+    sections = ["transport/auth/usrpwd", "access_control"]
+    if security.tls:
+        sections.append("transport/link/tls")
+    for section in sections:
+        conf.insert_json5(section, pieces.get_json(section))
+    if security.tls:
+        listen = json.loads(conf.get_json("listen/endpoints"))
+        if not isinstance(listen, list):
+            raise ConfigError("listen/endpoints", f"must be a list of endpoints, got {listen!r}")
+        conf.insert_json5("listen/endpoints", json.dumps([_tls(e) for e in listen]))
+    return conf
+
+
+def _tls(text: str) -> str:
+    """A listen endpoint on TLS: ``tcp/A:P`` becomes ``tls/A:P``; ``tls/`` ones stay."""
+    proto, _, address = str(text).partition("/")
+    if proto not in ("tcp", "tls") or not address:
+        raise ConfigError("listen/endpoints", f"a TLS router listens on tcp/ or tls/, not {text!r}")
+    return f"tls/{address}"
+
+
+def _rule(rule_id: str, messages: list[str], flow: str, keys: list[str]) -> dict:
+    return {
+        "id": rule_id,
+        "messages": messages,
+        "flows": [flow],
+        "permission": "allow",
+        "key_exprs": keys,
+    }
+
+
+def _client_config(security: ZenohSecurity, user: str, password: str) -> dict:
+    conf: dict = {
+        "mode": "client",
+        "connect": {"endpoints": [security.router_endpoint], "retry": json.loads(RECONNECT_RETRY)},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}},
+    }
+    if security.tls:
+        tls: dict = {"root_ca_certificate": str(security.ca_certificate)}
+        if security.mutual_tls:
+            tls["enable_mtls"] = True
+            tls["connect_certificate"] = str(security.client_certificate(user))
+            tls["connect_private_key"] = str(security.client_private_key(user))
+        conf["transport"]["link"] = {"tls": tls}
+    return conf
+
+
+def _router_config(security: ZenohSecurity) -> dict:
+    transport: dict = {"auth": {"usrpwd": {"dictionary_file": str(security.dictionary_file)}}}
+    if security.tls:
+        tls: dict = {
+            "listen_certificate": str(security.router_certificate),
+            "listen_private_key": str(security.router_private_key),
+        }
+        if security.mutual_tls:
+            tls["root_ca_certificate"] = str(security.ca_certificate)
+            tls["enable_mtls"] = True
+        transport["link"] = {"tls": tls}
+    return {
+        "mode": "router",
+        "listen": {"endpoints": [security.router_endpoint]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": transport,
+        "access_control": fleet_access_control(
+            security.fleet, security.vehicle_ids, mutual_tls=security.mutual_tls
+        ),
+    }
+
+
+def _make_certificates(security: ZenohSecurity, router_san: str) -> None:
+    """The CA, the router's certificate and with mutual TLS one per user, signed in a private
+    scratch folder inside the directory; the CA's key is deleted with it."""
+    if shutil.which("openssl") is None:
+        raise ConfigError("tls", "making the bus's certificates needs the openssl command line")
+    scratch = Path(tempfile.mkdtemp(prefix=".zenoh-ca-", dir=security.directory))
+    days = ("-days", str(CERTIFICATE_DAYS))
+    try:
+        ca_key, ca_cert = scratch / "ca.key", scratch / "ca.pem"
+        subject = ("-subj", f"/CN=fleetmpc {security.fleet} run CA")
+        ca_usage = ("-addext", "basicConstraints=critical,CA:TRUE")
+        ca_usage += ("-addext", "keyUsage=critical,keyCertSign,cRLSign")
+        outputs = ("-keyout", ca_key, "-out", ca_cert)
+        _openssl("req", "-x509", "-new", *_NEW_KEY, *outputs, *days, *subject, *ca_usage)
+        sans = [router_san] + (["DNS:localhost"] if router_san != "DNS:localhost" else [])
+        leaves = [("router", "serverAuth", f"subjectAltName={','.join(sans)}\n")]
+        if security.mutual_tls:
+            leaves += [(user, "clientAuth", "") for user in security.users]
+        copies = [(ca_cert, security.ca_certificate)]
+        for name, usage, extra in leaves:
+            extensions = scratch / f"{name}.ext"
+            extensions.write_text(
+                "basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\n"
+                f"extendedKeyUsage={usage}\n{extra}"
+            )
+            key, request, cert = (scratch / f"{name}.{ext}" for ext in ("key", "csr", "pem"))
+            _openssl(
+                "req", "-new", *_NEW_KEY, "-keyout", key, "-out", request, "-subj", f"/CN={name}"
+            )
+            serial = ("-set_serial", f"0x{secrets.token_hex(16)}")
+            signer = ("-CA", ca_cert, "-CAkey", ca_key, *serial, *days, "-extfile", extensions)
+            _openssl("x509", "-req", "-in", request, *signer, "-out", cert)
+            copies += [(cert, security.directory / f"zenoh-{name}.pem")]
+            copies += [(key, security.directory / f"zenoh-{name}.key")]
+        for source, dest in copies:
+            _write_private(dest, source.read_text(encoding="ascii"))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _openssl(*args: str | Path) -> None:
+    """Run the openssl command line (its arguments name files, never hold a secret)."""
+    argv = ["openssl", *(str(a) for a in args)]
+    result = subprocess.run(
+        argv, stdin=subprocess.DEVNULL, capture_output=True, text=True, umask=0o077
+    )
+    if result.returncode != 0:
+        raise ConfigError("tls", f"openssl {args[0]} failed: {result.stderr.strip()[-500:]}")
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Create `path` with mode 0600 (refusing to overwrite) holding `text`."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise ConfigError("directory", f"{path} exists; not overwriting it") from None
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        os.fchmod(f.fileno(), 0o600)
+        f.write(text)
+
+
+def _check_private(path: Path) -> None:
+    try:
+        mode = path.stat().st_mode
+    except OSError as e:
+        raise ConfigError("security", f"cannot read {path}: {e.strerror}") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ConfigError(
+            "security", f"{path} is readable by others (mode {stat.S_IMODE(mode):o}); chmod 600"
+        )
+
+
+def _vehicle_id(field: str, value: object) -> int:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int)
+        or not MIN_SENDER_ID <= value <= MAX_SENDER_ID
+        or value in (GROUND_STATION_ID, TARGET_ID)
+    ):
+        raise ConfigError(
+            field,
+            f"must be a vehicle id in [{MIN_SENDER_ID}, {MAX_SENDER_ID}] other than the ground"
+            f" station's {GROUND_STATION_ID} and the target's {TARGET_ID}, got {value!r}",
+        )
+    return value
+
+
+def _vehicle_ids(values: Sequence[int]) -> tuple[int, ...]:
+    try:
+        items = None if isinstance(values, (str, bytes)) else tuple(values)
+    except TypeError:
+        items = None
+    if not items:
+        raise ConfigError("vehicle_ids", f"must be a non-empty list of vehicle ids, got {values!r}")
+    ids = tuple(_vehicle_id(f"vehicle_ids[{k}]", v) for k, v in enumerate(items))
+    for k, v in enumerate(ids):
+        if v in ids[:k]:
+            raise ConfigError(f"vehicle_ids[{k}]", f"vehicle {v} is listed twice")
+    return ids
+
+
+def _port(field: str, value: object) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 65535:
+        raise ConfigError(field, f"must be a port number, got {value!r}")
+    return value
+
+
+def _router_host(host: object) -> tuple[str, str]:
+    """(the host as an endpoint writes it, the certificate's subjectAltName entry for it)."""
+    text = host if isinstance(host, str) else ""
+    bare = text[1:-1] if text.startswith("[") and text.endswith("]") else text
+    try:
+        ip = ipaddress.ip_address(bare)
+    except ValueError:
+        if not _DNS_RE.fullmatch(text):
+            raise ConfigError(
+                "router_host", f"must be an IP address or a DNS name, got {host!r}"
+            ) from None
+        return text, f"DNS:{text}"
+    if ip.is_unspecified:
+        raise ConfigError(
+            "router_host", f"must be the address clients connect to, not the wildcard {host!r}"
+        )
+    return (f"[{ip}]" if ip.version == 6 else str(ip)), f"IP:{ip}"
