@@ -10,10 +10,12 @@ member is a client of the one router (peers do not relay for each other with gos
 process is given an epoch: the ground station announces it on the bus once every vehicle is
 engaged, and the target and the agents wait for it (`--wait-epoch`).
 
-Secrets (`FleetOptions.secrets_dir`, made by `fleetmpc.launch.keys`): each simulated vehicle's
-SITL and agent get that vehicle's MAVLink signing key file, the ground station the folder of
-them all; a vehicle flown on an external autopilot keeps an unsigned link (its key is the
-user's to set up on the autopilot). Only file paths are passed, never a secret.
+Secrets (`FleetOptions.secrets_dir`, made by `fleetmpc.launch.keys`): the router gets the folder
+(its users, access list and TLS certificate), every bus member its own Zenoh client config
+(``--zenoh-config``: its user, password and the run's CA) instead of ``--zenoh-connect``; each
+simulated vehicle's SITL and agent get that vehicle's MAVLink signing key file, the ground
+station the folder of them all; a vehicle flown on an external autopilot keeps an unsigned link
+(its key is the user's to set up on the autopilot). Only file paths are passed, never a secret.
 """
 
 from collections.abc import Mapping
@@ -21,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import PurePath
 
 from fleetmpc.protocol.mavlink_signing import key_file_name
+from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
+from fleetmpc.protocol.zenoh_security import ZenohSecurity, zenoh_user
 from fleetmpc.scenario import Scenario, vehicle_host
 
 __all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
@@ -82,24 +86,31 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     fleet = options.fleet or scenario.name
     duration = scenario.duration_s if options.duration_s is None else options.duration_s
     common = ("--scenario", options.scenario_path)
-    bus = ("--zenoh-connect", f"{net.router_address}:{net.zenoh_port}", "--fleet", fleet)
+    secrets = None if options.secrets_dir is None else PurePath(options.secrets_dir)
+
+    def bus_of(sender_id: int) -> tuple[str, ...]:
+        if secrets is None:
+            connect = ("--zenoh-connect", f"{net.router_address}:{net.zenoh_port}")
+        else:
+            config = ZenohSecurity.client_config_name(zenoh_user(sender_id))
+            connect = ("--zenoh-config", str(secrets / config))
+        return (*connect, "--fleet", fleet)
+
     speed = ("--speed", _num(options.speed))
+    router = ("zenoh-router", "--host", net.router_address, "--port", str(net.zenoh_port))
+    if secrets is not None:
+        router += ("--security", str(secrets))
+    target = ("target", *common, *bus_of(TARGET_ID), *speed, "--wait-epoch")
     procs = [
-        ProcessSpec(
-            "zenoh-router",
-            ("zenoh-router", "--host", net.router_address, "--port", str(net.zenoh_port)),
-            "router",
-            net.router_address,
-        ),
+        ProcessSpec("zenoh-router", router, "router", net.router_address),
         ProcessSpec(
             "target",
-            ("target", *common, *bus, *speed, "--wait-epoch", "--duration", _num(duration + 1.0)),
+            (*target, "--duration", _num(duration + 1.0)),
             "target",
             net.ground_station_address,
         ),
     ]
     external = options.external_autopilots
-    secrets = None if options.secrets_dir is None else PurePath(options.secrets_dir)
 
     def key(vid: int) -> tuple[str, ...]:
         if secrets is None or vid in external:
@@ -112,13 +123,15 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
         argv = ("sitl", *common, "--vehicle", str(v.id), *speed, *key(v.id))
         procs.append(ProcessSpec(f"sitl-{v.id}", argv, "sitl", vehicle_host(net, v)))
     for v in scenario.vehicles:
-        argv = ["agent", *common, "--vehicle", str(v.id), *bus, *speed, "--wait-epoch", *key(v.id)]
+        argv = ["agent", *common, "--vehicle", str(v.id), *bus_of(v.id), *speed, "--wait-epoch"]
+        argv += key(v.id)
         if v.id in external:
             argv += ["--mavlink", external[v.id]]
         if options.agent_records_dir is not None:
             argv += ["--record", str(PurePath(options.agent_records_dir) / f"agent-{v.id}.jsonl")]
         procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(net, v)))
-    gcs = ["gcs", *common, *bus, *speed, "--duration", _num(duration), "--viewer", options.viewer]
+    gcs = ["gcs", *common, *bus_of(GROUND_STATION_ID), *speed, "--duration", _num(duration)]
+    gcs += ["--viewer", options.viewer]
     if secrets is not None:
         gcs += ["--mavlink-keys", str(secrets)]
     for flag, value in (

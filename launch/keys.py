@@ -2,11 +2,15 @@
 
     fleetmpc keys scenarios/paper.toml -o keys/
 
-One MAVLink 2 signing key per vehicle (``mavlink-<id>.key``: a random passphrase whose SHA-256
-is the key, as MAVProxy's ``signing setup`` derives it; docs/design.md, "Security"). The
-directory is created with mode 0700 and every file in it with 0600; nothing is overwritten.
-`fleetmpc up` makes a fresh set in its run directory unless given one (``--keys DIR``), and
-hands each process the path of its own file, never the secret on a command line.
+- one MAVLink 2 signing key per vehicle (``mavlink-<id>.key``: a random passphrase whose SHA-256
+  is the key, as MAVProxy's ``signing setup`` derives it);
+- the Zenoh bus's users, access list and TLS certificates (`fleetmpc.protocol.zenoh_security`:
+  ``zenoh-<user>.json5`` per process, the router's dictionary and certificate).
+
+See docs/design.md, "Security". The directory is created with mode 0700 and every file in it with
+0600; nothing is overwritten. `fleetmpc up` makes a fresh set in its run directory unless given
+one (``--keys DIR``), and hands each process the path of its own files, never a secret on a
+command line.
 """
 
 import argparse
@@ -15,20 +19,32 @@ from pathlib import Path
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_signing import key_file_name, write_key_file
+from fleetmpc.protocol.zenoh_security import make_zenoh_security
 from fleetmpc.scenario import Scenario, load_scenario
 
 __all__ = ["add_arguments", "make_keys", "run"]
 
 
-def make_keys(scenario: Scenario, directory: Path, *, vehicle_ids=None) -> Path:
+def make_keys(
+    scenario: Scenario, directory: Path, *, fleet: str | None = None, mutual_tls: bool = False
+) -> Path:
     """Write the fleet's secrets into `directory` (created 0700; must not hold them already):
-    a MAVLink signing key for each of `vehicle_ids` (default: every vehicle)."""
+    a MAVLink signing key per vehicle, and the Zenoh bus's (fleet name `fleet`, default the
+    scenario's; client certificates too with `mutual_tls`)."""
     directory = Path(directory)
     directory.mkdir(mode=0o700, parents=True, exist_ok=True)
     os.chmod(directory, 0o700)
-    ids = scenario.vehicle_ids if vehicle_ids is None else list(vehicle_ids)
-    for vid in ids:
+    for vid in scenario.vehicle_ids:
         write_key_file(directory / key_file_name(vid))
+    net = scenario.network
+    make_zenoh_security(
+        directory,
+        fleet=fleet or scenario.name,
+        vehicle_ids=scenario.vehicle_ids,
+        router_host=net.router_address,
+        router_port=net.zenoh_port,
+        mutual_tls=mutual_tls,
+    )
     return directory
 
 
@@ -37,15 +53,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "-o", "--output", type=Path, required=True, metavar="DIR", help="folder for the keys"
     )
+    parser.add_argument("--fleet", help="fleet name on Zenoh (default: the scenario's name)")
+    parser.add_argument(
+        "--mutual-tls",
+        action="store_true",
+        help="every process also shows a certificate of the run's CA to the router",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
-    existing = [
-        p for p in (args.output / key_file_name(v) for v in scenario.vehicle_ids) if p.exists()
-    ]
-    if existing:
-        raise ConfigError("--output", f"{existing[0]} exists; give an empty folder")
-    make_keys(scenario, args.output)
-    print(f"fleetmpc keys: {len(scenario.vehicles)} MAVLink signing keys in {args.output}")
+    if args.output.exists() and any(args.output.iterdir()):
+        raise ConfigError("--output", f"{args.output} is not empty; give a new folder")
+    make_keys(scenario, args.output, fleet=args.fleet, mutual_tls=args.mutual_tls)
+    print(
+        f"fleetmpc keys: {len(scenario.vehicles)} MAVLink signing keys and the Zenoh bus's"
+        f" users, access list and certificates in {args.output}"
+    )
     return 0

@@ -25,7 +25,11 @@ directory (mode 0700, every file 0600, nothing overwritten):
 - ``zenoh-security.json``: what was made (fleet, vehicles, router address, TLS), for
   `ZenohSecurity.load`.
 
-Paths inside the configs are absolute: every process must see the directory at the same path.
+A client config is self-contained (the CA, and with mutual TLS the user's certificate and key, are
+inline in base64), so it works wherever it is mounted (a compose secret); the router builds its
+sections from the directory as it sees it at start (`router_security_config`), so the folder may
+be mounted anywhere too. (``zenoh-router.json5`` names absolute paths: it is for running a
+``zenohd`` on the same machine.)
 
 The access list (`fleet_access_control`) denies everything it does not allow, per user name
 (and, with mutual TLS, also per certificate common name, which is the user name):
@@ -52,6 +56,7 @@ it off the wire even without TLS. No secret is ever put on a command line: keys 
 are made by the ``openssl`` command line, which writes the keys to files itself.
 """
 
+import base64
 import ipaddress
 import json
 import os
@@ -169,9 +174,14 @@ class ZenohSecurity:
         """The router's private key (None without TLS)."""
         return self.directory / "zenoh-router.key" if self.tls else None
 
+    @staticmethod
+    def client_config_name(user: str) -> str:
+        """The file name of `user`'s client config (in the directory)."""
+        return f"zenoh-{user}.json5"
+
     def client_config(self, user: str) -> Path:
         """``zenoh-<user>.json5``: the Zenoh client config of `user` (see `zenoh_user`)."""
-        return self.directory / f"zenoh-{self._user(user)}.json5"
+        return self.directory / self.client_config_name(self._user(user))
 
     def client_certificate(self, user: str) -> Path | None:
         """The certificate of `user` (None without mutual TLS)."""
@@ -352,15 +362,11 @@ def router_security_config(conf: zenoh.Config, security_dir: str | Path) -> zeno
     for path in (security.dictionary_file, security.router_private_key):
         if path is not None:
             _check_private(path)
-    try:
-        pieces = zenoh.Config.from_file(str(security.router_file))
-    except zenoh.ZError as e:
-        raise ConfigError("security", f"{security.router_file}: {e}") from None
-    sections = ["transport/auth/usrpwd", "access_control"]
+    pieces = _router_config(security)  # (paths in `security_dir` as this process sees it)
+    conf.insert_json5("transport/auth/usrpwd", json.dumps(pieces["transport"]["auth"]["usrpwd"]))
+    conf.insert_json5("access_control", json.dumps(pieces["access_control"]))
     if security.tls:
-        sections.append("transport/link/tls")
-    for section in sections:
-        conf.insert_json5(section, pieces.get_json(section))
+        conf.insert_json5("transport/link/tls", json.dumps(pieces["transport"]["link"]["tls"]))
     if security.tls:
         listen = json.loads(conf.get_json("listen/endpoints"))
         if not isinstance(listen, list):
@@ -396,13 +402,18 @@ def _client_config(security: ZenohSecurity, user: str, password: str) -> dict:
         "transport": {"auth": {"usrpwd": {"user": user, "password": password}}},
     }
     if security.tls:
-        tls: dict = {"root_ca_certificate": str(security.ca_certificate)}
+        tls: dict = {"root_ca_certificate_base64": _base64(security.ca_certificate)}
         if security.mutual_tls:
             tls["enable_mtls"] = True
-            tls["connect_certificate"] = str(security.client_certificate(user))
-            tls["connect_private_key"] = str(security.client_private_key(user))
+            tls["connect_certificate_base64"] = _base64(security.client_certificate(user))
+            tls["connect_private_key_base64"] = _base64(security.client_private_key(user))
         conf["transport"]["link"] = {"tls": tls}
     return conf
+
+
+def _base64(path: Path) -> str:
+    """A PEM file's bytes in base64, as Zenoh's ``*_base64`` TLS settings take them."""
+    return base64.b64encode(path.read_bytes()).decode("ascii")
 
 
 def _router_config(security: ZenohSecurity) -> dict:

@@ -5,6 +5,7 @@ followed by an allowed one from the same session (the router forwards a session'
 order), so once the allowed one is heard, nothing before it can still arrive.
 """
 
+import base64
 import json
 import signal
 import socket
@@ -151,8 +152,8 @@ def test_files_are_private_and_each_password_is_in_two_files(security: ZenohSecu
         assert holders == {security.dictionary_file, security.client_config(user)}
         assert f"{user}:{password}\n" in texts[security.dictionary_file]
         assert json.loads(conf.get_json("connect/endpoints")) == [security.router_endpoint]
-        tls = json.loads(conf.get_json("transport/link/tls/root_ca_certificate"))
-        assert tls == str(security.ca_certificate)
+        ca = json.loads(conf.get_json("transport/link/tls/root_ca_certificate_base64"))
+        assert base64.b64decode(ca) == security.ca_certificate.read_bytes(), "inline: movable"
     assert security.router_endpoint == f"tls/127.0.0.1:{security.router_port}"
     assert ZenohSecurity.load(security.directory) == security
     assert [zenoh_user(v) for v in (1, TARGET_ID, GROUND_STATION_ID)] == [
@@ -250,7 +251,7 @@ def test_rogue_sessions_cannot_join(security: ZenohSecurity, router: zenoh.Sessi
         "no credentials": rogue({"transport/auth/usrpwd": '{"user": null, "password": null}'}),
         "wrong password": rogue({"transport/auth/usrpwd/password": '"guessed"'}),
         "unknown user": rogue({"transport/auth/usrpwd/user": '"agent-9"'}),
-        "no CA": rogue({"transport/link/tls/root_ca_certificate": "null"}),
+        "no CA": rogue({"transport/link/tls/root_ca_certificate_base64": "null"}),
         "plain tcp": rogue({"connect/endpoints": f'["tcp/127.0.0.1:{security.router_port}"]'}),
     }
     with ExitStack() as stack:
@@ -280,18 +281,16 @@ def test_mutual_tls_needs_the_users_own_certificate(tmp_path: Path) -> None:
     )
     assert stat.S_IMODE(security.client_private_key("agent-1").stat().st_mode) == 0o600
     no_cert = user_config(security, "agent-1")
-    no_cert.insert_json5("transport/link/tls/connect_certificate", "null")
-    no_cert.insert_json5("transport/link/tls/connect_private_key", "null")
+    no_cert.insert_json5("transport/link/tls/connect_certificate_base64", "null")
+    no_cert.insert_json5("transport/link/tls/connect_private_key_base64", "null")
     # agent-1's password with agent-2's certificate: connects, but is nobody to the access list.
     borrowed = user_config(security, "agent-1")
-    borrowed.insert_json5(
-        "transport/link/tls/connect_certificate",
-        json.dumps(str(security.client_certificate("agent-2"))),
-    )
-    borrowed.insert_json5(
-        "transport/link/tls/connect_private_key",
-        json.dumps(str(security.client_private_key("agent-2"))),
-    )
+    for part, path in (
+        ("certificate", security.client_certificate("agent-2")),
+        ("private_key", security.client_private_key("agent-2")),
+    ):
+        inline = base64.b64encode(path.read_bytes()).decode()
+        borrowed.insert_json5(f"transport/link/tls/connect_{part}_base64", json.dumps(inline))
     with ExitStack() as stack:
         stack.enter_context(open_router(port=security.router_port, security=security.directory))
         gcs = opened(stack, user_config(security, "gcs"))
@@ -346,7 +345,7 @@ def test_access_list_without_tls_and_bad_arguments(tmp_path: Path) -> None:
             zenoh.Config.from_file(str(plain.client_config("agent-4"))).get_json(
                 "transport/link/tls"
             )
-        )["root_ca_certificate"]
+        ).get("root_ca_certificate_base64")
         is None
     )
     acl = fleet_access_control(FLEET, [4])
