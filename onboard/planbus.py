@@ -48,6 +48,7 @@ from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
     MAX_SENDER_ID,
     MIN_SENDER_ID,
+    TARGET_ID,
     FleetEpoch,
     Message,
     MessageKind,
@@ -341,8 +342,11 @@ class PlanBus(ABC):
     def _subscriptions(self) -> tuple[str, ...]:
         """What the bus hears: plans, the target, the epoch, and, on a ground station's bus (or
         a listen-only one), the vehicles' statuses, which no agent reads (in a fleet of N they
-        are half of what each agent would otherwise decode)."""
+        are half of what each agent would otherwise decode). The target's bus hears only the
+        epoch (the secured bus's access list allows it nothing else)."""
         f = self._fleet
+        if self._vehicle_id == TARGET_ID:
+            return (epoch_key(f),)
         keys = (all_plans_key(f), target_observation_key(f), epoch_key(f))
         if self._vehicle_id in (None, GROUND_STATION_ID):
             return (*keys, all_statuses_key(f))
