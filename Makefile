@@ -53,9 +53,13 @@ compose-file: $(STAMP)
 # The paper fleet under docker compose on a private Docker daemon, with the gates, and a check of
 # a generated 5-vehicle file (needs root; installs docker.io and mmdebstrap). Outputs: runs/compose-ci.
 compose-ci: $(STAMP)
-	mkdir -p runs/compose-ci
-	$(BIN)/fleetmpc compose scenarios/wedge-circle.toml -o runs/compose-ci/wedge-circle.yaml
-	PYTHON=$(abspath $(BIN)/python) docker/ci.sh docker/compose.yaml runs/compose-ci --gates \
+	rm -rf runs/compose-ci && mkdir -p runs/compose-ci
+	$(BIN)/fleetmpc keys scenarios/paper.toml -o runs/compose-ci/secrets
+	$(BIN)/fleetmpc keys scenarios/wedge-circle.toml -o runs/compose-ci/wedge-secrets
+	$(BIN)/fleetmpc compose scenarios/wedge-circle.toml -o runs/compose-ci/wedge-circle.yaml \
+		--secrets-dir-var WEDGE_SECRETS --secrets-dir wedge-secrets
+	FLEETMPC_SECRETS=$(abspath runs/compose-ci/secrets) PYTHON=$(abspath $(BIN)/python) \
+		docker/ci.sh docker/compose.yaml runs/compose-ci --gates \
 		--config-only runs/compose-ci/wedge-circle.yaml
 
 clean:

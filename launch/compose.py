@@ -23,6 +23,10 @@ Differences from `fleetmpc up`, all forced by compose:
   status is the run's verdict;
 - the target gets no ``--duration``: with ``--abort-on-container-exit`` the first container to
   exit stops the fleet, so only the ground station may end the run.
+- the run's secrets (`fleetmpc keys`) are made beforehand into a host folder
+  (``${FLEETMPC_SECRETS:-../runs/compose/secrets}``) and handed to the services as compose
+  secrets: each service gets only its own files, at ``/run/secrets/<file>``, never in the image
+  or on a command line (``--insecure`` writes a file without them).
 
 The YAML is written by hand: block mappings, every scalar and flow list JSON-quoted (JSON is
 YAML), so no YAML library is needed and the output is byte-for-byte reproducible.
@@ -37,6 +41,8 @@ from pathlib import Path, PurePosixPath
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
+from fleetmpc.protocol.mavlink_signing import key_file_name
+from fleetmpc.protocol.zenoh_security import ZenohSecurity
 from fleetmpc.scenario import Scenario, load_scenario, mavlink_url
 
 __all__ = [
@@ -52,6 +58,8 @@ IMAGE_SCENARIOS_DIR = "/app/scenarios"
 """Where the image (docker/Dockerfile) keeps the repository's scenarios/."""
 OUT_IN_CONTAINER = "/out"
 """The ground station's output directory inside its container."""
+SECRETS_IN_CONTAINER = "/run/secrets"
+"""Where compose mounts a service's secrets."""
 
 _ENV_VAR = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _PLAIN_KEY = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
@@ -78,6 +86,12 @@ class ComposeOptions:
     """Host directory mounted at /out when the variable is unset (relative: to the file)."""
     gate_formation_m: float | None = 0.1
     """Formation gate of the ground station [m]; None: only its safety gate."""
+    secrets_dir_var: str = "FLEETMPC_SECRETS"
+    """Environment variable that overrides the host folder of the run's secrets."""
+    secrets_dir: str = "../runs/compose/secrets"
+    """Host folder of the run's secrets (`fleetmpc keys`) when the variable is unset."""
+    insecure: bool = False
+    """No secrets: unsigned MAVLink, an open Zenoh bus."""
 
     def __post_init__(self) -> None:
         if not 0.01 <= self.speed <= 1000.0:
@@ -92,15 +106,17 @@ class ComposeOptions:
             raise ConfigError(
                 "--image", f"must be a lower-case image reference, got {self.image!r}"
             )
-        if not _ENV_VAR.fullmatch(self.out_dir_var):
-            raise ConfigError(
-                "--out-dir-var", f"must be an environment variable name, got {self.out_dir_var!r}"
-            )
-        if not self.out_dir or any(c in self.out_dir for c in ":${}"):
-            raise ConfigError(
-                "--out-dir",
-                f"must be a directory path without ':', '$' or braces: {self.out_dir!r}",
-            )
+        for flag, var in (
+            ("--out-dir-var", self.out_dir_var),
+            ("--secrets-dir-var", self.secrets_dir_var),
+        ):
+            if not _ENV_VAR.fullmatch(var):
+                raise ConfigError(flag, f"must be an environment variable name, got {var!r}")
+        for flag, path in (("--out-dir", self.out_dir), ("--secrets-dir", self.secrets_dir)):
+            if not path or any(c in path for c in ":${}"):
+                raise ConfigError(
+                    flag, f"must be a directory path without ':', '$' or braces: {path!r}"
+                )
         if self.gate_formation_m is not None and not self.gate_formation_m > 0:
             raise ConfigError("--gate-formation-m", f"must be > 0, got {self.gate_formation_m:g}")
 
@@ -140,6 +156,29 @@ def _labels(spec: ProcessSpec, scenario: Scenario) -> dict[str, str]:
     return labels
 
 
+def _secret_files(spec: ProcessSpec, scenario: Scenario) -> list[str]:
+    """The files of the run's secrets a service needs: those its arguments name, the router's
+    (users, access list, certificate) and, for the ground station, every vehicle's key."""
+    inside = SECRETS_IN_CONTAINER + "/"
+    files = [PurePosixPath(a).name for a in spec.argv if a.startswith(inside)]
+    if spec.role == "router":
+        net = scenario.network
+        bus = ZenohSecurity(
+            Path(SECRETS_IN_CONTAINER),
+            fleet=scenario.name,
+            vehicle_ids=tuple(scenario.vehicle_ids),
+            router_host=net.router_address,
+            router_port=net.zenoh_port,
+            tls=True,
+            mutual_tls=False,
+        )
+        router_files = (bus.manifest_file, bus.dictionary_file, bus.router_certificate)
+        files += [p.name for p in (*router_files, bus.router_private_key, bus.ca_certificate)]
+    elif spec.role == "gcs":
+        files += [key_file_name(v) for v in scenario.vehicle_ids]
+    return files
+
+
 def compose_document(scenario: Scenario, *, scenario_name: str, options: ComposeOptions) -> dict:
     """The compose file as plain data: ``{"name": ..., "services": {...}}``.
 
@@ -159,9 +198,12 @@ def compose_document(scenario: Scenario, *, scenario_name: str, options: Compose
             rrd=str(out / "run.rrd"),
             metrics=str(out / "metrics.json"),
             viewer="none",
+            secrets_dir=None if options.insecure else SECRETS_IN_CONTAINER,
         ),
     )
     net = scenario.network
+    secrets: dict[str, dict] = {}
+    host_secrets = f"${{{options.secrets_dir_var}:-{options.secrets_dir}}}"
     router = next(s.name for s in specs if s.role == "router")
     started: list[str] = []
     services: dict[str, dict] = {}
@@ -195,6 +237,10 @@ def compose_document(scenario: Scenario, *, scenario_name: str, options: Compose
                 f"${{{options.out_dir_var}:-{options.out_dir}}}:{OUT_IN_CONTAINER}"
             ]
         service["command"] = [_escape(a) for a in argv]
+        if not options.insecure:
+            names = _secret_files(spec, scenario)
+            service["secrets"] = names
+            secrets.update({n: {"file": f"{host_secrets}/{n}"} for n in names})
         if spec.role == "router":
             probe = _HEALTH_PROBE.format(host=net.router_address, port=net.zenoh_port)
             service["healthcheck"] = {
@@ -205,7 +251,8 @@ def compose_document(scenario: Scenario, *, scenario_name: str, options: Compose
             }
         service["labels"] = _labels(spec, scenario)
         services[spec.name] = service
-    return {"name": _project_name(scenario), "services": services}
+    document = {"name": _project_name(scenario), "services": services}
+    return document | ({"secrets": dict(sorted(secrets.items()))} if secrets else {})
 
 
 def _key(key: str) -> str:
@@ -247,6 +294,9 @@ def _invocation(scenario_path: str, options: ComposeOptions) -> str:
         ("--out-dir-var", "out_dir_var"),
         ("--out-dir", "out_dir"),
         ("--gate-formation-m", "gate_formation_m"),
+        ("--secrets-dir-var", "secrets_dir_var"),
+        ("--secrets-dir", "secrets_dir"),
+        ("--insecure", "insecure"),
     )
     for flag, field in flags:
         value = getattr(options, field)
@@ -254,6 +304,8 @@ def _invocation(scenario_path: str, options: ComposeOptions) -> str:
             continue
         if value is None:
             parts += [flag, "none"]
+        elif value is True:
+            parts += [flag]
         elif isinstance(value, float):
             parts += [flag, f"{value:g}"]
         else:
@@ -275,6 +327,17 @@ def compose_yaml(scenario_path: str, options: ComposeOptions | None = None) -> s
         "#",
         "#   docker compose -f <this file> up --abort-on-container-exit --exit-code-from gcs",
         "#",
+        *(
+            ()
+            if options.insecure
+            else (
+                "# Make the run's secrets first (MAVLink keys, Zenoh users and certificates) into",
+                f"# ${{{options.secrets_dir_var}:-{options.secrets_dir}}}:",
+                "#",
+                f"#   fleetmpc keys {scenario_path} -o <that folder>",
+                "#",
+            )
+        ),
         "# The exit status is the ground station's: 0 when every gate held. It writes run.rrd and",
         f"# metrics.json to {out} (a relative path is relative to",
         "# this file's directory). Host networking on loopback: Linux hosts only.",
@@ -318,6 +381,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help="ground station's formation gate in metres, or 'none' (default: 0.1)",
     )
+    parser.add_argument(
+        "--secrets-dir-var",
+        default=d.secrets_dir_var,
+        metavar="NAME",
+        help=f"variable naming the host folder of the secrets (default: {d.secrets_dir_var})",
+    )
+    parser.add_argument(
+        "--secrets-dir",
+        default=d.secrets_dir,
+        metavar="DIR",
+        help=f"host folder of the secrets (`fleetmpc keys`) if the variable is unset (default:"
+        f" {d.secrets_dir})",
+    )
+    parser.add_argument(
+        "--insecure", action="store_true", help="no secrets: unsigned MAVLink, an open Zenoh bus"
+    )
     parser.add_argument("-o", "--output", type=Path, help="write here instead of stdout")
 
 
@@ -341,6 +420,9 @@ def run(args: argparse.Namespace) -> int:
         out_dir_var=args.out_dir_var,
         out_dir=args.out_dir,
         gate_formation_m=_gate(args.gate_formation_m),
+        secrets_dir_var=args.secrets_dir_var,
+        secrets_dir=args.secrets_dir,
+        insecure=args.insecure,
     )
     text = compose_yaml(args.scenario, options)
     if args.output is None:

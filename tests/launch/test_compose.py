@@ -122,6 +122,7 @@ def test_the_same_processes_and_arguments_as_up(paper) -> None:
             duration_s=12.0,
             rrd="/out/run.rrd",
             metrics="/out/metrics.json",
+            secrets_dir="/run/secrets",
         ),
     )
     assert list(doc["services"]) == [s.name for s in specs]
@@ -134,6 +135,31 @@ def test_the_same_processes_and_arguments_as_up(paper) -> None:
             assert command == [*spec.argv, "--gate-formation-m", "0.1"]
         else:
             assert command == list(spec.argv)
+
+
+def test_each_service_gets_only_its_own_secrets_by_file(paper) -> None:
+    doc = compose_document(paper, scenario_name="paper.toml", options=ComposeOptions())
+    services = doc["services"]
+    assert services["sitl-2"]["secrets"] == ["mavlink-2.key"]
+    assert services["agent-2"]["secrets"] == ["zenoh-agent-2.json5", "mavlink-2.key"]
+    assert services["target"]["secrets"] == ["zenoh-target.json5"]
+    assert sorted(services["gcs"]["secrets"]) == [
+        "mavlink-1.key", "mavlink-2.key", "mavlink-3.key", "zenoh-gcs.json5",
+    ]  # fmt: skip
+    assert "zenoh-users.txt" in services["zenoh-router"]["secrets"]
+    used = {n for s in services.values() for n in s["secrets"]}
+    assert set(doc["secrets"]) == used
+    assert doc["secrets"]["mavlink-2.key"] == {
+        "file": "${FLEETMPC_SECRETS:-../runs/compose/secrets}/mavlink-2.key"
+    }
+    for name, service in services.items():
+        for arg in service["command"]:
+            assert not arg.startswith("/run/secrets/") or arg[13:] in service["secrets"], name
+    open_doc = compose_document(
+        paper, scenario_name="paper.toml", options=ComposeOptions(insecure=True)
+    )
+    assert "secrets" not in open_doc
+    assert not any("/run/secrets" in " ".join(s["command"]) for s in open_doc["services"].values())
 
 
 def test_options_reach_the_file(paper) -> None:
