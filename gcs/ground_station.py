@@ -55,7 +55,7 @@ from fleetmpc.gcs.telemetry import (
     add_telemetry_argument,
     open_sink,
 )
-from fleetmpc.onboard.open_bus import open_fleet_bus
+from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.protocol.mavlink_signing import KeyRing, read_key_dir
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
@@ -98,13 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the vehicles' MAVLink signing keys (`fleetmpc keys`): a vehicle with a key file"
         " is heard only signed with it, and asked for telemetry signed (default: unsigned)",
     )
-    zenoh = parser.add_mutually_exclusive_group()
-    zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
-    zenoh.add_argument(
-        "--zenoh-connect",
-        help="comma-separated router endpoints (default: a member of the fleet's peer mesh)",
-    )
-    parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
+    add_bus_arguments(parser)
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
     parser.add_argument(
         "--duration", type=float, help="fleet time to record [s] (default: scenario)"

@@ -29,7 +29,7 @@ from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
-from fleetmpc.onboard.open_bus import open_fleet_bus
+from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings, agent_for
 from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
 from fleetmpc.protocol.mavlink_signing import read_key_file
@@ -62,12 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fly only the autopilot with this MAVLink system id (default: the first autopilot"
         " heard on the link, whatever its id)",
     )
-    zenoh = parser.add_mutually_exclusive_group()
-    zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
-    zenoh.add_argument(
-        "--zenoh-connect", help="comma-separated router endpoints (client mode), e.g. HOST:PORT"
-    )
-    parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
+    add_bus_arguments(parser)
     epoch = parser.add_mutually_exclusive_group()
     epoch.add_argument(
         "--epoch-ns", type=int, default=None, help="host time.time_ns() of fleet time 0"

@@ -6,6 +6,7 @@
 """
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fleetmpc.errors import ConfigError
@@ -20,7 +21,32 @@ if TYPE_CHECKING:
     from fleetmpc.protocol.zenoh_config import ZenohOptions
     from fleetmpc.scenario import Scenario
 
-__all__ = ["open_fleet_bus", "open_plan_bus"]
+__all__ = ["add_bus_arguments", "open_fleet_bus", "open_plan_bus"]
+
+
+def add_bus_arguments(parser: "argparse.ArgumentParser") -> None:
+    """The Zenoh options every fleet process takes (`open_fleet_bus` reads them)."""
+    zenoh = parser.add_mutually_exclusive_group()
+    zenoh.add_argument(
+        "--zenoh-config",
+        type=Path,
+        metavar="FILE",
+        help="Zenoh config file (a secured fleet's: SECRETS/zenoh-<user>.json5)",
+    )
+    zenoh.add_argument(
+        "--zenoh-connect",
+        metavar="HOST:PORT[,...]",
+        help="comma-separated router endpoints (client mode); default: a member of the"
+        " fleet's peer mesh",
+    )
+    zenoh.add_argument(
+        "--zenoh-secrets",
+        type=Path,
+        metavar="DIR",
+        help="the run's secrets (`fleetmpc keys`): in the fleet's peer mesh, log in to the"
+        " other members with this process's user and let in only the fleet's users",
+    )
+    parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
 
 
 def open_plan_bus(
@@ -70,13 +96,22 @@ def open_fleet_bus(
 ) -> PlanBus:
     """The Zenoh plan bus of a fleet process, as its command line asks for it.
 
-    `args` holds ``zenoh_config``, ``zenoh_connect`` and ``fleet`` (the options every fleet process
-    takes; `fleetmpc.protocol.zenoh_config.options_from_args` says what they mean); the fleet name
-    defaults to the scenario's, and `sender_id` is both the bus identity and the peer-mesh member
-    (`fleetmpc.protocol.zenoh_config.peer_mesh_index`).
+    `args` holds the options of `add_bus_arguments` (`fleetmpc.protocol.zenoh_config.
+    options_from_args` says what they mean); the fleet name defaults to the scenario's, and
+    `sender_id` is the bus identity, the peer-mesh member
+    (`fleetmpc.protocol.zenoh_config.peer_mesh_index`) and, with ``--zenoh-secrets``, the user
+    it logs in as (`fleetmpc.protocol.zenoh_security.zenoh_user`).
     """
-    from fleetmpc.protocol.zenoh_config import options_from_args, peer_mesh_index
+    from fleetmpc.protocol.zenoh_config import MeshLogin, options_from_args, peer_mesh_index
+    from fleetmpc.protocol.zenoh_security import ZenohSecurity, zenoh_user
 
+    login = None
+    if getattr(args, "zenoh_secrets", None) is not None:
+        security = ZenohSecurity.load(args.zenoh_secrets, field="--zenoh-secrets")
+        login = MeshLogin(
+            user_config=str(security.client_config(zenoh_user(sender_id))),
+            users_file=str(security.dictionary_file),
+        )
     options = options_from_args(
         args.zenoh_config,
         args.zenoh_connect,
@@ -84,6 +119,7 @@ def open_fleet_bus(
         base_port=scenario.network.zenoh_port,
         size=len(scenario.vehicles) + 2,
         member_index=peer_mesh_index(scenario.vehicle_ids, sender_id),
+        login=login,
     )
     return open_plan_bus(
         options, fleet=args.fleet or scenario.name, vehicle_id=sender_id, on_accept=on_accept

@@ -27,6 +27,7 @@ and ``network.zenoh_port`` (`peer_mesh_index`: the vehicles in scenario order, t
 then the ground station).
 """
 
+import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,6 +45,7 @@ RECONNECT_RETRY = '{"period_init_ms": 250, "period_max_ms": 500, "period_increas
 __all__ = [
     "DEFAULT_HOST",
     "DEFAULT_PORT",
+    "MeshLogin",
     "ZenohOptions",
     "disable_scouting",
     "endpoint",
@@ -83,6 +85,29 @@ def disable_scouting(conf: zenoh.Config) -> zenoh.Config:
 
 
 @dataclass(frozen=True)
+class MeshLogin:
+    """How a member of a peer mesh authenticates (`fleetmpc.protocol.zenoh_security`): with the
+    user and password of its client config file, and it lets in only the users of a dictionary
+    file. Only paths: the password is read when the session opens, never kept or printed."""
+
+    user_config: str
+    """A Zenoh config file whose ``transport/auth/usrpwd`` user and password this member uses."""
+    users_file: str
+    """The fleet's user dictionary (``user:password`` lines) the other members must be in."""
+
+    def section(self) -> str:
+        """The ``transport/auth/usrpwd`` section (JSON) of the member's config."""
+        try:
+            own = zenoh.Config.from_file(self.user_config)
+        except zenoh.ZError as e:
+            raise ConfigError("--zenoh-secrets", f"{self.user_config}: {e}") from None
+        usrpwd = json.loads(own.get_json("transport/auth/usrpwd"))
+        if not usrpwd.get("user") or not usrpwd.get("password"):
+            raise ConfigError("--zenoh-secrets", f"{self.user_config} has no user and password")
+        return json.dumps({**usrpwd, "dictionary_file": self.users_file})
+
+
+@dataclass(frozen=True)
 class ZenohOptions:
     """How a session joins the network."""
 
@@ -96,6 +121,8 @@ class ZenohOptions:
     """A Zenoh JSON5 config file used as the base; mode and endpoints given here override it,
     and scouting is turned off regardless. Its other sections are kept, e.g. the user, password
     and TLS files of a secured bus (``zenoh-<user>.json5``, `fleetmpc.protocol.zenoh_security`)."""
+    login: MeshLogin | None = None
+    """Authentication of a peer-mesh member (user/password, and the users it lets in)."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in _MODES:
@@ -139,6 +166,8 @@ class ZenohOptions:
         # Retry a lost router every half second at most (zenoh's default backs off to 4 s):
         # a restarted router is rejoined within a period or two.
         conf.insert_json5("connect/retry", RECONNECT_RETRY)
+        if self.login is not None:
+            conf.insert_json5("transport/auth/usrpwd", self.login.section())
         return disable_scouting(conf)
 
     @classmethod
@@ -173,7 +202,13 @@ class ZenohOptions:
 
     @classmethod
     def peer_mesh(
-        cls, *, index: int, size: int, base_port: int, host: str = DEFAULT_HOST
+        cls,
+        *,
+        index: int,
+        size: int,
+        base_port: int,
+        host: str = DEFAULT_HOST,
+        login: MeshLogin | None = None,
     ) -> "ZenohOptions":
         """Member `index` of a full peer mesh of `size` members on consecutive ports.
 
@@ -190,6 +225,7 @@ class ZenohOptions:
             mode="peer",
             connect=tuple(endpoint(host, base_port + j) for j in range(index)),
             listen=(endpoint(host, base_port + index),),
+            login=login,
         )
 
 
@@ -225,6 +261,7 @@ def options_from_args(
     base_port: int,
     size: int,
     member_index: int,
+    login: MeshLogin | None = None,
 ) -> ZenohOptions:
     """The Zenoh options of a fleet process's command line.
 
@@ -232,8 +269,14 @@ def options_from_args(
     (``--zenoh-connect``, comma-separated ``HOST:PORT`` or ``PROTO/HOST:PORT``) makes a client of
     those routers; else the process is member `member_index` (see `peer_mesh_index`) of the
     fleet's full peer mesh of `size` members on `host`, ports `base_port` onwards (the scenario's
-    network).
+    network), logging in with `login` if given (``--zenoh-secrets``).
     """
+    if login is not None and (config_file is not None or connect):
+        raise ConfigError(
+            "--zenoh-secrets",
+            "is for the peer mesh; a client of a router takes --zenoh-config"
+            " SECRETS/zenoh-<user>.json5",
+        )
     if config_file is not None:
         return ZenohOptions(config_file=str(config_file))
     if connect:
@@ -241,4 +284,6 @@ def options_from_args(
         return ZenohOptions(
             mode="client", connect=tuple(_host_port("--zenoh-connect", e) for e in items)
         )
-    return ZenohOptions.peer_mesh(index=member_index, size=size, base_port=base_port, host=host)
+    return ZenohOptions.peer_mesh(
+        index=member_index, size=size, base_port=base_port, host=host, login=login
+    )

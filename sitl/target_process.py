@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.open_bus import open_fleet_bus
+from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.onboard.planbus import PlanBus
 from fleetmpc.protocol.keys import epoch_key
 from fleetmpc.protocol.messages import TARGET_ID
@@ -40,10 +40,7 @@ _SPEED_RTOL = 1e-6
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
-    zenoh = parser.add_mutually_exclusive_group()
-    zenoh.add_argument("--zenoh-config", type=Path, help="Zenoh config file")
-    zenoh.add_argument("--zenoh-connect", help="comma-separated router endpoints (client mode)")
-    parser.add_argument("--fleet", default=None, help="fleet name on Zenoh (default: scenario)")
+    add_bus_arguments(parser)
     epoch = parser.add_mutually_exclusive_group()
     epoch.add_argument("--epoch-ns", type=int, default=None, help="host time.time_ns() of t = 0")
     epoch.add_argument(

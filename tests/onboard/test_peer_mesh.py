@@ -8,13 +8,22 @@ target observations must cross between every pair of processes.
 """
 
 import json
+import socket
 import time
+from pathlib import Path
 
-from helpers import ROOT, scenario_on_free_ports, wait_until
+from helpers import ROOT, free_port_block, scenario_on_free_ports, wait_until
+from test_planbus import make_plan
 
 from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.zenoh_config import options_from_args, peer_mesh_index
+from fleetmpc.protocol.zenoh_config import (
+    MeshLogin,
+    ZenohOptions,
+    options_from_args,
+    peer_mesh_index,
+)
+from fleetmpc.protocol.zenoh_security import make_zenoh_security
 from fleetmpc.scenario import load_scenario
 
 SPEED = "4"
@@ -103,3 +112,43 @@ def test_agents_and_target_exchange_plans_as_peers_of_the_mesh(processes, tmp_pa
         assert all(r["formation_terms"] == 1 for r in last), last
         assert all(r["neighbour_ages_s"][str(other)] <= 0.4 for r in last), last
         assert all(None not in r["slot_m"] for r in last), last
+
+
+def test_a_mesh_with_the_runs_secrets_lets_in_only_the_fleets_users(tmp_path) -> None:
+    """Members log in with their own user (``--zenoh-secrets``): plans cross between them; a
+    member with a wrong password is not let in, so it neither hears nor is heard."""
+    base = free_port_block(range(4), kinds=(socket.SOCK_STREAM,))
+    secrets = make_zenoh_security(
+        tmp_path / "secrets", fleet="mesh", vehicle_ids=(1, 2), router_host="127.0.0.1",
+        router_port=base, tls=False,
+    )  # fmt: skip
+    text = secrets.client_config("agent-2").read_text()
+    wrong = json.loads(text[text.index("{") :])
+    wrong["transport"]["auth"]["usrpwd"]["password"] = "guess"
+    (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+
+    def member(index: int, user_config: Path) -> ZenohOptions:
+        login = MeshLogin(user_config=str(user_config), users_file=str(secrets.dictionary_file))
+        return ZenohOptions.peer_mesh(index=index, size=4, base_port=base, login=login)
+
+    rogue_options = member(3, tmp_path / "wrong.json5")
+    assert "guess" not in repr(rogue_options), "options name files, never a password"
+    with (
+        open_plan_bus(
+            member(0, secrets.client_config("agent-1")), fleet="mesh", vehicle_id=1
+        ) as one,
+        open_plan_bus(
+            member(1, secrets.client_config("agent-2")), fleet="mesh", vehicle_id=2
+        ) as two,
+        open_plan_bus(rogue_options, fleet="mesh", vehicle_id=3) as rogue,
+    ):
+
+        def crossed() -> bool:
+            two.publish_plan(make_plan(2, time.time_ns()))
+            rogue.publish_plan(make_plan(3, time.time_ns()))
+            return 2 in one.latest_plans(time.time_ns(), 10**9)
+
+        assert wait_until(crossed, timeout_s=10.0, interval_s=0.1)
+        time.sleep(0.5)
+        assert 3 not in one.latest_plans(time.time_ns(), 10**9), "the rogue's plan was heard"
+        assert rogue.latest_plans(time.time_ns(), 10**9) == {}, "the rogue heard the fleet"
