@@ -25,9 +25,7 @@ private key).
 import enum
 import hashlib
 import hmac
-import os
 import secrets
-import stat
 import struct
 import time
 from collections import Counter
@@ -35,6 +33,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
 from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.private_files import check_private, write_private
 
 __all__ = [
     "KEY_BYTES",
@@ -86,32 +85,23 @@ def new_passphrase() -> str:
 
 
 def write_key_file(path: Path, passphrase: str | None = None) -> Path:
-    """Write a key file (mode 0600, created so; refuses to overwrite) and return its path."""
+    """Write a key file (mode 0600; refuses to overwrite) and return its path."""
     path = Path(path)
     text = passphrase if passphrase is not None else new_passphrase()
     _check_passphrase(text, "passphrase")
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        raise ConfigError("key file", f"{path} exists; not overwriting a key") from None
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(text + "\n")
+    write_private(path, text + "\n", field="key file")
     return path
 
 
 def read_key_file(path: Path, *, field: str = "--mavlink-key") -> bytes:
-    """The secret key of a key file; ConfigError naming `field` if it is missing, empty or
+    """The secret key of a key file; ConfigError naming `field` if it is missing, malformed or
     readable by group or others."""
     path = Path(path)
+    check_private(path, field=field)
     try:
-        mode = path.stat().st_mode
         text = path.read_text(encoding="utf-8").strip()
-    except OSError as e:
-        raise ConfigError(field, f"cannot read key file {path}: {e.strerror}") from None
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(
-            field, f"key file {path} is readable by others (mode {stat.S_IMODE(mode):o}); chmod 600"
-        )
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(field, f"cannot read key file {path}: {e}") from None
     _check_passphrase(text, field, f"key file {path}: ")
     return key_from_passphrase(text)
 

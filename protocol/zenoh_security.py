@@ -63,7 +63,6 @@ import os
 import re
 import secrets
 import shutil
-import stat
 import subprocess
 import tempfile
 from collections.abc import Sequence
@@ -83,6 +82,7 @@ from fleetmpc.protocol.keys import (
     validate_fleet,
 )
 from fleetmpc.protocol.messages import GROUND_STATION_ID, MAX_SENDER_ID, MIN_SENDER_ID, TARGET_ID
+from fleetmpc.protocol.private_files import check_private, write_private
 from fleetmpc.protocol.zenoh_config import RECONNECT_RETRY, endpoint
 
 __all__ = [
@@ -263,19 +263,22 @@ def make_zenoh_security(
     passwords = {user: secrets.token_urlsafe(24) for user in security.users}
     if tls:
         _make_certificates(security, san)
-    _write_private(security.dictionary_file, "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    users = "".join(f"{u}:{p}\n" for u, p in passwords.items())
+    write_private(security.dictionary_file, users, field="directory")
     for user, password in passwords.items():
-        _write_private(
+        write_private(
             security.client_config(user),
             f"// Zenoh client of fleet {fleet!r} as user {user!r}. Secret: holds its password.\n"
             + json.dumps(_client_config(security, user, password), indent=2)
             + "\n",
+            field="directory",
         )
-    _write_private(
+    write_private(
         security.router_file,
         f"// Zenoh router of fleet {fleet!r}: users, access list, TLS. No password inside.\n"
         + json.dumps(_router_config(security), indent=2)
         + "\n",
+        field="directory",
     )
     manifest = {
         "fleet": fleet,
@@ -285,7 +288,7 @@ def make_zenoh_security(
         "tls": security.tls,
         "mutual_tls": security.mutual_tls,
     }
-    _write_private(security.manifest_file, json.dumps(manifest, indent=2) + "\n")
+    write_private(security.manifest_file, json.dumps(manifest, indent=2) + "\n", field="directory")
     return security
 
 
@@ -361,7 +364,7 @@ def router_security_config(conf: zenoh.Config, security_dir: str | Path) -> zeno
     security = ZenohSecurity.load(security_dir)
     for path in (security.dictionary_file, security.router_private_key):
         if path is not None:
-            _check_private(path)
+            check_private(path, field="security")
     pieces = _router_config(security)  # (paths in `security_dir` as this process sees it)
     conf.insert_json5("transport/auth/usrpwd", json.dumps(pieces["transport"]["auth"]["usrpwd"]))
     conf.insert_json5("access_control", json.dumps(pieces["access_control"]))
@@ -474,7 +477,7 @@ def _make_certificates(security: ZenohSecurity, router_san: str) -> None:
             copies += [(cert, security.directory / f"zenoh-{name}.pem")]
             copies += [(key, security.directory / f"zenoh-{name}.key")]
         for source, dest in copies:
-            _write_private(dest, source.read_text(encoding="ascii"))
+            write_private(dest, source.read_text(encoding="ascii"), field="directory")
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
@@ -487,28 +490,6 @@ def _openssl(*args: str | Path) -> None:
     )
     if result.returncode != 0:
         raise ConfigError("tls", f"openssl {args[0]} failed: {result.stderr.strip()[-500:]}")
-
-
-def _write_private(path: Path, text: str) -> None:
-    """Create `path` with mode 0600 (refusing to overwrite) holding `text`."""
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        raise ConfigError("directory", f"{path} exists; not overwriting it") from None
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        os.fchmod(f.fileno(), 0o600)
-        f.write(text)
-
-
-def _check_private(path: Path) -> None:
-    try:
-        mode = path.stat().st_mode
-    except OSError as e:
-        raise ConfigError("security", f"cannot read {path}: {e.strerror}") from None
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(
-            "security", f"{path} is readable by others (mode {stat.S_IMODE(mode):o}); chmod 600"
-        )
 
 
 def _vehicle_id(field: str, value: object) -> int:

@@ -3,6 +3,7 @@ other frame by reason, and its real stream keeps flying through every attack."""
 
 import socket
 import time
+from pathlib import Path
 
 import pytest
 from pymavlink.generator.mavcrc import x25crc
@@ -216,3 +217,36 @@ def test_a_forged_future_frame_locks_stock_pymavlink_out_but_not_our_guard():
     ]  # fmt: skip
     assert verdicts == [True, False, True, True, True, True]
     assert guard.rejected == {Rejection.BAD_SIGNATURE: 1}
+
+
+def test_key_files_are_private_one_word_and_errors_name_the_option(tmp_path):
+    from fleetmpc.errors import ConfigError
+    from fleetmpc.protocol.mavlink_signing import read_key_file, write_key_file
+
+    path = write_key_file(tmp_path / "k.key")
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert len(read_key_file(path)) == 32
+    with pytest.raises(ConfigError, match="exists"):
+        write_key_file(path)
+    path.chmod(0o644)
+    with pytest.raises(ConfigError, match=r"--mavlink-key: .*readable by others"):
+        read_key_file(path)
+    with pytest.raises(ConfigError, match="no spaces"):
+        write_key_file(tmp_path / "spaced.key", "two words")
+    with pytest.raises(ConfigError, match=r"--mavlink-key: cannot read"):
+        read_key_file(tmp_path / "missing.key")
+
+
+def test_fleetmpc_keys_makes_every_secret_of_a_fleet_privately(tmp_path):
+    from fleetmpc.cli import main
+
+    out, paper = tmp_path / "secrets", str(Path(__file__).parents[2] / "scenarios" / "paper.toml")
+    assert main(["keys", paper, "-o", str(out)]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert [n for n in names if n.startswith("mavlink-")] == [
+        "mavlink-1.key", "mavlink-2.key", "mavlink-3.key",
+    ]  # fmt: skip
+    assert {"zenoh-agent-1.json5", "zenoh-gcs.json5", "zenoh-users.txt"} <= set(names)
+    assert out.stat().st_mode & 0o777 == 0o700
+    assert all(p.stat().st_mode & 0o777 == 0o600 for p in out.iterdir())
+    assert main(["keys", paper, "-o", str(out)]) == 2, "not over a set"
