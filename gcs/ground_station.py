@@ -56,7 +56,7 @@ from fleetmpc.gcs.telemetry import (
     open_sink,
 )
 from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
-from fleetmpc.protocol.mavlink_signing import KeyRing, read_key_dir
+from fleetmpc.protocol.mavlink_signing import KeyRing, read_key_options
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
 )
@@ -92,11 +92,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
     parser.add_argument("--mavlink", help="MAVLink URL to listen on (default udpin:HOST:gcs_port)")
     parser.add_argument(
-        "--mavlink-keys",
-        type=Path,
-        metavar="DIR",
-        help="the vehicles' MAVLink signing keys (`fleetmpc keys`): a vehicle with a key file"
-        " is heard only signed with it, and asked for telemetry signed (default: unsigned)",
+        "--mavlink-key",
+        action="append",
+        default=[],
+        metavar="ID=FILE",
+        help="vehicle ID's MAVLink signing key file (`fleetmpc keys`): that vehicle is heard only"
+        " signed with it, and asked for telemetry signed; repeatable (default: unsigned)",
     )
     add_bus_arguments(parser)
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per second")
@@ -216,13 +217,13 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(
             RerunSink(path=args.rrd, viewer_url=viewer_url, spawn_viewer=spawn, series_every=every)
         )
-    keys = KeyRing({}, report=None)
-    if args.mavlink_keys is not None:
-        by_vehicle = read_key_dir(args.mavlink_keys, scenario.vehicle_ids)
-        keys = KeyRing(
-            {scenario.vehicle(v).mavlink_system_id: k for v, k in by_vehicle.items()},
-            report=lambda _reason, text: _log(text),
-        )
+    keys = KeyRing(
+        {
+            scenario.vehicle(vid).mavlink_system_id: key
+            for vid, key in read_key_options(args.mavlink_key, scenario.vehicle_ids).items()
+        },
+        report=lambda _reason, text: _log(text),
+    )
     gs = GroundStation(scenario, speed=args.speed, duration_s=duration)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}

@@ -41,7 +41,6 @@ from pathlib import Path, PurePosixPath
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
-from fleetmpc.protocol.mavlink_signing import key_file_name
 from fleetmpc.protocol.zenoh_security import ZenohSecurity
 from fleetmpc.scenario import Scenario, load_scenario, mavlink_url
 
@@ -157,10 +156,11 @@ def _labels(spec: ProcessSpec, scenario: Scenario) -> dict[str, str]:
 
 
 def _secret_files(spec: ProcessSpec, scenario: Scenario) -> list[str]:
-    """The files of the run's secrets a service needs: those its arguments name, the router's
-    (users, access list, certificate) and, for the ground station, every vehicle's key."""
+    """The files of the run's secrets a service needs: those its arguments name (a path, or
+    the FILE of ``ID=FILE``), and the router's (users, access list, certificate)."""
     inside = SECRETS_IN_CONTAINER + "/"
-    files = [PurePosixPath(a).name for a in spec.argv if a.startswith(inside)]
+    paths = [a.partition("=")[2] if a[:1].isdigit() else a for a in spec.argv]  # (ID=FILE)
+    files = [PurePosixPath(a).name for a in paths if a.startswith(inside)]
     if spec.role == "router":
         net = scenario.network
         bus = ZenohSecurity(
@@ -174,8 +174,6 @@ def _secret_files(spec: ProcessSpec, scenario: Scenario) -> list[str]:
         )
         router_files = (bus.manifest_file, bus.dictionary_file, bus.router_certificate)
         files += [p.name for p in (*router_files, bus.router_private_key, bus.ca_certificate)]
-    elif spec.role == "gcs":
-        files += [key_file_name(v) for v in scenario.vehicle_ids]
     return files
 
 

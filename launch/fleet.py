@@ -14,8 +14,9 @@ Secrets (`FleetOptions.secrets_dir`, made by `fleetmpc.launch.keys`): the router
 (its users, access list and TLS certificate), every bus member its own Zenoh client config
 (``--zenoh-config``: its user, password and the run's CA) instead of ``--zenoh-connect``; each
 simulated vehicle's SITL and agent get that vehicle's MAVLink signing key file, the ground
-station the folder of them all; a vehicle flown on an external autopilot keeps an unsigned link
-(its key is the user's to set up on the autopilot). Only file paths are passed, never a secret.
+station each of them (``--mavlink-key ID=FILE``); a vehicle flown on an external autopilot
+keeps an unsigned link (its key is the user's to set up on the autopilot). Only file paths are
+passed, never a secret.
 """
 
 from collections.abc import Mapping
@@ -132,8 +133,9 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
         procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(net, v)))
     gcs = ["gcs", *common, *bus_of(GROUND_STATION_ID), *speed, "--duration", _num(duration)]
     gcs += ["--viewer", options.viewer]
-    if secrets is not None:
-        gcs += ["--mavlink-keys", str(secrets)]
+    for v in scenario.vehicles:
+        if key(v.id):
+            gcs += ["--mavlink-key", f"{v.id}={secrets / key_file_name(v.id)}"]
     for flag, value in (
         ("--rrd", options.rrd),
         ("--metrics", options.metrics),

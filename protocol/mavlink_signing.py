@@ -43,7 +43,7 @@ __all__ = [
     "key_file_name",
     "key_from_passphrase",
     "new_passphrase",
-    "read_key_dir",
+    "read_key_options",
     "read_key_file",
     "sign_outgoing",
     "signing_timestamp",
@@ -118,19 +118,24 @@ def key_file_name(vehicle_id: int) -> str:
     return f"mavlink-{vehicle_id}.key"
 
 
-def read_key_dir(
-    directory: Path, vehicle_ids: Iterable[int], *, field: str = "--mavlink-keys"
+def read_key_options(
+    items: Iterable[str], vehicle_ids: Iterable[int], *, field: str = "--mavlink-key"
 ) -> dict[int, bytes]:
-    """The keys of a key directory (`fleetmpc keys`), by vehicle id; a vehicle without a key
-    file is left out (its link stays unsigned)."""
-    directory = Path(directory)
-    if not directory.is_dir():
-        raise ConfigError(field, f"no such directory: {directory}")
-    keys = {}
-    for vid in vehicle_ids:
-        path = directory / key_file_name(vid)
-        if path.exists():
-            keys[vid] = read_key_file(path, field=field)
+    """The keys of ``ID=FILE`` options, by vehicle id; errors name `field` and the item."""
+    known = set(vehicle_ids)
+    keys: dict[int, bytes] = {}
+    for item in items:
+        vid_text, sep, path = item.partition("=")
+        if not sep or not vid_text.isdigit() or not path:
+            raise ConfigError(
+                field, f"must be ID=FILE (e.g. 2=secrets/mavlink-2.key), got {item!r}"
+            )
+        vid = int(vid_text)
+        if vid not in known:
+            raise ConfigError(field, f"vehicle {vid} is not in the scenario (ids: {sorted(known)})")
+        if vid in keys:
+            raise ConfigError(field, f"vehicle {vid} is given twice")
+        keys[vid] = read_key_file(Path(path), field=field)
     return keys
 
 

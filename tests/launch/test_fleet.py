@@ -104,3 +104,23 @@ def test_an_external_autopilot_replaces_its_vehicles_sitl():
     argv = procs["agent-2"].argv
     assert argv[argv.index("--mavlink") + 1] == "tcp:127.0.0.1:5770"
     assert "--mavlink" not in procs["agent-1"].argv
+
+
+def test_secrets_reach_each_process_by_path_and_an_external_autopilot_stays_unsigned():
+    sc = load_scenario(ROOT / "scenarios" / "paper.toml")
+    opts = FleetOptions(
+        scenario_path="s.toml", external_autopilots={2: "tcp:127.0.0.1:5770"}, secrets_dir="/s"
+    )
+    procs = {p.name: p for p in fleet_processes(sc, opts)}
+
+    def arg(name: str, flag: str) -> list[str]:
+        argv = procs[name].argv
+        return [argv[i + 1] for i, a in enumerate(argv) if a == flag]
+
+    assert arg("zenoh-router", "--security") == ["/s"]
+    assert arg("agent-1", "--zenoh-config") == ["/s/zenoh-agent-1.json5"]
+    assert arg("target", "--zenoh-config") == ["/s/zenoh-target.json5"]
+    assert arg("agent-1", "--mavlink-key") == arg("sitl-1", "--mavlink-key") == ["/s/mavlink-1.key"]
+    assert arg("agent-2", "--mavlink-key") == [], "the external autopilot's link is its owner's"
+    assert arg("gcs", "--mavlink-key") == ["1=/s/mavlink-1.key", "3=/s/mavlink-3.key"]
+    assert not any("--zenoh-connect" in p.argv for p in procs.values() if p.role != "router")

@@ -2,8 +2,9 @@
 own, with its own address, the router, the target and the ground station in another, joined by
 a bridge this test creates (and removes). Each process is started as `fleetmpc up` would start it
 (`fleetmpc.launch.fleet.fleet_processes`), inside its host's namespace; the scenario's
-`[network]` and the vehicles' `host` say which address is whose. The run must pass the gates of
-the same fleet on loopback.
+`[network]` and the vehicles' `host` say which address is whose. The fleet is secured as `up`
+secures it (signed MAVLink, Zenoh users and TLS to the router's own address). The run must pass
+the gates of the same fleet on loopback.
 
 Needs root and iproute2 (`ip netns`); no traffic leaves the namespaces.
 """
@@ -20,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from fleetmpc.launch.fleet import FleetOptions, fleet_processes
+from fleetmpc.launch.keys import make_keys
 from fleetmpc.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -95,7 +97,10 @@ def test_the_paper_fleet_across_network_namespaces_passes_the_loopback_gates(
     copy = _scenario_across(hosts, tmp_path / "paper-across.toml")
     scenario = load_scenario(copy)
     metrics = tmp_path / "metrics.json"
-    options = FleetOptions(str(copy), duration_s=DURATION_S, metrics=str(metrics))
+    secrets = make_keys(scenario, tmp_path / "secrets")  # TLS to the router's own address
+    options = FleetOptions(
+        str(copy), duration_s=DURATION_S, metrics=str(metrics), secrets_dir=str(secrets)
+    )
     gcs = None
     by_address = {address: name for name, address in hosts.address.items()}
     for spec in fleet_processes(scenario, options):  # each on the host the deployment names
