@@ -4,6 +4,7 @@ Importable from any test module as ``helpers`` (the tests folder is on the impor
 its conftest). `ProcessGroup` is also the `processes` fixture of ``tests/conftest.py``.
 """
 
+import contextlib
 import os
 import random
 import re
@@ -13,7 +14,7 @@ import subprocess
 import sys
 import time
 import tomllib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -283,3 +284,23 @@ class ProcessGroup:
     def stop_all(self, *, timeout_s: float = 5.0) -> dict[str, int | None]:
         """Stop every child still running (see `stop`); every child's exit code by name."""
         return self.stop(*self.children, timeout_s=timeout_s)
+
+
+@contextlib.contextmanager
+def router_process(*args: str) -> Iterator[subprocess.Popen]:
+    """`fleetmpc zenoh-router ARGS` as a child process (stdout and stderr piped); killed and its
+    pipes closed on leaving, whatever happened."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fleetmpc.protocol.zenoh_router", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+        proc.stderr.close()

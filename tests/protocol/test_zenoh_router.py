@@ -3,12 +3,10 @@
 import json
 import signal
 import socket
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-from helpers import free_port, wait_until
+from helpers import free_port, router_process, wait_until
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.open_bus import open_plan_bus
@@ -74,13 +72,7 @@ def test_two_clients_exchange_plans_and_targets_through_the_router() -> None:
 
 def test_router_command_line_serves_until_sigterm() -> None:
     port = free_port(socket.SOCK_STREAM)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "fleetmpc.protocol.zenoh_router", "--port", str(port)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
+    with router_process("--port", str(port)) as proc:
         assert proc.stdout.readline().strip() == f"zenoh router listening on tcp/127.0.0.1:{port}"
         url = f"zenoh://127.0.0.1:{port}?mode=client"
         with (
@@ -90,9 +82,3 @@ def test_router_command_line_serves_until_sigterm() -> None:
             pass  # a client session opens only if the router is up
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
-        proc.stderr.close()

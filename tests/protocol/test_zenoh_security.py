@@ -10,24 +10,21 @@ import json
 import signal
 import socket
 import stat
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zenoh
-from helpers import free_port, wait_until
+from helpers import free_port, router_process, wait_until
+from test_zenoh_router import PERIOD_NS, make_plan
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.keys import epoch_key, plan_key, status_key, target_observation_key
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.plan import Plan
 from fleetmpc.protocol.zenoh_config import ZenohOptions
 from fleetmpc.protocol.zenoh_router import open_router, router_config
 from fleetmpc.protocol.zenoh_security import (
@@ -38,7 +35,6 @@ from fleetmpc.protocol.zenoh_security import (
 )
 
 FLEET = "secured"
-PERIOD_NS = 200_000_000
 TEST_TIMEOUT_S = 20
 
 
@@ -124,16 +120,6 @@ def agent_reads(stack: ExitStack, session: zenoh.Session) -> Heard:
         f"fleetmpc/{f}/uav/*/status",
         target_observation_key(f),
         epoch_key(f),
-    )
-
-
-def make_plan(vehicle_id: int, stamp_ns: int) -> Plan:
-    return Plan(
-        vehicle_id=vehicle_id,
-        stamp_ns=stamp_ns,
-        period_ns=PERIOD_NS,
-        states=np.full((4, 3), float(vehicle_id)),
-        inputs=np.full((3, 2), 0.5),
     )
 
 
@@ -310,14 +296,7 @@ def test_mutual_tls_needs_the_users_own_certificate(tmp_path: Path) -> None:
 
 def test_router_command_line_serves_the_secured_bus(security: ZenohSecurity) -> None:
     port = free_port(socket.SOCK_STREAM)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "fleetmpc.protocol.zenoh_router"]
-        + ["--security", str(security.directory), "--port", str(port)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
+    with router_process("--security", str(security.directory), "--port", str(port)) as proc:
         assert proc.stdout.readline().strip() == f"zenoh router listening on tls/127.0.0.1:{port}"
         options = ZenohOptions(
             config_file=str(security.client_config("agent-3")), connect=(f"tls/127.0.0.1:{port}",)
@@ -328,12 +307,6 @@ def test_router_command_line_serves_the_secured_bus(security: ZenohSecurity) -> 
             zenoh.open(plain.to_config()).close()
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
-        proc.stderr.close()
 
 
 def test_access_list_without_tls_and_bad_arguments(tmp_path: Path) -> None:
