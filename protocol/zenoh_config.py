@@ -15,6 +15,8 @@ URL form, parsed by `ZenohOptions.from_url`::
         &listen=HOST:PORT                    listen here (repeatable; peers only)
         &connect=PROTO/HOST:PORT             one more connect endpoint (repeatable)
         &config=PATH                         base config file (JSON5), see `config_file`
+        &wait=S                              a client waits this long for its router at
+                                             open (default CONNECT_WAIT_S)
 
 Examples: ``zenoh://127.0.0.1:7447?mode=client`` (client of a router),
 ``zenoh://127.0.0.1:7447?listen=127.0.0.1:7448`` (a peer of a mesh).
@@ -28,6 +30,7 @@ then the ground station).
 """
 
 import json
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,6 +44,17 @@ from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 
 RECONNECT_RETRY = '{"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}'
 """Zenoh's connect/retry: how often a member tries its router again once it is lost."""
+
+CONNECT_WAIT_S = 30.0
+"""How long a client waits at open for a router that is not up yet (a process started before
+its router: a companion computer booted first, a router still loading its certificates) before
+it gives up with an error naming the endpoint. Zenoh's own default gives up at once."""
+
+
+def connect_timeout(wait_s: float) -> str:
+    """Zenoh's ``connect/timeout_ms`` (JSON) for a client that waits `wait_s` for its router."""
+    return json.dumps({"router": -1, "peer": -1, "client": round(wait_s * 1000)})
+
 
 __all__ = [
     "DEFAULT_HOST",
@@ -123,6 +137,8 @@ class ZenohOptions:
     and TLS files of a secured bus (``zenoh-<user>.json5``, `fleetmpc.protocol.zenoh_security`)."""
     login: MeshLogin | None = None
     """Authentication of a peer-mesh member (user/password, and the users it lets in)."""
+    connect_wait_s: float = CONNECT_WAIT_S
+    """A client: how long it waits at open for its router (`CONNECT_WAIT_S`)."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in _MODES:
@@ -166,6 +182,7 @@ class ZenohOptions:
         # Retry a lost router every half second at most (zenoh's default backs off to 4 s):
         # a restarted router is rejoined within a period or two.
         conf.insert_json5("connect/retry", RECONNECT_RETRY)
+        conf.insert_json5("connect/timeout_ms", connect_timeout(self.connect_wait_s))
         if self.login is not None:
             conf.insert_json5("transport/auth/usrpwd", self.login.section())
         return disable_scouting(conf)
@@ -185,9 +202,19 @@ class ZenohOptions:
         ]
         listen: list[str] = []
         mode = config_file = None
+        wait_s = CONNECT_WAIT_S
         for key, value in parse_qsl(parts.query, keep_blank_values=True):
             if key == "mode":
                 mode = value
+            elif key == "wait":
+                try:
+                    wait_s = float(value)
+                except ValueError:
+                    wait_s = math.nan
+                if not 0.0 <= wait_s <= 3600.0:
+                    raise ConfigError(
+                        "zenoh_url.wait", f"must be seconds in [0, 3600], got {value!r}"
+                    )
             elif key == "listen":
                 listen.append(_host_port("zenoh_url.listen", value))
             elif key == "connect":
@@ -196,9 +223,16 @@ class ZenohOptions:
                 config_file = value
             else:
                 raise ConfigError(
-                    f"zenoh_url.{key}", "unknown option (known: mode, listen, connect, config)"
+                    f"zenoh_url.{key}",
+                    "unknown option (known: mode, listen, connect, config, wait)",
                 )
-        return cls(mode=mode, connect=tuple(connect), listen=tuple(listen), config_file=config_file)
+        return cls(
+            mode=mode,
+            connect=tuple(connect),
+            listen=tuple(listen),
+            config_file=config_file,
+            connect_wait_s=wait_s,
+        )
 
     @classmethod
     def peer_mesh(

@@ -83,7 +83,12 @@ from fleetmpc.protocol.keys import (
 )
 from fleetmpc.protocol.messages import GROUND_STATION_ID, MAX_SENDER_ID, MIN_SENDER_ID, TARGET_ID
 from fleetmpc.protocol.private_files import check_private, write_private
-from fleetmpc.protocol.zenoh_config import RECONNECT_RETRY, endpoint
+from fleetmpc.protocol.zenoh_config import (
+    CONNECT_WAIT_S,
+    RECONNECT_RETRY,
+    connect_timeout,
+    endpoint,
+)
 
 __all__ = [
     "CERTIFICATE_DAYS",
@@ -399,7 +404,11 @@ def _rule(rule_id: str, messages: list[str], flow: str, keys: list[str]) -> dict
 def _client_config(security: ZenohSecurity, user: str, password: str) -> dict:
     conf: dict = {
         "mode": "client",
-        "connect": {"endpoints": [security.router_endpoint], "retry": json.loads(RECONNECT_RETRY)},
+        "connect": {
+            "endpoints": [security.router_endpoint],
+            "retry": json.loads(RECONNECT_RETRY),
+            "timeout_ms": json.loads(connect_timeout(CONNECT_WAIT_S)),
+        },
         "listen": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"auth": {"usrpwd": {"user": user, "password": password}}},

@@ -16,14 +16,17 @@ from fleetmpc.protocol.codec import decode, encode
 from fleetmpc.protocol.keys import epoch_key, plan_key
 from fleetmpc.protocol.messages import FleetEpoch, PlanMessage
 from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.zenoh_config import connect_timeout
 
 ROGUE_NORTH_M = 999.0
 """The rogue's plans place vehicle 3 here: far from anywhere the fleet flies."""
 
 
 def _config(path: Path, **changes: str) -> zenoh.Config:
-    """A client config file of the run, with some of its settings changed (JSON5 values)."""
+    """A client config file of the run, with some of its settings changed (JSON5 values); a
+    refused session gives up after 2 s instead of waiting for its router."""
     conf = zenoh.Config.from_file(str(path))
+    conf.insert_json5("connect/timeout_ms", connect_timeout(2.0))
     for key, value in changes.items():
         conf.insert_json5(key, value)
     return conf

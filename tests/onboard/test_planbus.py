@@ -5,6 +5,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack, closing
 
@@ -424,10 +425,12 @@ def test_zenoh_garbage_is_counted_while_valid_plans_keep_flowing(zenoh_mesh) -> 
         intruder.close()
 
 
-def test_zenoh_client_without_router_fails_with_plan_bus_error() -> None:
+def test_zenoh_client_without_router_fails_with_plan_bus_error_after_its_wait() -> None:
     port = free_port_block(1)
-    with pytest.raises(PlanBusError):
-        open_plan_bus(f"zenoh://127.0.0.1:{port}?mode=client", fleet=FLEET, vehicle_id=1)
+    t0 = time.monotonic()
+    with pytest.raises(PlanBusError, match=f"127.0.0.1:{port}"):
+        open_plan_bus(f"zenoh://127.0.0.1:{port}?mode=client&wait=0.5", fleet=FLEET, vehicle_id=1)
+    assert time.monotonic() - t0 >= 0.4, "it waited for its router"
 
 
 EXIT_SCRIPT = """

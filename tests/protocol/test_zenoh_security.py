@@ -25,7 +25,7 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.keys import epoch_key, plan_key, status_key, target_observation_key
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.zenoh_config import ZenohOptions
+from fleetmpc.protocol.zenoh_config import ZenohOptions, connect_timeout
 from fleetmpc.protocol.zenoh_router import open_router, router_config
 from fleetmpc.protocol.zenoh_security import (
     ZenohSecurity,
@@ -34,6 +34,8 @@ from fleetmpc.protocol.zenoh_security import (
     zenoh_user,
 )
 
+REFUSED_WAIT_S = 2.0
+"""How long a session the router refuses keeps trying in these tests [s]."""
 FLEET = "secured"
 TEST_TIMEOUT_S = 20
 
@@ -72,8 +74,11 @@ def router(security: ZenohSecurity) -> Iterator[zenoh.Session]:
 
 
 def user_config(security: ZenohSecurity, user: str) -> zenoh.Config:
-    """A user's session config as a fleet process loads it (``--zenoh-config``)."""
-    return ZenohOptions(config_file=str(security.client_config(user))).to_config()
+    """A user's session config as a fleet process loads it (``--zenoh-config``), except that
+    a refused session gives up after REFUSED_WAIT_S instead of waiting for its router."""
+    conf = ZenohOptions(config_file=str(security.client_config(user))).to_config()
+    conf.insert_json5("connect/timeout_ms", connect_timeout(REFUSED_WAIT_S))
+    return conf
 
 
 @dataclass
@@ -302,7 +307,9 @@ def test_router_command_line_serves_the_secured_bus(security: ZenohSecurity) -> 
             config_file=str(security.client_config("agent-3")), connect=(f"tls/127.0.0.1:{port}",)
         )
         zenoh.open(options.to_config()).close()  # auth and TLS kept from the file
-        plain = ZenohOptions(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
+        plain = ZenohOptions(
+            mode="client", connect=(f"tcp/127.0.0.1:{port}",), connect_wait_s=REFUSED_WAIT_S
+        )
         with pytest.raises(zenoh.ZError):
             zenoh.open(plain.to_config()).close()
         proc.send_signal(signal.SIGTERM)
