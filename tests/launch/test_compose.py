@@ -207,3 +207,41 @@ def test_cli_errors_name_the_bad_value(in_repo, capsys, tmp_path) -> None:
     assert "missing.toml" in capsys.readouterr().err
     assert main(["compose", "scenarios/paper.toml", "--out-dir-var", "A-B"]) == 2
     assert "'A-B'" in capsys.readouterr().err
+
+
+def test_one_file_per_machine_of_a_fleet_across_machines(tmp_path) -> None:
+    """Router and ground station on 10.0.0.1, each vehicle on its own companion computer: each
+    machine's file holds exactly its processes, their secrets, and dependencies among them."""
+    text = (ROOT / "scenarios" / "paper.toml").read_text()
+    for vid in (1, 2, 3):
+        text = text.replace(
+            f"[[vehicles]]\nid = {vid}\n", f'[[vehicles]]\nid = {vid}\nhost = "10.0.0.1{vid}"\n'
+        )
+    text += '\n[network]\nrouter_host = "10.0.0.1"\nground_station_host = "10.0.0.1"\n'
+    path = tmp_path / "across.toml"
+    path.write_text(text)
+    sc = load_scenario(path)
+
+    def document(host: str) -> dict:
+        options = ComposeOptions(host=host)
+        return _parse(compose_yaml(str(path), options))
+
+    ground = document("10.0.0.1")
+    assert list(ground["services"]) == ["zenoh-router", "target", "gcs"]
+    assert set(ground["services"]["gcs"]["depends_on"]) == {"zenoh-router", "target"}
+    assert "build" in ground["services"]["zenoh-router"]
+    every = set(ground["services"])
+    for v in sc.vehicles:
+        doc = document(f"10.0.0.1{v.id}")
+        services = doc["services"]
+        assert list(services) == [f"sitl-{v.id}", f"agent-{v.id}"]
+        assert "build" in services[f"sitl-{v.id}"] and "depends_on" not in services[f"sitl-{v.id}"]
+        assert services[f"agent-{v.id}"]["depends_on"] == {
+            f"sitl-{v.id}": {"condition": "service_started"}
+        }
+        assert set(doc["secrets"]) == {f"mavlink-{v.id}.key", f"zenoh-agent-{v.id}.json5"}
+        assert doc["name"] == f"fleetmpc-paper-10-0-0-1{v.id}"
+        every |= set(services)
+    assert every == {s.name for s in fleet_processes(sc, FleetOptions(scenario_path="x"))}
+    with pytest.raises(ConfigError, match=r"--host: no process of the fleet runs on 10\.9\.9\.9"):
+        document("10.9.9.9")
