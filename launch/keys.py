@@ -19,10 +19,10 @@ from pathlib import Path
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_signing import key_file_name, write_key_file
-from fleetmpc.protocol.zenoh_security import make_zenoh_security
+from fleetmpc.protocol.zenoh_security import ZenohSecurity, make_zenoh_security
 from fleetmpc.scenario import Scenario, load_scenario
 
-__all__ = ["add_arguments", "make_keys", "run"]
+__all__ = ["add_arguments", "check_keys", "make_keys", "run"]
 
 
 def make_keys(
@@ -45,6 +45,33 @@ def make_keys(
         router_port=net.zenoh_port,
         mutual_tls=mutual_tls,
     )
+    return directory
+
+
+def check_keys(scenario: Scenario, directory: Path, *, fleet: str | None = None) -> Path:
+    """`directory` if it holds this fleet's secrets (made by `make_keys` for the same fleet name,
+    vehicles and router address), else ConfigError naming ``--keys`` and what differs."""
+    directory = Path(directory)
+    bus = ZenohSecurity.load(directory, field="--keys")
+    net = scenario.network
+    want = {
+        "fleet": fleet or scenario.name,
+        "vehicles": tuple(scenario.vehicle_ids),
+        "router": f"{net.router_address}:{net.zenoh_port}",
+    }
+    have = {
+        "fleet": bus.fleet,
+        "vehicles": bus.vehicle_ids,
+        "router": f"{bus.router_host}:{bus.router_port}",
+    }
+    for what, value in want.items():
+        if have[what] != value:
+            raise ConfigError(
+                "--keys", f"{directory} was made for {what} {have[what]}, this fleet has {value}"
+            )
+    missing = [v for v in scenario.vehicle_ids if not (directory / key_file_name(v)).exists()]
+    if missing:
+        raise ConfigError("--keys", f"{directory} has no MAVLink key for vehicles {missing}")
     return directory
 
 

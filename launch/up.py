@@ -49,7 +49,7 @@ from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
-from fleetmpc.launch.keys import make_keys
+from fleetmpc.launch.keys import check_keys, make_keys
 from fleetmpc.launch.process_faults import ProcessFaults
 from fleetmpc.onboard.faults import LINK_KINDS, FaultSchedule, load_faults
 from fleetmpc.scenario import flight_time, load_scenario
@@ -438,8 +438,8 @@ def run(args: argparse.Namespace) -> int:
     viewer = args.viewer or _default_viewer()
     fleet = Fleet(run_dir)
     status_file.unlink(missing_ok=True)  # (a run dir used again: not the last run's epoch)
-    if args.keys is not None and not args.keys.is_dir():
-        raise ConfigError("--keys", f"no such directory: {args.keys}")
+    if args.keys is not None:
+        check_keys(scenario, args.keys)
     secrets = None
     if not args.insecure:
         secrets = args.keys or _fresh_secrets(scenario, run_dir / "secrets")

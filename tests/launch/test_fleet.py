@@ -124,3 +124,19 @@ def test_secrets_reach_each_process_by_path_and_an_external_autopilot_stays_unsi
     assert arg("agent-2", "--mavlink-key") == [], "the external autopilot's link is its owner's"
     assert arg("gcs", "--mavlink-key") == ["1=/s/mavlink-1.key", "3=/s/mavlink-3.key"]
     assert not any("--zenoh-connect" in p.argv for p in procs.values() if p.role != "router")
+
+
+def test_up_refuses_another_fleets_secrets_naming_the_option(tmp_path):
+    from fleetmpc.launch.keys import check_keys, make_keys
+
+    paper = load_scenario(ROOT / "scenarios" / "paper.toml")
+    wedge = load_scenario(ROOT / "scenarios" / "wedge-circle.toml")
+    ours = make_keys(paper, tmp_path / "ours")
+    assert check_keys(paper, ours) == ours
+    with pytest.raises(ConfigError, match="--keys: .* made for fleet wedge-circle"):
+        check_keys(paper, make_keys(wedge, tmp_path / "theirs"))
+    (ours / "mavlink-2.key").unlink()
+    with pytest.raises(ConfigError, match=r"--keys: .* no MAVLink key for vehicles \[2\]"):
+        check_keys(paper, ours)
+    with pytest.raises(ConfigError, match="--keys: cannot read"):
+        check_keys(paper, tmp_path / "none")
