@@ -17,8 +17,9 @@ is killed. Nothing this launcher started outlives it (a viewer spawned with ``--
 the user's window and stays open).
 
 Security is on by default: the run's secrets (`fleetmpc.launch.keys`: a MAVLink signing key per
-simulated vehicle) are made fresh in ``<run-dir>/secrets`` (mode 0700) unless ``--keys DIR``
-names a set; each process is given the path of its own. ``--insecure`` flies without them.
+vehicle, the Zenoh bus's users, access list and certificates) are made fresh in
+``<run-dir>/secrets`` (mode 0700) unless ``--keys DIR`` names a set; each process is given the
+paths of its own. ``--insecure`` flies without them.
 
 Exit status: 0 if the run completed and its gates held, 1 if a gate broke or a process failed,
 130 after Ctrl-C, 2 on a configuration error.
@@ -390,8 +391,13 @@ def _external_autopilots(items: list[str], scenario) -> dict[int, str]:
 
 
 def _fresh_secrets(scenario, directory: Path) -> Path:
-    """A new set of the run's secrets in `directory` (a run directory used again: replaced)."""
+    """A new set of the run's secrets in `directory`. A run directory used again has the last
+    run's set, which is replaced; any other folder there is left alone (an error)."""
     if directory.exists():
+        if not (directory / "zenoh-security.json").is_file():
+            raise ConfigError(
+                "--run-dir", f"{directory} exists and is not a run's secrets; not replacing it"
+            )
         shutil.rmtree(directory)
     return make_keys(scenario, directory)
 

@@ -102,6 +102,11 @@ _MAX_POSITION_M = 1e6
 _MAX_BOOT_MS = 2**32 - 1
 
 
+AGENT_LINK_ID = 1
+"""The agent's signing link id: with its system and component ids it names the agent's stream on
+the vehicle, apart from a ground station's (often 255/190 on link 0 as well)."""
+
+
 def _finite(*values: float, bound: float) -> bool:
     return all(isinstance(v, float | int) and math.isfinite(v) and abs(v) <= bound for v in values)
 
@@ -154,7 +159,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         """With a key: signs what is sent, and only frames signed with the key are heard."""
         if signing_key is not None:
             self.signing = SigningGuard(signing_key, report=lambda _r, text: self._log(text))
-            sign_outgoing(self._conn.mav, signing_key)
+            sign_outgoing(self._conn.mav, signing_key, link_id=AGENT_LINK_ID)
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._acks: dict[int, int] = {}
@@ -179,6 +184,8 @@ class MavlinkAutopilotLink(AutopilotLink):
     def _handle(self, msg) -> None:
         if self.faults is not None and self.faults.cut():
             return  # (an injected link fault: the message never came)
+        if msg.get_type() == "BAD_DATA":
+            return  # (a frame pymavlink could not decode: nothing to act on)
         if self.signing is not None and not self.signing.admit(msg):
             self._update(rejected=self.state().rejected + 1)
             return

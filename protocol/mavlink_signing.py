@@ -25,6 +25,7 @@ private key).
 import enum
 import hashlib
 import hmac
+import re
 import secrets
 import struct
 import time
@@ -37,6 +38,7 @@ from fleetmpc.protocol.private_files import check_private, write_private
 
 __all__ = [
     "KEY_BYTES",
+    "MAX_SIGNING_TIMESTAMP",
     "KeyRing",
     "Rejection",
     "SigningGuard",
@@ -60,18 +62,27 @@ _SIGNATURE_BYTES = 13  # link id, 6-byte timestamp, 6-byte signature
 _EPOCH_2015_NS = 1_420_070_400 * 1_000_000_000
 _NEW_STREAM_SLACK = 60 * 100_000
 """A stream not seen before may be at most one minute older than our clock [10 us units]."""
+MAX_SIGNING_TIMESTAMP = 1 << 48
+"""Signing timestamps are 48-bit."""
 _MAX_STREAMS = 4096
-"""Streams remembered at most (a flood of made-up ids must not grow the table without bound)."""
+"""Streams (link id, system, component) remembered at most. Only a holder of the key can open
+one (the signature is checked first); a new stream beyond this many is refused rather than the
+table cleared, which would accept the last minute's frames again."""
 
 
 class Rejection(enum.Enum):
-    """Why a frame was not accepted on a signed link."""
+    """Why a frame was not accepted on a signed link (short: a STATUSTEXT holds 50 characters)."""
 
-    MAVLINK1 = "MAVLink 1 (cannot be signed)"
+    MAVLINK1 = "MAVLink 1"
+    """A MAVLink 1 frame, which cannot be signed."""
     UNSIGNED = "unsigned"
-    BAD_SIGNATURE = "wrong key or tampered"
-    REPLAY = "replayed (timestamp not newer)"
-    STALE = "new stream more than a minute old"
+    BAD_SIGNATURE = "bad signature"
+    """A wrong key, or a frame changed on the way."""
+    REPLAY = "replayed"
+    """A timestamp not newer than the stream's last."""
+    STALE = "stale stream"
+    """A new stream more than a minute older than our clock."""
+    TOO_MANY_STREAMS = "stream table full"
 
 
 def key_from_passphrase(passphrase: str) -> bytes:
@@ -126,7 +137,7 @@ def read_key_options(
     keys: dict[int, bytes] = {}
     for item in items:
         vid_text, sep, path = item.partition("=")
-        if not sep or not vid_text.isdigit() or not path:
+        if not sep or not re.fullmatch(r"[0-9]{1,3}", vid_text) or not path:
             raise ConfigError(
                 field, f"must be ID=FILE (e.g. 2=secrets/mavlink-2.key), got {item!r}"
             )
@@ -185,8 +196,13 @@ class SigningGuard:
         self.accepted = 0
         self.rejected: Counter[Rejection] = Counter()
 
+    def has_key(self, key: bytes) -> bool:
+        """True if this guard checks with `key` (compared in constant time)."""
+        return hmac.compare_digest(self._key, bytes(key))
+
     def verdict(self, frame: bytes) -> Rejection | None:
-        """None if `frame` (one whole MAVLink frame) is to be acted on, else why not."""
+        """None if `frame` (one whole MAVLink frame) is to be acted on, else why not. An
+        accepted frame's timestamp is recorded: the same frame checked again is a replay."""
         if not frame or frame[0] == _MAGIC_V1:
             return Rejection.MAVLINK1
         if frame[0] != _MAGIC_V2 or len(frame) < 12 or not frame[2] & _FLAG_SIGNED:
@@ -208,7 +224,7 @@ class SigningGuard:
             if stamp + _NEW_STREAM_SLACK < signing_timestamp(self._now_ns()):
                 return Rejection.STALE
             if len(self._streams) >= _MAX_STREAMS:
-                self._streams.clear()
+                return Rejection.TOO_MANY_STREAMS
         self._streams[stream] = stamp
         return None
 
@@ -221,7 +237,7 @@ class SigningGuard:
         self.rejected[reason] += 1
         if self.rejected[reason] == 1 and self._report is not None:
             src = f"{message.get_srcSystem()}/{message.get_srcComponent()}"
-            self._report(reason, f"signing: rejected {reason.value} frame from {src}")
+            self._report(reason, f"signing: {reason.value}, refused ({src})")
         return False
 
     def refresh(self, mav) -> None:
@@ -258,7 +274,10 @@ class KeyRing:
         with that system's key if it has one, else unsigned."""
         key = self._keys.get(system_id)
         if key is None:
+            return message.pack(mav)
+        sign_outgoing(mav, key, link_id=mav.signing.link_id)
+        try:
+            return message.pack(mav)
+        finally:  # (nothing else packed on `mav` is signed with this vehicle's key)
             mav.signing.sign_outgoing = False
-        else:
-            sign_outgoing(mav, key, link_id=mav.signing.link_id)
-        return message.pack(mav)
+            mav.signing.secret_key = None

@@ -41,6 +41,7 @@ import zenoh
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
+from fleetmpc.protocol.private_files import check_private
 
 RECONNECT_RETRY = '{"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}'
 """Zenoh's connect/retry: how often a member tries its router again once it is lost."""
@@ -111,10 +112,14 @@ class MeshLogin:
 
     def section(self) -> str:
         """The ``transport/auth/usrpwd`` section (JSON) of the member's config."""
+        check_private(Path(self.user_config), field="--zenoh-secrets")
+        check_private(Path(self.users_file), field="--zenoh-secrets")
         try:
             own = zenoh.Config.from_file(self.user_config)
-        except zenoh.ZError as e:
-            raise ConfigError("--zenoh-secrets", f"{self.user_config}: {e}") from None
+        except zenoh.ZError:  # (its text may quote the password: not repeated)
+            raise ConfigError(
+                "--zenoh-secrets", f"{self.user_config}: not a Zenoh config"
+            ) from None
         usrpwd = json.loads(own.get_json("transport/auth/usrpwd"))
         if not usrpwd.get("user") or not usrpwd.get("password"):
             raise ConfigError("--zenoh-secrets", f"{self.user_config} has no user and password")
@@ -165,8 +170,12 @@ class ZenohOptions:
         if self.config_file is not None:
             try:
                 conf = zenoh.Config.from_file(self.config_file)
-            except zenoh.ZError as e:
-                raise ConfigError("zenoh.config_file", f"{self.config_file}: {e}") from None
+            except zenoh.ZError:  # (its text may quote a password from the file: not repeated)
+                raise ConfigError(
+                    "zenoh.config_file", f"{self.config_file}: not a valid Zenoh config (JSON5)"
+                ) from None
+            if json.loads(conf.get_json("transport/auth/usrpwd/password")) is not None:
+                check_private(Path(self.config_file), field="zenoh.config_file")
             if self.mode is not None:
                 conf.insert_json5("mode", f'"{self.mode}"')
             if self.connect:

@@ -15,6 +15,7 @@ import os
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported anywhere
 
 import socket  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
@@ -163,8 +164,17 @@ class UdpLink:
             except OSError:
                 self.send_errors += 1
 
-    def receive(self, decoder: FrameDecoder, now_ns: int, *, budget: int = 512) -> list[Incoming]:
-        """Drain up to `budget` datagrams without blocking."""
+    def receive(
+        self,
+        decoder: FrameDecoder,
+        now_ns: int,
+        *,
+        budget: int = 512,
+        accept: Callable[[mavlink.MAVLink_message], bool] | None = None,
+    ) -> list[Incoming]:
+        """Drain up to `budget` datagrams without blocking; with `accept`, only the messages it
+        accepts are returned, and only a sender of one becomes a peer (a signed vehicle streams
+        nothing to whoever merely sends it a frame)."""
         out: list[Incoming] = []
         for _ in range(budget):
             try:
@@ -174,6 +184,8 @@ class UdpLink:
             except OSError:  # e.g. ICMP port unreachable reported on a later call
                 continue
             messages = decoder.datagram(data)
+            if accept is not None:
+                messages = [m for m in messages if accept(m)]
             if messages:
                 self._remember(address, now_ns)
             out.extend(Incoming(m, self, address) for m in messages)

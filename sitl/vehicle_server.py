@@ -29,6 +29,7 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_map import Autopilot as AutopilotType
 from fleetmpc.protocol.mavlink_signing import (
     KEY_BYTES,
+    MAX_SIGNING_TIMESTAMP,
     Rejection,
     SigningGuard,
     sign_outgoing,
@@ -315,13 +316,10 @@ class VehicleServer:
                 self._selector.register(link.fd, selectors.EVENT_READ)
         incoming: list[Incoming] = []
         for udp in self._links.udp:
-            incoming.extend(udp.receive(self._decoder, now_ns))
+            incoming.extend(udp.receive(self._decoder, now_ns, accept=self._admitted))
         for tcp in self._links.tcp:
-            incoming.extend(tcp.receive(now_ns))
+            incoming.extend(i for i in tcp.receive(now_ns) if self._admitted(i.message))
         for inc in incoming:
-            if self.signing is not None and not self.signing.admit(inc.message):
-                self.signing_rejected += 1
-                continue
             if inc.message.get_msgId() == mavlink.MAVLINK_MSG_ID_SETUP_SIGNING:
                 self._setup_signing(inc.message)
                 continue
@@ -361,7 +359,17 @@ class VehicleServer:
         sign_outgoing(mav, key)
         mav.signing.timestamp = max(mav.signing.timestamp, timestamp)
 
+    def _admitted(self, message) -> bool:
+        """True if `message` may be acted on: signing is off, or the guard accepts it."""
+        if self.signing is None or self.signing.admit(message):
+            return True
+        self.signing_rejected += 1
+        return False
+
     def _signing_notice(self, _reason: Rejection, text: str) -> None:
+        self._warn(text)
+
+    def _warn(self, text: str) -> None:
         self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_WARNING, text))
 
     def _setup_signing(self, m) -> None:
@@ -370,15 +378,22 @@ class VehicleServer:
         if m.target_system not in (0, self.ident.system_id):
             return
         if self.signing is None:
-            text = "signing: SETUP_SIGNING refused: no trusted link (start with a key file)"
-            self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_WARNING, text))
+            self._warn("SETUP_SIGNING refused: no trusted link")
             return
         if self.autopilot.armed:
-            self._signing_notice(Rejection.UNSIGNED, "ERROR: Won't setup signing when armed")
+            self._warn("ERROR: Won't setup signing when armed")
+            return
+        if not 0 <= m.initial_timestamp < MAX_SIGNING_TIMESTAMP:
+            self._warn("SETUP_SIGNING refused: timestamp over 48 bits")
             return
         key = bytes(m.secret_key)
         off = m.initial_timestamp == 0 and not any(key)
-        self._set_signing_key(None if off else key, timestamp=int(m.initial_timestamp))
+        if not off and self.signing.has_key(key):
+            self.encoder.mav.signing.timestamp = max(
+                self.encoder.mav.signing.timestamp, int(m.initial_timestamp)
+            )  # (the same key: its streams' last timestamps stay, so no replay reopens)
+        else:
+            self._set_signing_key(None if off else key, timestamp=int(m.initial_timestamp))
         text = "signing off" if off else "signing key set"
         self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_INFO, text))
 

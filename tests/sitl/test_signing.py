@@ -129,7 +129,7 @@ def test_the_vehicle_announces_each_rejection_once_and_signs_what_it_sends():
             unsigned.send(_disarm)
         msgs = rig.run(S)
         texts = [m.text for m in of_type(msgs, "STATUSTEXT")]
-        assert texts == ["signing: rejected unsigned frame from 255/190"]
+        assert texts == ["signing: unsigned, refused (255/190)"]
         guard = SigningGuard(KEY)
         raw = [bytes(m.get_msgbuf()) for m in msgs]
         assert raw and all(guard.verdict(frame) is None for frame in raw), "all signed, fresh"
@@ -250,3 +250,40 @@ def test_fleetmpc_keys_makes_every_secret_of_a_fleet_privately(tmp_path):
     assert out.stat().st_mode & 0o777 == 0o700
     assert all(p.stat().st_mode & 0o777 == 0o600 for p in out.iterdir())
     assert main(["keys", paper, "-o", str(out)]) == 2, "not over a set"
+
+
+def test_an_unsigned_sender_gets_no_telemetry_from_a_signed_vehicle():
+    rig = _signed_rig()
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other.bind(("127.0.0.1", 0))
+    other.setblocking(False)
+    try:
+        stranger = Client(other, rig.client.address)  # no key
+        stranger.send(lambda mav: mav.heartbeat_encode(6, 8, 0, 0, 4))
+        assert rig.run(S, stranger) == [], "a signed vehicle streams only to signed peers"
+        sign_outgoing(stranger.enc.mav, KEY)
+        stranger.send(lambda mav: mav.heartbeat_encode(6, 8, 0, 0, 4))
+        assert of_type(rig.run(S, stranger), "ATTITUDE"), "a peer that signs is streamed to"
+    finally:
+        other.close()
+        rig.close()
+
+
+def test_setup_signing_with_the_same_key_keeps_the_replay_table_and_bounds_the_timestamp():
+    rig = _signed_rig()
+    try:
+        rig.run(S)
+        recorded = rig.client.enc.pack(_disarm(rig.client.enc.mav))
+        rig.client.sock.sendto(recorded, rig.client.address)
+        rig.run(S // 10)
+        rig.client.send(lambda mav: mav.setup_signing_encode(1, 1, list(KEY), 1))
+        rig.run(S // 10)
+        rig.client.sock.sendto(recorded, rig.client.address)  # replayed after the "new" key
+        rig.run(S // 10)
+        assert rig.server.signing.rejected[Rejection.REPLAY] == 1
+        rig.client.send(lambda mav: mav.setup_signing_encode(1, 1, list(WRONG), 1 << 48))
+        msgs = rig.run(S // 10)
+        assert rig.server.signing.has_key(KEY), "a timestamp beyond 48 bits is refused"
+        assert any("over 48 bits" in m.text for m in of_type(msgs, "STATUSTEXT"))
+    finally:
+        rig.close()
