@@ -31,7 +31,7 @@ from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_l
 from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
 from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings, agent_for
-from fleetmpc.onboard.setpoints import SetpointStreamer, wind_down
+from fleetmpc.onboard.setpoints import COMMAND_LIFETIME_PERIODS, SetpointStreamer, wind_down
 from fleetmpc.protocol.mavlink_signing import read_key_file
 from fleetmpc.scenario import load_scenario, mavlink_url
 
@@ -194,7 +194,13 @@ def run(args: argparse.Namespace) -> int:
                 f"vehicle {spec.id}: its autopilot has system id {state.system_id}, not"
                 f" {spec.id}; flying it as vehicle {spec.id}"
             )
-        streamer = SetpointStreamer(link, period_s=1.0 / (args.setpoint_rate_hz * clock.speed))
+        streamer = SetpointStreamer(
+            link,
+            period_s=1.0 / (args.setpoint_rate_hz * clock.speed),
+            command_lifetime_s=COMMAND_LIFETIME_PERIODS
+            * scenario.controller.period_s
+            / clock.speed,
+        )
         settings = RunnerSettings(
             period_ns=scenario.controller.period_ns,
             engage=not args.no_engage,

@@ -512,4 +512,5 @@ class FleetRunner:
         }
         if streamer is not None:
             out["setpoint_gap_wall_ms"] = gap_stats_ms(streamer.send_times_ns)
+            out["setpoints_faded"] = streamer.faded_sends  # (a command past its lifetime)
         return json.loads(json.dumps(out, default=str))

@@ -2,6 +2,12 @@
 its own, whatever the control loop does (PX4 leaves OFFBOARD after COM_OF_LOSS_T without
 setpoints, ArduPilot stops after GUID_TIMEOUT), and the wind-down that holds a vehicle where it is
 when an agent stops.
+
+A command is not flown for ever: once it is older than its lifetime (`COMMAND_LIFETIME_PERIODS`
+control periods: the agent is starved of CPU or stalled), the stream fades it linearly to a stop
+over one more lifetime, so an overloaded agent's vehicle slows down and stops instead of flying
+a stale command into a neighbour (docs/design.md, "Safety": stopping stays within the margins
+the others keep from its last plan). A new command is flown at once.
 """
 
 import bisect
@@ -16,7 +22,10 @@ import numpy as np
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLink
 
-__all__ = ["SetpointStreamer", "gap_stats_ms", "wind_down"]
+__all__ = ["COMMAND_LIFETIME_PERIODS", "SetpointStreamer", "gap_stats_ms", "wind_down"]
+
+COMMAND_LIFETIME_PERIODS = 2.0
+"""Control periods a command is flown as it is before the stream fades it to a stop."""
 
 
 def gap_stats_ms(times_ns: list[int]) -> dict[str, float]:
@@ -44,15 +53,25 @@ class SetpointStreamer:
         link: AutopilotLink,
         *,
         period_s: float,
+        command_lifetime_s: float | None = None,
         monotonic_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         if not 0.001 <= period_s <= 0.1:
             raise ConfigError("setpoint period_s", f"must be in [0.001, 0.1] s, got {period_s}")
+        if command_lifetime_s is not None and not command_lifetime_s > 0:
+            raise ConfigError(
+                "command_lifetime_s", f"must be > 0 (or None), got {command_lifetime_s}"
+            )
         self._link = link
         self._period_s = period_s
+        self._lifetime_ns = None if command_lifetime_s is None else round(command_lifetime_s * 1e9)
+        """Wall time a command is flown as it is [ns]; None: for ever."""
         self._now = monotonic_ns
         self._lock = threading.Lock()
         self._command = (0.0, 0.0)
+        self._command_ns = self._now()
+        self.faded_sends = 0
+        """Setpoints sent from a command older than its lifetime (faded toward a stop)."""
         self._hold: tuple[float, float] | None = None
         self._stop = threading.Event()
         self.send_times_ns: list[int] = []
@@ -61,6 +80,7 @@ class SetpointStreamer:
     def set_command(self, *, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         with self._lock:
             self._command = (float(speed_m_s), float(yaw_rate_rad_s))
+            self._command_ns = self._now()
             self._hold = None
 
     def hold_position(self, *, north_m: float, east_m: float) -> None:
@@ -90,6 +110,19 @@ class SetpointStreamer:
         start = bisect.bisect_right(times, self._now() - window_ns, 0, end)
         return (end - start) * 1e9 / window_ns
 
+    def flown(self) -> tuple[float, float]:
+        """The velocity command to send now: the latest, or once it is older than its lifetime,
+        the same faded linearly to a stop over one more lifetime (module docstring)."""
+        with self._lock:
+            (v, w), since = self._command, self._command_ns
+        life = self._lifetime_ns
+        age = self._now() - since
+        if life is None or age <= life:
+            return v, w
+        self.faded_sends += 1
+        keep = max(0.0, 1.0 - (age - life) / life)
+        return v * keep, w * keep
+
     def start(self) -> None:
         self._thread.start()
 
@@ -97,7 +130,8 @@ class SetpointStreamer:
         next_s = time.monotonic()
         while not self._stop.is_set():
             with self._lock:
-                (v, w), hold = self._command, self._hold
+                hold = self._hold
+            v, w = self.flown()
             down = self._link.state().down_m if hold is not None else math.nan
             # A link must not raise, but never let the stream die.
             with contextlib.suppress(Exception):

@@ -486,3 +486,28 @@ def test_tick_reports_a_lost_mode_only_when_it_is_not_taken_back(paper) -> None:
     runner.tick(link.state())
     assert sum("mode lost (HOLD); not re-engaging" in line for line in logged) == 1
     assert not any("failed" in line or "error" in line for line in logged), logged
+
+
+# SetpointStreamer: a command past its lifetime fades to a stop --------------------------------
+
+
+def test_a_command_older_than_its_lifetime_fades_to_a_stop_and_a_new_one_flies_at_once() -> None:
+    now = [0]
+    streamer = SetpointStreamer(
+        FakeAutopilotLink(), period_s=0.01, command_lifetime_s=0.4, monotonic_ns=lambda: now[0]
+    )
+    streamer.set_command(speed_m_s=1.5, yaw_rate_rad_s=-0.2)
+    now[0] += 400 * MS  # as old as its lifetime: flown as it is
+    assert streamer.flown() == (1.5, -0.2) and streamer.faded_sends == 0
+    now[0] += 100 * MS  # a quarter of a lifetime past it: a quarter of the way to a stop
+    assert streamer.flown() == pytest.approx((1.125, -0.15))
+    now[0] += 300 * MS  # two lifetimes: stopped, and stays so
+    assert streamer.flown() == (0.0, 0.0)
+    now[0] += 10 * S
+    assert streamer.flown() == (0.0, 0.0) and streamer.faded_sends == 3
+    streamer.set_command(speed_m_s=0.7, yaw_rate_rad_s=0.1)  # the agent is back
+    assert streamer.flown() == (0.7, 0.1)
+    forever = streamer_at(now)  # no lifetime: the latest command, whatever its age
+    forever.set_command(speed_m_s=1.0, yaw_rate_rad_s=0.0)
+    now[0] += 100 * S
+    assert forever.flown() == (1.0, 0.0)
