@@ -126,6 +126,7 @@ def test_a_mesh_with_the_runs_secrets_lets_in_only_the_fleets_users(tmp_path) ->
     wrong = json.loads(text[text.index("{") :])
     wrong["transport"]["auth"]["usrpwd"]["password"] = "guess"
     (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+    (tmp_path / "wrong.json5").chmod(0o600)  # (a file holding a password must be private)
 
     def member(index: int, user_config: Path) -> ZenohOptions:
         login = MeshLogin(user_config=str(user_config), users_file=str(secrets.dictionary_file))
