@@ -42,6 +42,7 @@ __all__ = [
     "KeyRing",
     "Rejection",
     "SigningGuard",
+    "advance_timestamp",
     "key_file_name",
     "key_from_passphrase",
     "new_passphrase",
@@ -49,6 +50,7 @@ __all__ = [
     "read_key_file",
     "sign_outgoing",
     "signing_timestamp",
+    "stop_signing",
     "write_key_file",
 ]
 
@@ -155,6 +157,18 @@ def signing_timestamp(now_ns: int) -> int:
     return max(0, (now_ns - _EPOCH_2015_NS) // 10_000)
 
 
+def _check_key(key: bytes) -> bytes:
+    if len(key) != KEY_BYTES:
+        raise ValueError(f"a signing key has {KEY_BYTES} bytes, got {len(key)}")
+    return bytes(key)
+
+
+def advance_timestamp(mav, stamp: int) -> None:
+    """Raise `mav`'s outgoing signing timestamp to `stamp` if it is lower (never backwards:
+    a receiver would take what follows for replays)."""
+    mav.signing.timestamp = max(mav.signing.timestamp, stamp)
+
+
 def sign_outgoing(mav, key: bytes, *, link_id: int = 0, now_ns: int | None = None) -> None:
     """Make pymavlink's `mav` (a `MAVLink` object) sign every frame it packs with `key`.
 
@@ -162,15 +176,19 @@ def sign_outgoing(mav, key: bytes, *, link_id: int = 0, now_ns: int | None = Non
     comparing the signature): whoever receives on `mav` checks with a `SigningGuard`. Call
     `SigningGuard.refresh(mav)` before sending so the timestamp keeps up with the clock.
     """
-    if len(key) != KEY_BYTES:
-        raise ValueError(f"a signing key has {KEY_BYTES} bytes, got {len(key)}")
     s = mav.signing
-    s.secret_key = bytes(key)
+    s.secret_key = _check_key(key)
     s.link_id = link_id & 0xFF
     s.sign_outgoing = True
-    s.timestamp = max(s.timestamp, signing_timestamp(time.time_ns() if now_ns is None else now_ns))
+    advance_timestamp(mav, signing_timestamp(time.time_ns() if now_ns is None else now_ns))
     s.allow_unsigned_callback = lambda _mav, _msg_id: True
     mav.check_signature = lambda _buf, _sys, _comp: True  # decided by SigningGuard.admit
+
+
+def stop_signing(mav) -> None:
+    """`mav` packs unsigned frames from now on."""
+    mav.signing.secret_key = None
+    mav.signing.sign_outgoing = False
 
 
 class SigningGuard:
@@ -187,9 +205,7 @@ class SigningGuard:
         now_ns: Callable[[], int] = time.time_ns,
         report: Callable[[Rejection, str], None] | None = None,
     ) -> None:
-        if len(key) != KEY_BYTES:
-            raise ValueError(f"a signing key has {KEY_BYTES} bytes, got {len(key)}")
-        self._key = bytes(key)
+        self._key = _check_key(key)
         self._now_ns = now_ns
         self._report = report
         self._streams: dict[tuple[int, int, int], int] = {}
@@ -242,8 +258,7 @@ class SigningGuard:
 
     def refresh(self, mav) -> None:
         """Bring `mav`'s outgoing timestamp up to the clock (never backwards)."""
-        s = mav.signing
-        s.timestamp = max(s.timestamp, signing_timestamp(self._now_ns()))
+        advance_timestamp(mav, signing_timestamp(self._now_ns()))
 
     def summary(self) -> str:
         """One line: accepted and rejected counts by reason."""
@@ -279,5 +294,4 @@ class KeyRing:
         try:
             return message.pack(mav)
         finally:  # (nothing else packed on `mav` is signed with this vehicle's key)
-            mav.signing.sign_outgoing = False
-            mav.signing.secret_key = None
+            stop_signing(mav)

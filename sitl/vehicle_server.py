@@ -30,9 +30,10 @@ from fleetmpc.protocol.mavlink_map import Autopilot as AutopilotType
 from fleetmpc.protocol.mavlink_signing import (
     KEY_BYTES,
     MAX_SIGNING_TIMESTAMP,
-    Rejection,
     SigningGuard,
+    advance_timestamp,
     sign_outgoing,
+    stop_signing,
 )
 from fleetmpc.scenario import Site, VehicleSpec
 from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
@@ -352,12 +353,11 @@ class VehicleServer:
         mav = self.encoder.mav
         if key is None:
             self.signing = None
-            mav.signing.secret_key = None
-            mav.signing.sign_outgoing = False
+            stop_signing(mav)
             return
-        self.signing = SigningGuard(key, report=self._signing_notice)
+        self.signing = SigningGuard(key, report=lambda _reason, text: self._warn(text))
         sign_outgoing(mav, key)
-        mav.signing.timestamp = max(mav.signing.timestamp, timestamp)
+        advance_timestamp(mav, timestamp)
 
     def _admitted(self, message) -> bool:
         """True if `message` may be acted on: signing is off, or the guard accepts it."""
@@ -365,9 +365,6 @@ class VehicleServer:
             return True
         self.signing_rejected += 1
         return False
-
-    def _signing_notice(self, _reason: Rejection, text: str) -> None:
-        self._warn(text)
 
     def _warn(self, text: str) -> None:
         self._broadcast(statustext(self.encoder.mav, mavlink.MAV_SEVERITY_WARNING, text))
@@ -389,9 +386,8 @@ class VehicleServer:
         key = bytes(m.secret_key)
         off = m.initial_timestamp == 0 and not any(key)
         if not off and self.signing.has_key(key):
-            self.encoder.mav.signing.timestamp = max(
-                self.encoder.mav.signing.timestamp, int(m.initial_timestamp)
-            )  # (the same key: its streams' last timestamps stay, so no replay reopens)
+            # (the same key: its streams' last timestamps stay, so no replay reopens)
+            advance_timestamp(self.encoder.mav, int(m.initial_timestamp))
         else:
             self._set_signing_key(None if off else key, timestamp=int(m.initial_timestamp))
         text = "signing off" if off else "signing key set"
