@@ -175,8 +175,7 @@ def _secret_files(spec: ProcessSpec, scenario: Scenario) -> list[str]:
             tls=True,
             mutual_tls=False,
         )
-        router_files = (bus.manifest_file, bus.dictionary_file, bus.router_certificate)
-        files += [p.name for p in (*router_files, bus.router_private_key, bus.ca_certificate)]
+        files += [p.name for p in bus.router_files()]
     return files
 
 

@@ -53,6 +53,7 @@ from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
 from fleetmpc.launch.keys import check_keys, make_keys
 from fleetmpc.launch.process_faults import ProcessFaults
 from fleetmpc.onboard.faults import LINK_KINDS, FaultSchedule, load_faults
+from fleetmpc.protocol.zenoh_security import MANIFEST_NAME
 from fleetmpc.scenario import flight_time, load_scenario
 
 __all__ = ["add_arguments", "run"]
@@ -394,7 +395,7 @@ def _fresh_secrets(scenario, directory: Path) -> Path:
     """A new set of the run's secrets in `directory`. A run directory used again has the last
     run's set, which is replaced; any other folder there is left alone (an error)."""
     if directory.exists():
-        if not (directory / "zenoh-security.json").is_file():
+        if not (directory / MANIFEST_NAME).is_file():
             raise ConfigError(
                 "--run-dir", f"{directory} exists and is not a run's secrets; not replacing it"
             )

@@ -64,6 +64,7 @@ __all__ = [
     "ZenohOptions",
     "disable_scouting",
     "endpoint",
+    "load_config_file",
     "options_from_args",
     "peer_mesh_index",
 ]
@@ -99,6 +100,19 @@ def disable_scouting(conf: zenoh.Config) -> zenoh.Config:
     return conf
 
 
+def load_config_file(path: str, *, field: str) -> zenoh.Config:
+    """A Zenoh config file; ConfigError naming `field` if it is not one (without repeating
+    Zenoh's message, which may quote a password from the file) or if it holds a password and
+    others may read it."""
+    try:
+        conf = zenoh.Config.from_file(path)
+    except zenoh.ZError:
+        raise ConfigError(field, f"{path}: not a valid Zenoh config (JSON5)") from None
+    if json.loads(conf.get_json("transport/auth/usrpwd/password")) is not None:
+        check_private(Path(path), field=field)
+    return conf
+
+
 @dataclass(frozen=True)
 class MeshLogin:
     """How a member of a peer mesh authenticates (`fleetmpc.protocol.zenoh_security`): with the
@@ -112,14 +126,8 @@ class MeshLogin:
 
     def section(self) -> str:
         """The ``transport/auth/usrpwd`` section (JSON) of the member's config."""
-        check_private(Path(self.user_config), field="--zenoh-secrets")
         check_private(Path(self.users_file), field="--zenoh-secrets")
-        try:
-            own = zenoh.Config.from_file(self.user_config)
-        except zenoh.ZError:  # (its text may quote the password: not repeated)
-            raise ConfigError(
-                "--zenoh-secrets", f"{self.user_config}: not a Zenoh config"
-            ) from None
+        own = load_config_file(self.user_config, field="--zenoh-secrets")
         usrpwd = json.loads(own.get_json("transport/auth/usrpwd"))
         if not usrpwd.get("user") or not usrpwd.get("password"):
             raise ConfigError("--zenoh-secrets", f"{self.user_config} has no user and password")
@@ -168,14 +176,7 @@ class ZenohOptions:
     def to_config(self) -> zenoh.Config:
         """The zenoh.Config these options describe (scouting off)."""
         if self.config_file is not None:
-            try:
-                conf = zenoh.Config.from_file(self.config_file)
-            except zenoh.ZError:  # (its text may quote a password from the file: not repeated)
-                raise ConfigError(
-                    "zenoh.config_file", f"{self.config_file}: not a valid Zenoh config (JSON5)"
-                ) from None
-            if json.loads(conf.get_json("transport/auth/usrpwd/password")) is not None:
-                check_private(Path(self.config_file), field="zenoh.config_file")
+            conf = load_config_file(self.config_file, field="zenoh.config_file")
             if self.mode is not None:
                 conf.insert_json5("mode", f'"{self.mode}"')
             if self.connect:

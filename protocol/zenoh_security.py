@@ -92,6 +92,7 @@ from fleetmpc.protocol.zenoh_config import (
 
 __all__ = [
     "CERTIFICATE_DAYS",
+    "MANIFEST_NAME",
     "ZenohSecurity",
     "fleet_access_control",
     "make_zenoh_security",
@@ -104,7 +105,8 @@ CERTIFICATE_DAYS = 30
 
 TARGET_USER = "target"
 GROUND_STATION_USER = "gcs"
-_MANIFEST = "zenoh-security.json"
+MANIFEST_NAME = "zenoh-security.json"
+"""The file that says what a folder of the bus's secrets holds (`ZenohSecurity.load`)."""
 _NEW_KEY = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes")
 """openssl req's options for a fresh unencrypted P-256 key (written by openssl, mode 0600)."""
 _LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
@@ -152,7 +154,7 @@ class ZenohSecurity:
     @property
     def manifest_file(self) -> Path:
         """``zenoh-security.json``: what `make_zenoh_security` made (no secret)."""
-        return self.directory / _MANIFEST
+        return self.directory / MANIFEST_NAME
 
     @property
     def dictionary_file(self) -> Path:
@@ -183,6 +185,12 @@ class ZenohSecurity:
     def client_config_name(user: str) -> str:
         """The file name of `user`'s client config (in the directory)."""
         return f"zenoh-{user}.json5"
+
+    def router_files(self) -> tuple[Path, ...]:
+        """The files the router reads: the manifest, the user dictionary and, with TLS, its
+        certificate and key and the CA (which checks client certificates under mutual TLS)."""
+        tls = (self.router_certificate, self.router_private_key, self.ca_certificate)
+        return (self.manifest_file, self.dictionary_file, *(p for p in tls if p is not None))
 
     def client_config(self, user: str) -> Path:
         """``zenoh-<user>.json5``: the Zenoh client config of `user` (see `zenoh_user`)."""
@@ -215,7 +223,7 @@ class ZenohSecurity:
         """The security `make_zenoh_security` wrote into `directory`; ConfigError naming
         `field` if it is missing or malformed."""
         directory = Path(directory).absolute()
-        path = directory / _MANIFEST
+        path = directory / MANIFEST_NAME
         try:
             manifest = json.loads(path.read_text(encoding="utf-8"))
             security = cls(
@@ -375,7 +383,6 @@ def router_security_config(conf: zenoh.Config, security_dir: str | Path) -> zeno
     conf.insert_json5("access_control", json.dumps(pieces["access_control"]))
     if security.tls:
         conf.insert_json5("transport/link/tls", json.dumps(pieces["transport"]["link"]["tls"]))
-    if security.tls:
         listen = json.loads(conf.get_json("listen/endpoints"))
         if not isinstance(listen, list):
             raise ConfigError("listen/endpoints", f"must be a list of endpoints, got {listen!r}")
