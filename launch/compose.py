@@ -122,6 +122,17 @@ class ComposeOptions:
         if self.gate_formation_m is not None and not self.gate_formation_m > 0:
             raise ConfigError("--gate-formation-m", f"must be > 0, got {self.gate_formation_m:g}")
 
+    @property
+    def out_on_host(self) -> str:
+        """The host folder mounted at /out, as the file writes it (the variable, else the
+        default)."""
+        return f"${{{self.out_dir_var}:-{self.out_dir}}}"
+
+    @property
+    def secrets_on_host(self) -> str:
+        """The host folder of the run's secrets, as the file writes it."""
+        return f"${{{self.secrets_dir_var}:-{self.secrets_dir}}}"
+
 
 def _escape(arg: str) -> str:
     """An argument as compose passes it on: `$` would start an interpolation."""
@@ -210,7 +221,6 @@ def compose_document(scenario: Scenario, *, scenario_name: str, options: Compose
             )
     net = scenario.network
     secrets: dict[str, dict] = {}
-    host_secrets = f"${{{options.secrets_dir_var}:-{options.secrets_dir}}}"
     here = {s.name for s in specs}
     router = next((s.name for s in specs if s.role == "router"), None)
     started: list[str] = []
@@ -243,14 +253,12 @@ def compose_document(scenario: Scenario, *, scenario_name: str, options: Compose
         if spec.role == "gcs":
             if options.gate_formation_m is not None:
                 argv = (*argv, "--gate-formation-m", f"{options.gate_formation_m:g}")
-            service["volumes"] = [
-                f"${{{options.out_dir_var}:-{options.out_dir}}}:{OUT_IN_CONTAINER}"
-            ]
+            service["volumes"] = [f"{options.out_on_host}:{OUT_IN_CONTAINER}"]
         service["command"] = [_escape(a) for a in argv]
         if not options.insecure:
             names = _secret_files(spec, scenario)
             service["secrets"] = names
-            secrets.update({n: {"file": f"{host_secrets}/{n}"} for n in names})
+            secrets.update({n: {"file": f"{options.secrets_on_host}/{n}"} for n in names})
         if spec.role == "router":
             probe = _HEALTH_PROBE.format(host=net.router_address, port=net.zenoh_port)
             service["healthcheck"] = {
@@ -333,7 +341,6 @@ def compose_yaml(scenario_path: str, options: ComposeOptions | None = None) -> s
     scenario = load_scenario(scenario_path)
     doc = compose_document(scenario, scenario_name=Path(scenario_path).name, options=options)
     duration = scenario.duration_s if options.duration_s is None else options.duration_s
-    out = f"${{{options.out_dir_var}:-{options.out_dir}}}"
     header = [
         f"# The {scenario.name} fleet under docker compose: {len(scenario.vehicles)} UAVs, "
         f"{duration:g} s of fleet time at x{options.speed:g}.",
@@ -357,7 +364,7 @@ def compose_yaml(scenario_path: str, options: ComposeOptions | None = None) -> s
             if options.insecure
             else (
                 "# Make the run's secrets first (MAVLink keys, Zenoh users and certificates) into",
-                f"# ${{{options.secrets_dir_var}:-{options.secrets_dir}}}:",
+                f"# {options.secrets_on_host}:",
                 "#",
                 f"#   fleetmpc keys {scenario_path} -o <that folder>",
                 "#",
@@ -376,7 +383,7 @@ def compose_yaml(scenario_path: str, options: ComposeOptions | None = None) -> s
             (
                 "# The exit status is the ground station's: 0 when every gate held. It writes"
                 " run.rrd and",
-                f"# metrics.json to {out} (a relative path is relative to",
+                f"# metrics.json to {options.out_on_host} (a relative path is relative to",
                 "# this file's directory).",
             )
             if "gcs" in doc["services"]

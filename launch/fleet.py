@@ -113,10 +113,13 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     ]
     external = options.external_autopilots
 
+    def key_path(vid: int) -> PurePath | None:
+        """Vehicle `vid`'s signing key file; None for an insecure fleet or an external autopilot."""
+        return None if secrets is None or vid in external else secrets / key_file_name(vid)
+
     def key(vid: int) -> tuple[str, ...]:
-        if secrets is None or vid in external:
-            return ()
-        return ("--mavlink-key", str(secrets / key_file_name(vid)))
+        path = key_path(vid)
+        return () if path is None else ("--mavlink-key", str(path))
 
     for v in scenario.vehicles:
         if v.id in external:
@@ -134,8 +137,8 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     gcs = ["gcs", *common, *bus_of(GROUND_STATION_ID), *speed, "--duration", _num(duration)]
     gcs += ["--viewer", options.viewer]
     for v in scenario.vehicles:
-        if key(v.id):
-            gcs += ["--mavlink-key", f"{v.id}={secrets / key_file_name(v.id)}"]
+        if key_path(v.id) is not None:
+            gcs += ["--mavlink-key", f"{v.id}={key_path(v.id)}"]
     for flag, value in (
         ("--rrd", options.rrd),
         ("--metrics", options.metrics),

@@ -14,7 +14,6 @@ command line.
 """
 
 import argparse
-import os
 from pathlib import Path
 
 from fleetmpc.errors import ConfigError
@@ -32,12 +31,8 @@ def make_keys(
     a MAVLink signing key per vehicle, and the Zenoh bus's (fleet name `fleet`, default the
     scenario's; client certificates too with `mutual_tls`)."""
     directory = Path(directory)
-    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-    os.chmod(directory, 0o700)
-    for vid in scenario.vehicle_ids:
-        write_key_file(directory / key_file_name(vid))
     net = scenario.network
-    make_zenoh_security(
+    make_zenoh_security(  # (creates the folder, 0700)
         directory,
         fleet=fleet or scenario.name,
         vehicle_ids=scenario.vehicle_ids,
@@ -45,6 +40,8 @@ def make_keys(
         router_port=net.zenoh_port,
         mutual_tls=mutual_tls,
     )
+    for vid in scenario.vehicle_ids:
+        write_key_file(directory / key_file_name(vid))
     return directory
 
 
