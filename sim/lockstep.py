@@ -238,18 +238,15 @@ def _network_report(
     and period, what each kept and what it dropped as beyond its neighbourhood)."""
     counters = [bus.counters() for bus in buses]
     agent_periods = max(1, len(buses) * periods)
+    received = {
+        name: sum(getattr(c, name) for c in counters)
+        for name in ("published", "accepted", "duplicates", "out_of_order", "filtered")
+    }
     report = {
         "faults": [] if faults is None else [f.describe() for f in faults.faults],
-        "received": {
-            "published": sum(c.published for c in counters),
-            "accepted": sum(c.accepted for c in counters),
-            "duplicates": sum(c.duplicates for c in counters),
-            "out_of_order": sum(c.out_of_order for c in counters),
-            "filtered": sum(c.filtered for c in counters),
-        },
+        "received": received,
         "per_agent_period": {
-            "accepted": sum(c.accepted for c in counters) / agent_periods,
-            "filtered": sum(c.filtered for c in counters) / agent_periods,
+            name: received[name] / agent_periods for name in ("accepted", "filtered")
         },
     }
     if faults is not None:
