@@ -23,8 +23,13 @@ import numpy as np
 
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
-from fleetmpc.onboard.core.agent import reference_course_rate, vehicle_mpc
-from fleetmpc.onboard.core.formation import Formation, ReferenceCourse, TrueReference
+from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
+from fleetmpc.onboard.core.formation import (
+    CourseRateLimit,
+    Formation,
+    ReferenceCourse,
+    TrueReference,
+)
 from fleetmpc.onboard.core.neighbourhood import safety_radius
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.scenario import Scenario, load_scenario
@@ -70,13 +75,13 @@ class _Requirements:
 
 
 def _slot_requirements(
-    sc: Scenario, course_rate_rad_s: float, dt_s: float = _CHECK_STEP_S
+    sc: Scenario, course_limit: CourseRateLimit, dt_s: float = _CHECK_STEP_S
 ) -> _Requirements:
     """The slots' airspeed and yaw-rate needs, and the corners' jumps, over the run, for a
-    reference course turning at most at course_rate_rad_s."""
+    reference course turning at most as `course_limit` allows."""
     t = np.arange(0.0, sc.duration_s + dt_s, dt_s)
     formation = Formation(sc.formation)
-    reference = TrueReference(course_rate_rad_s)
+    reference = TrueReference(course_limit)
     states = [sc.target.state_at(ti) for ti in t]
     target = np.array([p for p, _ in states])
     target_vel = np.array([v for _, v in states])
@@ -143,8 +148,8 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         float(np.hypot(*sc.target.state_at(t)[1])) for t in np.linspace(0, sc.duration_s, 200)
     )
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
-    course_rate = reference_course_rate(sc.controller, sc.formation)
-    needs = _slot_requirements(sc, course_rate)
+    course_limit = reference_course_limit(sc.controller, sc.formation)
+    needs = _slot_requirements(sc, course_limit)
     speeds, rates = needs.speeds_m_s, needs.yaw_rates_rad_s
     for v, sp, wr in zip(sc.vehicles, speeds, rates, strict=True):
         lines.append(
@@ -171,6 +176,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         turn_s = angle / w_bound
         behind_m = 0.5 * jump * turn_s  # the velocity error closes linearly while it turns
         catch_up = v_bound - speed_after
+        sweep_rate = course_limit.at(float(np.hypot(*sc.target.state_at(t_c)[1])))
         back = (
             f"back on its slot about {turn_s + behind_m / catch_up:.0f} s after it"
             if catch_up > 0
@@ -180,7 +186,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"corner at t = {t_c:.1f} s: a slot's velocity turns {math.degrees(angle):.0f} deg "
             f"at once; its vehicle needs about {turn_s:.1f} s to turn, falls up to about "
             f"{behind_m:.1f} m behind, {back} (the formation itself sweeps round at "
-            f"{course_rate:.3f} rad/s)"
+            f"{sweep_rate:.3f} rad/s)"
         )
     formation = Formation(sc.formation)
     radius = safety_radius(c, float(mpc.tube_radius_m[-1]))

@@ -8,7 +8,7 @@ ground station receives: `ScenarioRows` computes them once per period, in period
 import numpy as np
 
 from fleetmpc.gcs.growable import Growable
-from fleetmpc.onboard.core.agent import reference_course_rate
+from fleetmpc.onboard.core.agent import reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.scenario import Scenario
 
@@ -46,7 +46,9 @@ class ScenarioRows:
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
         self.formation = Formation(scenario.formation)
-        self._course = TrueReference(reference_course_rate(scenario.controller, scenario.formation))
+        self._course = TrueReference(
+            reference_course_limit(scenario.controller, scenario.formation)
+        )
         """The reference course of the true target, advanced as the periods are."""
         self._rows = {name: Growable() for name in FIELDS}
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord, RunConstants
 from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
-from fleetmpc.onboard.core.agent import AgentInput, reference_course_rate
+from fleetmpc.onboard.core.agent import AgentInput, reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, TrueReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
@@ -74,7 +74,7 @@ def _fly(
         for v in sc.vehicles
     ]
     truth_formation = Formation(sc.formation)
-    truth_course = TrueReference(reference_course_rate(sc.controller, sc.formation))
+    truth_course = TrueReference(reference_course_limit(sc.controller, sc.formation))
     """The slots the run is judged against: the formation at the rate-limited reference course
     of the true target, as the agents place it from their estimates."""
     n = len(plants)

@@ -25,7 +25,12 @@ import numpy as np
 from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.onboard.core.dekf import DualEkf
-from fleetmpc.onboard.core.formation import Formation, ReferenceCourse, course_rate_limit
+from fleetmpc.onboard.core.formation import (
+    CourseRateLimit,
+    Formation,
+    ReferenceCourse,
+    course_rate_limit,
+)
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.neighbourhood import Neighbourhood
 from fleetmpc.onboard.core.seeding import Seeder
@@ -34,17 +39,19 @@ from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
 from fleetmpc.protocol.plan import Plan
 
-__all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_rate", "vehicle_mpc"]
+__all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_limit", "vehicle_mpc"]
 
 REFERENCE_HISTORY = 50
 """Periods of reference course kept to restart a sweep where a manoeuvre began."""
 
 
-def reference_course_rate(controller: ControllerSettings, formation: FormationSettings) -> float:
-    """How fast the formation's reference course may turn [rad/s], as every agent of the fleet
-    computes it (from its tube-tightened input bounds and the formation's lever arms)."""
+def reference_course_limit(
+    controller: ControllerSettings, formation: FormationSettings
+) -> CourseRateLimit:
+    """How fast the formation's reference course may turn at a target speed, as every agent of
+    the fleet computes it (from its tube-tightened input bounds and the formation's lever arms)."""
     shape = Formation(formation)
-    return _course_rate(vehicle_mpc(controller, shape), shape, controller)
+    return _course_rate(vehicle_mpc(controller, shape), shape)
 
 
 def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbmpc:
@@ -58,13 +65,10 @@ def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbm
     )
 
 
-def _course_rate(mpc: TubeLbmpc, formation: Formation, controller: ControllerSettings) -> float:
+def _course_rate(mpc: TubeLbmpc, formation: Formation) -> CourseRateLimit:
     speed_bound, yaw_rate_bound = (mpc.u_max - mpc.tightening[-1]).tolist()
     return course_rate_limit(
-        formation,
-        speed_bound_m_s=speed_bound,
-        yaw_rate_bound_rad_s=yaw_rate_bound,
-        cruise_speed_m_s=controller.reference_speed_m_s,
+        formation, speed_bound_m_s=speed_bound, yaw_rate_bound_rad_s=yaw_rate_bound
     )
 
 
@@ -147,7 +151,7 @@ class Agent:
         self.target = TargetEstimator(observation_std_m=target_observation_std_m)
         self.formation = Formation(formation)
         self.mpc = vehicle_mpc(controller, self.formation)
-        self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation, controller))
+        self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation))
         self._reference_stamp_ns = 0
         self._course_locked = False
         """True once the target's course was known well enough to rate-limit the reference."""

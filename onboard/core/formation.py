@@ -9,11 +9,15 @@ along the reference course.
 The reference course follows the target's course but turns at most at a bounded rate, so a slot
 never asks its vehicle for more than it can fly: when the formation turns at rate r about the
 target, slot i moves at the target's velocity plus r times its lever arm L_i (its distance from
-the target: |o_i - (d_s, 0)| in the course frame, d_s in the world frame). With the tightened
-speed bound V̄ and the cruise speed V_c, the limit spends three quarters of the spare speed on
-the turn and keeps a quarter (SPEED_RESERVE) for wind, effectiveness errors and catching up, and
-half the tightened yaw-rate bound ω̄:
-    r_max = min(ω̄ / 2, (1 - SPEED_RESERVE) (V̄ - V_c) / max_i L_i).
+the target: |o_i - (d_s, 0)| in the course frame, d_s in the world frame), so at most at the
+target's speed v plus r L_i. With the tightened speed bound V̄, the limit spends three quarters
+of the spare speed V̄ - v on the turn and keeps a quarter (SPEED_RESERVE) for wind,
+effectiveness errors and catching up, and half the tightened yaw-rate bound ω̄:
+    r_max(v) = min(ω̄ / 2, (1 - SPEED_RESERVE) (V̄ - v) / max_i L_i)
+(`CourseRateLimit`), at the target's speed: a target that slows down to turn (the lobes of a
+figure eight) leaves the formation more room to turn with it. The speed the limit reads follows
+the target's at most at SPEED_SLEW_M_S2, so the dip and overshoot of an estimated speed while
+the filter turns its velocity round a corner move neither the sweep's rate.
 The reference course turns at the target's turn rate plus a gentle correction toward the
 target's course, the sum clipped to r_max:
     dpsi/dt = clip(omega_target + k (course - psi), -r_max, r_max),   k = COURSE_GAIN_PER_S,
@@ -24,6 +28,7 @@ through k, and at a waypoint corner the formation sweeps round at r_max instead 
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,6 +36,7 @@ from fleetmpc.onboard.core.config import FormationSettings
 from fleetmpc.onboard.core.unicycle import wrap, wrap_angle
 
 __all__ = [
+    "CourseRateLimit",
     "Formation",
     "ReferenceCourse",
     "TrueReference",
@@ -42,7 +48,7 @@ MIN_COURSE_SPEED_M_S = 0.05
 """Below this target speed the course is not defined: the reference course holds."""
 
 SPEED_RESERVE = 0.25
-"""Share of the spare speed (tightened bound less cruise speed) the reference course's turn
+"""Share of the spare speed (tightened bound less the target's speed) the reference course's turn
 leaves for wind, effectiveness errors and catching up."""
 
 COURSE_GAIN_PER_S = 0.2
@@ -52,6 +58,10 @@ rate, where it is significant, carries it round a steady turn without lag. (With
 fed forward unconditionally, 0.2 let the turn-rate errors of a figure eight through threefold
 and 0.3 was kept; with the significance test, 0.2 against 0.3 took the suite's learning ratios
 down by up to 0.04, a straight line's by 0.10, the figure eight's up by 0.01.)"""
+
+SPEED_SLEW_M_S2 = 0.05
+"""How fast the speed the rate limit reads may change [m/s^2]: faster than a target that slows
+into a turn (a figure eight's 0.015 m/s^2), far slower than an estimate's swing at a corner."""
 
 MIN_COURSE_RATE_RAD_S = 0.01
 """The reference course turns at least this fast, even when the team has no spare speed (the
@@ -123,32 +133,54 @@ def _nearest_links(distances: np.ndarray, count: int) -> tuple[tuple[int, ...], 
     )
 
 
+@dataclass(frozen=True)
+class CourseRateLimit:
+    """r_max(v) [rad/s]: how fast the reference course may turn at the target's speed v (module
+    docstring), never below MIN_COURSE_RATE_RAD_S."""
+
+    speed_bound_m_s: float
+    """V̄: the tightened speed bound [m/s]."""
+    yaw_rate_bound_rad_s: float
+    """ω̄: the tightened yaw-rate bound [rad/s]."""
+    lever_m: float
+    """The longest lever arm max_i L_i [m]."""
+
+    @classmethod
+    def fixed(cls, rate_rad_s: float) -> "CourseRateLimit":
+        """The same limit at every speed (no lever arm)."""
+        return cls(speed_bound_m_s=math.inf, yaw_rate_bound_rad_s=2.0 * rate_rad_s, lever_m=0.0)
+
+    def at(self, speed_m_s: float) -> float:
+        """r_max at the target's speed `speed_m_s`."""
+        spare = (1.0 - SPEED_RESERVE) * (self.speed_bound_m_s - speed_m_s)
+        by_speed = math.inf if self.lever_m < 1e-9 else spare / self.lever_m
+        return max(MIN_COURSE_RATE_RAD_S, min(0.5 * self.yaw_rate_bound_rad_s, by_speed))
+
+
 def course_rate_limit(
-    formation: Formation,
-    *,
-    speed_bound_m_s: float,
-    yaw_rate_bound_rad_s: float,
-    cruise_speed_m_s: float,
-) -> float:
-    """r_max [rad/s] (module docstring) from the tightened input bounds and the lever arms."""
-    lever = float(formation.lever_arms_m().max())
-    spare = (1.0 - SPEED_RESERVE) * (speed_bound_m_s - cruise_speed_m_s)
-    by_speed = math.inf if lever < 1e-9 else spare / lever
-    return max(MIN_COURSE_RATE_RAD_S, min(0.5 * yaw_rate_bound_rad_s, by_speed))
+    formation: Formation, *, speed_bound_m_s: float, yaw_rate_bound_rad_s: float
+) -> CourseRateLimit:
+    """r_max(v) (module docstring) from the tightened input bounds and the lever arms."""
+    return CourseRateLimit(
+        speed_bound_m_s=speed_bound_m_s,
+        yaw_rate_bound_rad_s=yaw_rate_bound_rad_s,
+        lever_m=float(formation.lever_arms_m().max()),
+    )
 
 
 class ReferenceCourse:
-    """The formation's reference course: the target's course, turned at most at `rate_max`.
+    """The formation's reference course: the target's course, turned at most at the rate
+    `limit` allows at the target's speed.
 
     Angles are unwrapped (continuous over time), in radians.
     """
 
-    def __init__(self, rate_max_rad_s: float) -> None:
-        if not rate_max_rad_s > 0:
-            raise ValueError(f"rate_max_rad_s must be > 0, got {rate_max_rad_s}")
-        self.rate_max_rad_s = rate_max_rad_s
+    def __init__(self, limit: CourseRateLimit) -> None:
+        self.limit = limit
         self.value: float | None = None
         """The reference course now, None before the target's course was known."""
+        self.limit_speed_m_s = 0.0
+        """The target speed the rate limit reads (module docstring) [m/s]."""
 
     @staticmethod
     def course_of(velocity_m_s: Sequence[float]) -> float | None:
@@ -164,7 +196,7 @@ class ReferenceCourse:
         course = self.course_of(velocity_m_s)
         if course is None:
             return current
-        rate_max = self.rate_max_rad_s
+        rate_max = self.limit.at(self.limit_speed_m_s)
         # (The error against where the turn alone would take it: a steady turn has none.)
         rate = turn_rate + COURSE_GAIN_PER_S * wrap(course - current - turn_rate * dt_s)
         return current + dt_s * (-rate_max if rate < -rate_max else min(rate, rate_max))
@@ -174,6 +206,7 @@ class ReferenceCourse:
         course = self.course_of(velocity_m_s)
         if course is not None:
             self.value = course if self.value is None else self.value + wrap(course - self.value)
+        self.limit_speed_m_s = math.hypot(*velocity_m_s)
 
     def follow(
         self, velocity_m_s: Sequence[float], dt_s: float, *, turn_rate_rad_s: float = 0.0
@@ -182,6 +215,9 @@ class ReferenceCourse:
         if self.value is None:
             self.reset(velocity_m_s)
         else:
+            slew = SPEED_SLEW_M_S2 * dt_s
+            change = math.hypot(*velocity_m_s) - self.limit_speed_m_s
+            self.limit_speed_m_s += -slew if change < -slew else min(change, slew)
             self.value = self._turned(self.value, velocity_m_s, turn_rate_rad_s, dt_s)
         return self.value
 
@@ -224,8 +260,8 @@ class TrueReference:
     agents would place it from a perfect estimate (the turn rate from consecutive courses): the
     slots a run is judged against."""
 
-    def __init__(self, rate_max_rad_s: float) -> None:
-        self._course = ReferenceCourse(rate_max_rad_s)
+    def __init__(self, limit: CourseRateLimit) -> None:
+        self._course = ReferenceCourse(limit)
         self._last: float | None = None
 
     def follow(self, velocity_m_s: Sequence[float], dt_s: float) -> float:
@@ -240,9 +276,11 @@ class TrueReference:
         return 0.0 if value is None else value
 
 
-def reference_courses(velocities_m_s: np.ndarray, dt_s: float, rate_max_rad_s: float) -> np.ndarray:
+def reference_courses(
+    velocities_m_s: np.ndarray, dt_s: float, limit: CourseRateLimit
+) -> np.ndarray:
     """`TrueReference` over a whole run: courses (K,) for velocities (K, 2) dt_s apart, wrapped
     to [-pi, pi)."""
-    ref = TrueReference(rate_max_rad_s)
+    ref = TrueReference(limit)
     out = [ref.follow(v, dt_s) for v in np.asarray(velocities_m_s, float).tolist()]
     return np.asarray(wrap_angle(np.array(out)))

@@ -120,8 +120,9 @@ class MotionModel:
 STEADY = MotionModel(accel_std_m_s2=0.001, turn_accel_std_rad_s2=1e-5, mean_duration_s=60.0)
 """A straight line or a turn of constant rate, at a constant speed."""
 
-TURNING = MotionModel(accel_std_m_s2=0.005, turn_accel_std_rad_s2=0.003, mean_duration_s=20.0)
-"""A turn that tightens or opens (a figure eight's lobes), a speed that changes."""
+TURNING = MotionModel(accel_std_m_s2=0.02, turn_accel_std_rad_s2=0.003, mean_duration_s=20.0)
+"""A turn that tightens or opens (a figure eight's lobes), a speed that changes (docs/design.md,
+"Target": the turning model's acceleration)."""
 
 _START_STD = (2.0, 0.1)
 """Standard deviations of the velocity [m/s] and turn rate [rad/s] at the first observation."""

@@ -136,7 +136,7 @@ def test_nan_measurement_never_reaches_the_command(paper):
 def test_a_corner_noticed_late_is_swept_from_when_the_target_turned():
     """The reference course's sweep after a waypoint corner starts at the corner (as the true
     reference's does), not when the filter noticed it a few observations later."""
-    from fleetmpc.onboard.core.agent import reference_course_rate
+    from fleetmpc.onboard.core.agent import reference_course_limit
     from fleetmpc.onboard.core.formation import TrueReference
     from fleetmpc.scenario import load_scenario
 
@@ -150,7 +150,7 @@ def test_a_corner_noticed_late_is_swept_from_when_the_target_turned():
         learning=sc.learning,
         target_observation_std_m=sc.target.observation_noise_m,
     )
-    truth = TrueReference(reference_course_rate(sc.controller, sc.formation))
+    truth = TrueReference(reference_course_limit(sc.controller, sc.formation))
     rng = np.random.default_rng(11)
     period_ns = sc.controller.period_ns
     lags = []
@@ -161,7 +161,7 @@ def test_a_corner_noticed_late_is_swept_from_when_the_target_turned():
         true_course = truth.follow(velocity.tolist(), period_ns * 1e-9)
         if t >= 42.0:  # the corner is at 40 s
             lags.append(abs(agent.reference.value - true_course))
-    rate = reference_course_rate(sc.controller, sc.formation)
+    rate = reference_course_limit(sc.controller, sc.formation).at(sc.target.speed_m_s)
     assert max(lags) < rate * 0.25  # less than 0.25 s of the sweep behind
 
 

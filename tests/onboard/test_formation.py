@@ -6,7 +6,9 @@ import pytest
 from fleetmpc.onboard.core.config import FormationSettings
 from fleetmpc.onboard.core.formation import (
     COURSE_GAIN_PER_S,
+    MIN_COURSE_RATE_RAD_S,
     SPEED_RESERVE,
+    CourseRateLimit,
     Formation,
     ReferenceCourse,
     TrueReference,
@@ -20,7 +22,7 @@ def _velocity(course: float, speed: float = 1.0) -> tuple[float, float]:
 
 
 def test_a_corner_becomes_a_sweep_at_the_rate_limit():
-    ref = ReferenceCourse(0.05)
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
     ref.follow(_velocity(0.0), 0.2)
     values = [ref.follow(_velocity(math.pi / 2), 0.2) for _ in range(400)]
     steps = np.diff([0.0, *values])
@@ -31,7 +33,7 @@ def test_a_corner_becomes_a_sweep_at_the_rate_limit():
 
 
 def test_a_replay_turns_as_the_reference_would_have_from_a_past_value():
-    ref = ReferenceCourse(0.05)
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
     ref.follow(_velocity(0.0), 0.2)
     replayed = ref.replay(0.0, _velocity(math.pi / 2), 0.2, 10, turn_rate_rad_s=0.0)
     assert ref.value == 0.0  # (the state stays)
@@ -42,7 +44,7 @@ def test_a_replay_turns_as_the_reference_would_have_from_a_past_value():
 
 def test_a_steady_turn_below_the_limit_is_followed_without_lag():
     rate, dt = 0.03, 0.2
-    ref = ReferenceCourse(0.05)
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
     courses = rate * dt * np.arange(300)
     for c in courses:
         value = ref.follow(_velocity(c), dt, turn_rate_rad_s=rate)
@@ -51,7 +53,7 @@ def test_a_steady_turn_below_the_limit_is_followed_without_lag():
 
 def test_course_noise_reaches_the_reference_attenuated():
     rng = np.random.default_rng(0)
-    ref = ReferenceCourse(0.05)
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
     noise = 0.02 * rng.standard_normal(500)
     values = [ref.follow(_velocity(n), 0.2) for n in noise]
     assert np.std(values[50:]) < 0.3 * np.std(noise)
@@ -59,7 +61,7 @@ def test_course_noise_reaches_the_reference_attenuated():
 
 
 def test_a_still_target_keeps_the_course_and_ahead_leaves_the_state_alone():
-    ref = ReferenceCourse(0.05)
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
     assert ref.follow((0.0, 0.0), 0.2) is None
     ref.follow(_velocity(1.0), 0.2)
     assert ref.follow((0.01, 0.0), 0.2) == pytest.approx(1.0)
@@ -73,16 +75,32 @@ def test_the_rate_limit_spends_the_spare_speed_on_the_longest_lever():
         FormationSettings(slots_m=((0.0, 0.0), (-3.0, 4.0)), frame="course", trail_m=5.0)
     )
     np.testing.assert_allclose(course_frame.lever_arms_m(), [5.0, math.hypot(8.0, 4.0)])
-    r = course_rate_limit(
-        course_frame, speed_bound_m_s=1.9, yaw_rate_bound_rad_s=0.4, cruise_speed_m_s=1.0
-    )
-    assert r == pytest.approx((1 - SPEED_RESERVE) * 0.9 / math.hypot(8.0, 4.0))
+    limit = course_rate_limit(course_frame, speed_bound_m_s=1.9, yaw_rate_bound_rad_s=0.4)
+    lever = math.hypot(8.0, 4.0)
+    assert limit.at(1.0) == pytest.approx((1 - SPEED_RESERVE) * 0.9 / lever)
+    # A slower target leaves more spare speed for the turn; one at the bound leaves the floor.
+    assert limit.at(0.5) == pytest.approx((1 - SPEED_RESERVE) * 1.4 / lever)
+    assert limit.at(1.9) == MIN_COURSE_RATE_RAD_S
     world = Formation(FormationSettings(slots_m=((0.0, 0.0), (0.0, 10.0)), trail_m=5.0))
     np.testing.assert_allclose(world.lever_arms_m(), [5.0, 5.0])
-    fast = course_rate_limit(
-        world, speed_bound_m_s=10.0, yaw_rate_bound_rad_s=0.4, cruise_speed_m_s=1.0
+    fast = course_rate_limit(world, speed_bound_m_s=10.0, yaw_rate_bound_rad_s=0.4)
+    assert fast.at(1.0) == pytest.approx(0.2)  # half the tightened yaw-rate bound
+    assert CourseRateLimit.fixed(0.05).at(1.7) == 0.05
+
+
+def test_the_reference_turns_faster_where_the_target_slows_down():
+    limit = course_rate_limit(
+        Formation(FormationSettings(slots_m=((0.0, 0.0),), frame="course", trail_m=10.0)),
+        speed_bound_m_s=1.8,
+        yaw_rate_bound_rad_s=0.4,
     )
-    assert fast == pytest.approx(0.2)  # half the tightened yaw-rate bound
+    swept = []
+    for speed in (1.2, 0.6):
+        ref = ReferenceCourse(limit)
+        ref.follow(_velocity(0.0, speed), 0.2)
+        swept.append(ref.follow(_velocity(math.pi / 2, speed), 0.2) / 0.2)
+    assert swept == pytest.approx([limit.at(1.2), limit.at(0.6)])
+    assert swept[1] == pytest.approx(2.0 * swept[0])
 
 
 def test_slots_turn_with_the_reference_course():
@@ -96,7 +114,9 @@ def test_the_true_reference_of_a_run_is_the_stateful_one_period_by_period():
     t = 0.2 * np.arange(400)
     course = np.where(t < 40.0, 0.0, math.pi / 2)
     v = np.column_stack([np.cos(course), np.sin(course)])
-    ref = TrueReference(0.04)
+    ref = TrueReference(CourseRateLimit.fixed(0.04))
     one_by_one = [ref.follow(tuple(x), 0.2) for x in v]
-    np.testing.assert_allclose(reference_courses(v, 0.2, 0.04), one_by_one, atol=1e-12)
+    np.testing.assert_allclose(
+        reference_courses(v, 0.2, CourseRateLimit.fixed(0.04)), one_by_one, atol=1e-12
+    )
     assert max(np.diff(one_by_one)) <= 0.04 * 0.2 + 1e-12
