@@ -158,3 +158,16 @@ def test_grid9_is_a_3_by_3_world_frame_grid_of_6_m():
     ]
     assert sc.target.kind == "circle" and sc.target.radius_m == 60.0
     assert sc.duration_s == 60.0
+
+
+HARD = sorted((ROOT / "scenarios" / "hard").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", HARD, ids=[p.stem for p in HARD])
+def test_the_hard_cases_are_feasible_scenarios_whose_first_slots_are_near_their_vehicles(path):
+    """scenarios/hard/ holds cases kept to measure against, not broken files: each validates, its
+    target is feasible, and every vehicle starts within 40 m of its first slot."""
+    sc = load_scenario(path)
+    assert check_scenario(sc).feasible
+    starts = np.array([v.initial[:2] for v in sc.vehicles])
+    assert np.hypot(*(starts - _slots_at_start(sc)).T).max() < 40.0
