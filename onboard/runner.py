@@ -72,8 +72,9 @@ class RunnerSettings:
 
     period_ns: int
     """Control period tau [ns] (the scenario's)."""
-    plan_max_age_ns: int = 5_000_000_000
-    """Neighbours' plans older than this are not handed to the agent [ns]."""
+    plan_max_age_ns: int = 60_000_000_000
+    """Neighbours' plans older than this are not handed to the agent [ns] (as long as the
+    agent's plan_forget_s: a silent neighbour is kept clear of, not forgotten)."""
     target_max_age_ns: int = 2_000_000_000
     """Target observations older than this are ignored [ns]."""
     engage: bool = True

@@ -43,9 +43,14 @@ class ControllerSettings:
     plan_extrapolation_s: float = 1.0
     """How far past its end a neighbour's plan is extrapolated [s]."""
     plan_stale_s: float = 1.0
-    """Plan age beyond which a neighbour's formation term is dropped [s]."""
-    plan_forget_s: float = 10.0
+    """Plan age beyond which a neighbour's formation term is dropped and it is taken to be
+    silent: somewhere between its last plan and its slot (docs/design.md, "Silent
+    neighbours") [s]."""
+    plan_forget_s: float = 60.0
     """Plan age beyond which a neighbour is ignored entirely [s]."""
+    silent_allowance_m: float = 1.0
+    """Distance kept beyond the margin from a silent neighbour's region, for what its agent and
+    this one see differently of the target and of its path to its slot [m]."""
     neighbours_max: int = 12
     """K: at most this many neighbours get separation constraints in a vehicle's QP, the
     nearest of those within its safety radius (docs/design.md, "Neighbourhood"); the QP's size
@@ -94,6 +99,7 @@ class ControllerSettings:
             "w_heading_rad",
             "d_safe_m",
             "r_yaw_rate_change",
+            "silent_allowance_m",
         ):
             positive(f"controller.{name}", getattr(self, name), allow_zero=True)
         in_range("controller.solver_eps", self.solver_eps, 1e-12, 1e-5)

@@ -2,7 +2,8 @@
 "Formation reference"; the plan ages of "The plan bus").
 
 From the neighbours' latest plans and their ages: the margin inflation of each (v_max x the age
-beyond one period; a forgotten plan drops its neighbour); the formation terms of the linked
+beyond one period; a forgotten plan drops its neighbour), and where a silent one may be (between
+its last plan and its slot); the formation terms of the linked
 vehicles (the formation graph) whose plans are fresh, and their pull on this vehicle's goal; the
 nearest vehicles within the safety radius, at most K (a neighbourhood whose size does not grow
 with the fleet), and the separation half-planes against each
@@ -83,13 +84,43 @@ class Neighbourhood:
     def inflations(self, ages: Mapping[int, float], late_s: float) -> dict[int, float]:
         """The margin inflation of each neighbour (by its plan's age, `ages` holding only the
         fleet's other vehicles) whose plan is not forgotten [m]: v_max x (its plan's age beyond
-        one period, plus how late this step runs)."""
+        one period, plus how late this step runs); for a silent one (`silent`) only the
+        lateness, its region standing for its age."""
         s = self.settings
         return {
-            nid: s.speed_max_m_s * (max(0.0, age - s.period_s) + late_s)
+            nid: s.speed_max_m_s
+            * (late_s + (0.0 if self.silent(age) else max(0.0, age - s.period_s)))
             for nid, age in ages.items()
             if abs(age) <= s.plan_forget_s
         }
+
+    def silent(self, age_s: float) -> bool:
+        """True for a neighbour whose plan is older than plan_stale_s: it is heard no more."""
+        return age_s > self.settings.plan_stale_s
+
+    def _closest(
+        self,
+        nid: int,
+        stamp_ns: int,
+        neighbour_plans: Mapping[int, Plan],
+        ages: Mapping[int, float],
+        slots: Mapping[int, tuple[float, float]],
+        here: tuple[float, float],
+    ) -> tuple[float, float]:
+        """Where a neighbour may be that is closest to `here`: its plan's position now, or for a
+        silent one the point nearest `here` of the segment from there to its slot now
+        (docs/design.md, "Silent neighbours")."""
+        held = neighbour_plans[nid].position_at(stamp_ns)
+        if not self.silent(ages[nid]) or nid not in slots:
+            return held
+        (ax, ay), (bx, by) = held, slots[nid]
+        dx, dy = bx - ax, by - ay
+        length2 = dx * dx + dy * dy
+        if length2 < 1e-12:
+            return held
+        t = ((here[0] - ax) * dx + (here[1] - ay) * dy) / length2
+        t = 0.0 if t < 0.0 else min(t, 1.0)
+        return ax + t * dx, ay + t * dy
 
     def nearest(
         self,
@@ -97,13 +128,15 @@ class Neighbourhood:
         neighbour_plans: Mapping[int, Plan],
         here: tuple[float, float],
         inflations: Mapping[int, float],
+        ages: Mapping[int, float],
+        slots: Mapping[int, tuple[float, float]],
     ) -> list[int]:
         """The vehicles within the safety radius of `here`, nearest first (by distance less
-        inflation, then id), at most K of them."""
+        inflation, then id), at most K of them; `slots` holds every vehicle's slot now."""
         hx, hy = here
         near = []
         for nid, inflation in inflations.items():
-            px, py = neighbour_plans[nid].position_at(stamp_ns)
+            px, py = self._closest(nid, stamp_ns, neighbour_plans, ages, slots, here)
             gap = math.hypot(px - hx, py - hy) - inflation
             if gap <= self.radius_m:
                 near.append((gap, nid))
@@ -158,11 +191,14 @@ class Neighbourhood:
         drift: tuple[float, float],
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
+        slots: Mapping[int, tuple[float, float]],
     ) -> list[list[Plane]]:
         """Separation half-planes against each of `neighbours` at j = 1..M
         (`separation_planes`), between where this vehicle's previous plan `last_plan` (or,
         without one, the vehicle) and the neighbour's plan are now; the distance is shared while
-        the neighbour's plan is at most two periods old. Padded to K neighbours with no planes."""
+        the neighbour's plan is at most two periods old. A silent neighbour is kept clear of
+        from the point of its region nearest this vehicle, silent_allowance_m farther.
+        Padded to K neighbours with no planes."""
         s, M = self.settings, self.settings.horizon
         own = here if last_plan is None else last_plan.position_at(stamp_ns)
         drift_steps = [
@@ -172,7 +208,9 @@ class Neighbourhood:
         for nid in sorted(neighbours, key=self._fleet_index.__getitem__):  # (in fleet order)
             shared = ages[nid] <= 2.0 * s.period_s + 1e-9
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
-            theirs = neighbour_plans[nid].position_at(stamp_ns)
+            if self.silent(ages[nid]):
+                margin += s.silent_allowance_m
+            theirs = self._closest(nid, stamp_ns, neighbour_plans, ages, slots, here)
             planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
         planes.extend([self._no_planes] * (self.size - len(planes)))
         return planes

@@ -40,7 +40,7 @@ def _inflation(age_s: float) -> float:
 def test_a_plan_stamped_in_the_future_is_kept_without_inflation():
     assert _inflation(-0.5) == 0.0  # a clock 0.5 s fast: kept, as fresh
     assert _inflation(0.2) == 0.0
-    assert _inflation(1.2) == SETTINGS.speed_max_m_s * 1.0
+    assert _inflation(0.9) == pytest.approx(SETTINGS.speed_max_m_s * 0.7)
 
 
 def test_a_plan_beyond_the_forget_age_either_way_is_ignored():
@@ -49,9 +49,10 @@ def test_a_plan_beyond_the_forget_age_either_way_is_ignored():
 
 
 def test_a_late_step_inflates_every_neighbour_by_v_max_times_its_lateness():
-    inflations = _hood((1, 2, 3)).inflations({2: 0.2, 3: 1.2}, 0.5)
+    inflations = _hood((1, 2, 3, 4)).inflations({2: 0.2, 3: 0.9, 4: 3.0}, 0.5)
     assert inflations[2] == pytest.approx(SETTINGS.speed_max_m_s * 0.5)
-    assert inflations[3] == pytest.approx(SETTINGS.speed_max_m_s * 1.5)
+    assert inflations[3] == pytest.approx(SETTINGS.speed_max_m_s * 1.2)
+    assert inflations[4] == pytest.approx(SETTINGS.speed_max_m_s * 0.5)  # silent: its region
 
 
 def test_the_safety_radius_covers_both_vehicles_closing_at_v_max_over_the_horizon():
@@ -68,10 +69,11 @@ def test_only_vehicles_within_the_radius_are_planned_against_nearest_first_at_mo
     gaps = {2: 0.5 * r, 3: 0.9 * r, 4: 0.3 * r, 5: 1.1 * r, 6: 3.0 * r, 7: 0.99 * r}
     plans = {k: _plan(k, NOW, gap, 0.0) for k, gap in gaps.items()}
     inflations = hood.inflations(dict.fromkeys(gaps, 0.2), 0.0)
-    near = hood.nearest(NOW, plans, (0.0, 0.0), inflations)
+    ages = dict.fromkeys(gaps, 0.2)
+    near = hood.nearest(NOW, plans, (0.0, 0.0), inflations, ages, {})
     assert near == [4, 2, 3]  # within the radius: 4, 2, 3, 7; K = 3 keeps the nearest three
     assert hood.crowded == 1
-    planes = hood.planes(NOW, near, plans, None, (0.0, 0.0), (0.0, 0.0), inflations, inflations)
+    planes = hood.planes(NOW, near, plans, None, (0.0, 0.0), (0.0, 0.0), ages, inflations, {})
     assert len(planes) == hood.size == 3
     assert all(math.isfinite(p[0][2]) for p in planes)
 
@@ -81,16 +83,39 @@ def test_a_stale_plans_inflation_brings_its_vehicle_into_the_radius():
     far = hood.radius_m + 1.0
     plans = {2: _plan(2, NOW, far, 0.0)}
     fresh = hood.inflations({2: 0.2}, 0.0)
-    stale = hood.inflations({2: 1.2}, 0.0)  # 1 s old: it may be 2 m nearer
-    assert hood.nearest(NOW, plans, (0.0, 0.0), fresh) == []
-    assert hood.nearest(NOW, plans, (0.0, 0.0), stale) == [2]
+    stale = hood.inflations({2: 0.9}, 0.0)  # 0.9 s old: it may be 1.4 m nearer
+    assert hood.nearest(NOW, plans, (0.0, 0.0), fresh, {2: 0.2}, {}) == []
+    assert hood.nearest(NOW, plans, (0.0, 0.0), stale, {2: 0.9}, {}) == [2]
+
+
+def test_a_silent_neighbour_is_kept_clear_of_between_its_last_plan_and_its_slot():
+    """Heard no more (its plan older than plan_stale_s), a neighbour is somewhere between where
+    its last plan put it and its slot now: the line is placed from the point of that segment
+    nearest this vehicle, at the whole distance plus silent_allowance_m, with no inflation by
+    its age. It is not forgotten while the agent keeps it (plan_forget_s)."""
+    hood = _hood((1, 2))
+    age = 5.0
+    plans = {2: _plan(2, NOW - int(age * 1e9), 0.0, 10.0)}  # held at (1.6, 10) by now
+    slots = {1: (8.0, 0.0), 2: (9.0, 10.0)}
+    here = (5.0, 4.0)
+    inflations = hood.inflations({2: age}, 0.0)
+    assert inflations == {2: 0.0}
+    assert hood.nearest(NOW, plans, here, inflations, {2: age}, slots) == [2]
+    (plane, *_), *_ = hood.planes(
+        NOW, [2], plans, None, here, (0.0, 0.0), {2: age}, inflations, slots
+    )
+    nx, ny, b = plane
+    assert (nx, ny) == pytest.approx((0.0, -1.0))  # from (5, 10) on the segment, toward here
+    alone = 2.0 * hood.margin_m - 0.1  # d_safe + s + r_M, the tube radius being 0.1 m
+    assert b - (nx * 5.0 + ny * 10.0) == pytest.approx(alone + SETTINGS.silent_allowance_m)
+    assert 2 in hood.inflations({2: SETTINGS.plan_forget_s - 1.0}, 0.0)
 
 
 def test_planes_are_padded_to_k_with_no_planes():
     hood = _hood((1, 2, 3, 4))
     plans = {2: _plan(2, NOW, 3.0, 0.0)}
     inflations = hood.inflations({2: 0.2}, 0.0)
-    planes = hood.planes(NOW, [2], plans, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
+    planes = hood.planes(NOW, [2], plans, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations, {})
     assert len(planes) == 3
     assert all(math.isinf(b) for _, _, b in planes[1] + planes[2])
 

@@ -62,9 +62,11 @@ def test_the_formation_is_as_good_after_the_fault(runs, baseline, case):
     assert runs[case]["formation_rms_m"] <= FORMATION_FACTOR * baseline["formation_rms_m"]
 
 
-@pytest.mark.xfail(strict=True, reason="a silent neighbour's margin stops the vehicle near it")
 @pytest.mark.parametrize("case", STALE_NEIGHBOUR)
 def test_the_formation_recovers_after_a_silent_neighbour(runs, baseline, case):
+    """A vehicle heard by no one for 5 s is kept clear of between its last plan and its slot,
+    not inside a circle growing at v_max: its neighbours keep their slots through the silence
+    (docs/design.md, "Silent neighbours"), and the formation is as good after it."""
     assert runs[case]["formation_rms_m"] <= FORMATION_FACTOR * baseline["formation_rms_m"]
 
 
@@ -116,14 +118,14 @@ def test_the_fault_matrix_command_prints_its_table(tmp_path, capsys):
     paper = str(ROOT / "scenarios" / "paper.toml")
     out_json = tmp_path / "faults.json"
     args = ["suite", "--faults", str(cases), "--fault-scenario", paper, "--json", str(out_json)]
-    assert main(args) == 1  # the blackout misses the formation gate (see above)
+    assert main(args) == 0
     out = capsys.readouterr().out
-    assert "gates missed: formation" in out
+    assert "every gate held" in out
     rows = {r["faults"]: r for r in json.loads(out_json.read_text())["rows"]}
-    assert rows["loss30"]["gates_failed"] == [] and rows["loss30"]["ratio"] <= 1.5
-    assert rows["blackout"]["gates_failed"] == ["formation"]
+    for case in ("loss30", "blackout"):
+        assert rows[case]["gates_failed"] == [] and rows[case]["ratio"] <= 1.5
     assert rows["blackout"]["min_separation_m"] >= 2.0
-    assert 0.0 < rows["blackout"]["recovery_s"] < 20.0
+    assert rows["blackout"]["plan_age_max_s"] >= 5.0
 
 
 def test_every_other_agent_sees_a_silent_vehicle_go_stale_within_half_a_second():
