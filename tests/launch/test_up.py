@@ -262,6 +262,20 @@ def test_an_ardupilot_answering_as_system_1_and_booted_elsewhere_flies_vehicle_2
     )
     offset = agent[inside] - ground
     assert inside.sum() >= 100
-    # (each side reads its own noisy telemetry: 5 cm of sensor noise per sample)
-    assert np.hypot(*offset.mean(axis=0)) <= 0.02, offset.mean(axis=0)
+    # (each side reads its own noisy telemetry: 5 cm of sensor noise per sample.) Across the
+    # vehicle's track the two agree to 2 cm on average: a wrong frame would put them 12 m apart.
+    # Along it they differ by the vehicle's speed times the error of the agent's estimate of its
+    # autopilot's clock, a few milliseconds, more on a loaded host: up to 6 cm (40 ms at 1.5 m/s).
+    velocity = np.stack(
+        [
+            np.interp(t[inside], rec.t_s, np.gradient(rec.truth[:, 1, axis], rec.t_s))
+            for axis in (0, 1)
+        ],
+        axis=1,
+    )
+    along = velocity / np.maximum(np.hypot(velocity[:, 0], velocity[:, 1]), 1e-9)[:, None]
+    mean_along = float(np.mean(np.sum(offset * along, axis=1)))
+    mean_across = float(np.mean(offset[:, 0] * -along[:, 1] + offset[:, 1] * along[:, 0]))
+    assert abs(mean_across) <= 0.02, (mean_across, mean_along)
+    assert abs(mean_along) <= 0.06, (mean_across, mean_along)
     assert np.median(np.hypot(offset[:, 0], offset[:, 1])) <= 0.1
