@@ -90,8 +90,8 @@ X4_CORES = 4
 """Cores the ten-vehicle fleet needs at x4: it takes about 0.8 of a core at x1 and 35-40 CPU
 seconds per 50 s of flight, about 3 cores at x4. On 2 cores the agents fall whole periods
 behind, the autopilots leave OFFBOARD for want of setpoints, and separation is not kept
-(0.10, 0.45 and 1.13 m measured in three runs): an overload that the fleet does not yet
-degrade safely."""
+(docs/design.md, "What is not guaranteed"): an overload the fleet does not yet degrade
+safely."""
 
 
 @pytest.mark.slow
