@@ -353,14 +353,20 @@ class Agent:
         # every neighbour (its half of each line; docs/design.md, "Safety").
         inflations = neighbourhood.inflations(ages, inp.late_s)
         here, drift = (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3])
-        (cx0, cy0), offsets0 = centres[0], offsets[0]
-        slots = {
-            vid: (cx0 + ox, cy0 + oy)
-            for vid, (ox, oy) in zip(self.fleet_ids, offsets0, strict=True)
-        }
-        neighbours = neighbourhood.nearest(start_ns, plans, here, inflations, ages, slots)
+        neighbours = neighbourhood.nearest(
+            start_ns, plans, here, inflations, ages, centres[0], offsets[0]
+        )
         planes = neighbourhood.planes(
-            start_ns, neighbours, plans, self._last_plan, here, drift, ages, inflations, slots
+            start_ns,
+            neighbours,
+            plans,
+            self._last_plan,
+            here,
+            drift,
+            ages,
+            inflations,
+            centres[0],
+            offsets[0],
         )
         goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
         goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])

@@ -104,16 +104,19 @@ class Neighbourhood:
         stamp_ns: int,
         neighbour_plans: Mapping[int, Plan],
         ages: Mapping[int, float],
-        slots: Mapping[int, tuple[float, float]],
+        centre: tuple[float, float],
+        offsets: list[tuple[float, float]],
         here: tuple[float, float],
     ) -> tuple[float, float]:
         """Where a neighbour may be that is closest to `here`: its plan's position now, or for a
-        silent one the point nearest `here` of the segment from there to its slot now
-        (docs/design.md, "Silent neighbours")."""
+        silent one the point nearest `here` of the segment from there to its slot now (`centre`
+        plus its entry of `offsets`, the formation's now; docs/design.md, "Silent
+        neighbours")."""
         held = neighbour_plans[nid].position_at(stamp_ns)
-        if not self.silent(ages[nid]) or nid not in slots:
+        if not self.silent(ages[nid]):
             return held
-        (ax, ay), (bx, by) = held, slots[nid]
+        ox, oy = offsets[self._fleet_index[nid]]
+        (ax, ay), (bx, by) = held, (centre[0] + ox, centre[1] + oy)
         dx, dy = bx - ax, by - ay
         length2 = dx * dx + dy * dy
         if length2 < 1e-12:
@@ -129,14 +132,16 @@ class Neighbourhood:
         here: tuple[float, float],
         inflations: Mapping[int, float],
         ages: Mapping[int, float],
-        slots: Mapping[int, tuple[float, float]],
+        centre: tuple[float, float],
+        offsets: list[tuple[float, float]],
     ) -> list[int]:
         """The vehicles within the safety radius of `here`, nearest first (by distance less
-        inflation, then id), at most K of them; `slots` holds every vehicle's slot now."""
+        inflation, then id), at most K of them; `centre` and `offsets` place the formation's
+        slots now."""
         hx, hy = here
         near = []
         for nid, inflation in inflations.items():
-            px, py = self._closest(nid, stamp_ns, neighbour_plans, ages, slots, here)
+            px, py = self._closest(nid, stamp_ns, neighbour_plans, ages, centre, offsets, here)
             gap = math.hypot(px - hx, py - hy) - inflation
             if gap <= self.radius_m:
                 near.append((gap, nid))
@@ -191,7 +196,8 @@ class Neighbourhood:
         drift: tuple[float, float],
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
-        slots: Mapping[int, tuple[float, float]],
+        centre: tuple[float, float],
+        offsets: list[tuple[float, float]],
     ) -> list[list[Plane]]:
         """Separation half-planes against each of `neighbours` at j = 1..M
         (`separation_planes`), between where this vehicle's previous plan `last_plan` (or,
@@ -210,7 +216,7 @@ class Neighbourhood:
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
             if self.silent(ages[nid]):
                 margin += s.silent_allowance_m
-            theirs = self._closest(nid, stamp_ns, neighbour_plans, ages, slots, here)
+            theirs = self._closest(nid, stamp_ns, neighbour_plans, ages, centre, offsets, here)
             planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
         planes.extend([self._no_planes] * (self.size - len(planes)))
         return planes
