@@ -51,7 +51,7 @@ def reference_course_limit(
     """How fast the formation's reference course may turn at a target speed, as every agent of
     the fleet computes it (from its tube-tightened input bounds and the formation's lever arms)."""
     shape = Formation(formation)
-    return _course_rate(vehicle_mpc(controller, shape), shape)
+    return _course_limit(vehicle_mpc(controller, shape), shape)
 
 
 def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbmpc:
@@ -65,7 +65,7 @@ def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbm
     )
 
 
-def _course_rate(mpc: TubeLbmpc, formation: Formation) -> CourseRateLimit:
+def _course_limit(mpc: TubeLbmpc, formation: Formation) -> CourseRateLimit:
     speed_bound, yaw_rate_bound = (mpc.u_max - mpc.tightening[-1]).tolist()
     return course_rate_limit(
         formation, speed_bound_m_s=speed_bound, yaw_rate_bound_rad_s=yaw_rate_bound
@@ -151,7 +151,7 @@ class Agent:
         self.target = TargetEstimator(observation_std_m=target_observation_std_m)
         self.formation = Formation(formation)
         self.mpc = vehicle_mpc(controller, self.formation)
-        self.reference = ReferenceCourse(_course_rate(self.mpc, self.formation))
+        self.reference = ReferenceCourse(_course_limit(self.mpc, self.formation))
         self._reference_stamp_ns = 0
         self._course_locked = False
         """True once the target's course was known well enough to rate-limit the reference."""
