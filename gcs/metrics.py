@@ -10,6 +10,7 @@ __all__ = [
     "format_summary",
     "CORNER_MIN_SPEED_M_S",
     "CORNER_RECOVERED_M",
+    "CORNER_SPEED_STEP_M_S",
     "CORNER_TURN_RAD",
     "REVERSAL_FRACTION",
     "compute_metrics",
@@ -31,6 +32,10 @@ CORNER_TURN_RAD = 0.5
 
 CORNER_MIN_SPEED_M_S = 0.05
 """...while the target moves faster than this on both sides of the change [m/s]."""
+
+CORNER_SPEED_STEP_M_S = 0.3
+"""Also a corner: the true target's speed changes by more than this from one period to the next
+(it stops or sets off at once) [m/s]."""
 
 CORNER_RECOVERED_M = 0.3
 """Recovered from a corner: the worst vehicle's distance to its slot stays within this [m]."""
@@ -156,15 +161,17 @@ def corner_indices(target_velocity_m_s: np.ndarray) -> list[int]:
     velocity (K, 2) [m/s] sampled once a period.
 
     A corner is a change of course of more than `CORNER_TURN_RAD` from one period to the next
-    while the target moves faster than `CORNER_MIN_SPEED_M_S` on both sides; a run of
-    consecutive such periods is one manoeuvre, counted once at its first period.
+    while the target moves faster than `CORNER_MIN_SPEED_M_S` on both sides, or a change of
+    speed of more than `CORNER_SPEED_STEP_M_S` (a stop, a start); a run of consecutive such
+    periods is one manoeuvre, counted once at its first period.
     """
     v = np.asarray(target_velocity_m_s, dtype=float)
     speed = np.hypot(v[:, 0], v[:, 1])
     course = np.arctan2(v[:, 1], v[:, 0])
     turn = np.abs(np.angle(np.exp(1j * np.diff(course))))  # wrapped to [0, pi]
     moving = (speed[:-1] > CORNER_MIN_SPEED_M_S) & (speed[1:] > CORNER_MIN_SPEED_M_S)
-    sharp = np.flatnonzero((turn > CORNER_TURN_RAD) & moving) + 1
+    jump = np.abs(np.diff(speed)) > CORNER_SPEED_STEP_M_S
+    sharp = np.flatnonzero(((turn > CORNER_TURN_RAD) & moving) | jump) + 1
     return [int(k) for i, k in enumerate(sharp) if i == 0 or sharp[i - 1] != k - 1]
 
 

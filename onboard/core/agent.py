@@ -26,6 +26,7 @@ from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.onboard.core.dekf import DualEkf
 from fleetmpc.onboard.core.formation import (
+    MIN_COURSE_SPEED_M_S,
     CourseRateLimit,
     Formation,
     ReferenceCourse,
@@ -224,6 +225,10 @@ class Agent:
         """
         ref, v0 = self.reference, velocities[0]
         turn_rate = self.target.significant_turn_rate_rad_s
+        if self._course_locked:
+            # The course is known while the speed stands clear of its uncertainty; slower (a
+            # target that stops), the reference turns on to the last course that was known.
+            ref.min_speed_m_s = max(MIN_COURSE_SPEED_M_S, 3.0 * self.target.velocity_std_m_s())
         onset_ns = self.target.manoeuvre_onset_ns
         if self._course_locked and onset_ns is not None and self._reference_history:
             # A manoeuvre (a corner) noticed only now began at onset_ns: the reference turns as

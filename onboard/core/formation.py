@@ -24,6 +24,13 @@ target's course, the sum clipped to r_max:
 (stepped as psi += dt clip(omega + k (course - psi - omega dt)): a steady turn is followed exactly)
 so on a steady turn it keeps up without lag, the noise of the course estimate reaches it only
 through k, and at a waypoint corner the formation sweeps round at r_max instead of jumping.
+A target that turns back on itself (an out-and-back, a stop and return) leaves no side to
+sweep by: the wrapped error is near +-pi and its sign is the noise's. Within REVERSAL_BAND_RAD of
+a reversal the reference sweeps at +r_max, to starboard (the positive rotation in NED), as the
+give-way rule turns vessels meeting head-on: every agent, and the judge, sweep the same way.
+A target slower than STOPPING_SHARE of the speed the limit reads is stopping: its course is not
+known, and the reference turns on to the last course that was (docs/design.md, "a target that
+stops").
 """
 
 import math
@@ -62,6 +69,14 @@ down by up to 0.04, a straight line's by 0.10, the figure eight's up by 0.01.)""
 SPEED_SLEW_M_S2 = 0.05
 """How fast the speed the rate limit reads may change [m/s^2]: faster than a target that slows
 into a turn (a figure eight's 0.015 m/s^2), far slower than an estimate's swing at a corner."""
+
+STOPPING_SHARE = 1.0 / 3.0
+"""A target slower than this share of the speed the rate limit reads (its recent speed) is
+taken to be stopping: its course is not known until it picks up speed again."""
+
+REVERSAL_BAND_RAD = math.radians(20.0)
+"""A target course within this of the reference's opposite is a reversal (module docstring):
+the reference sweeps to starboard, whichever side the estimate's noise puts it on."""
 
 MIN_COURSE_RATE_RAD_S = 0.01
 """The reference course turns at least this fast, even when the team has no spare speed (the
@@ -181,31 +196,51 @@ class ReferenceCourse:
         """The reference course now, None before the target's course was known."""
         self.limit_speed_m_s = 0.0
         """The target speed the rate limit reads (module docstring) [m/s]."""
+        self.min_speed_m_s = MIN_COURSE_SPEED_M_S
+        """Below this target speed the course is not known (an estimate's owner raises it to
+        what its uncertainty allows) [m/s]."""
+        self.last_course: float | None = None
+        """The target's course when it last had one: a target that stops leaves the reference
+        turning on to it, so the formation ends its sweep aligned with the way it came."""
 
     @staticmethod
-    def course_of(velocity_m_s: Sequence[float]) -> float | None:
-        """The course of a velocity, None when it is too slow to have one."""
+    def course_of(
+        velocity_m_s: Sequence[float], min_speed_m_s: float = MIN_COURSE_SPEED_M_S
+    ) -> float | None:
+        """The course of a velocity, None when it is slower than min_speed_m_s."""
         vx, vy = velocity_m_s
-        if math.hypot(vx, vy) < MIN_COURSE_SPEED_M_S:
+        if math.hypot(vx, vy) < min_speed_m_s:
             return None
         return math.atan2(vy, vx)
+
+    def _known_course(self, velocity_m_s: Sequence[float]) -> float | None:
+        """The course of a velocity, None while it is not known: slower than min_speed_m_s,
+        or than STOPPING_SHARE of the speed the rate limit reads (a target that stops: its
+        estimate's velocity swings past zero and its course then says nothing)."""
+        slowest = max(self.min_speed_m_s, STOPPING_SHARE * self.limit_speed_m_s)
+        return self.course_of(velocity_m_s, slowest)
 
     def _turned(
         self, current: float, velocity_m_s: Sequence[float], turn_rate: float, dt_s: float
     ) -> float:
-        course = self.course_of(velocity_m_s)
-        if course is None:
-            return current
+        course = self._known_course(velocity_m_s)
+        if course is None:  # (stopped: on to its last course, no turn fed forward)
+            course, turn_rate = self.last_course, 0.0
+            if course is None:
+                return current
         rate_max = self.limit.at(self.limit_speed_m_s)
+        if abs(wrap(course - current)) > math.pi - REVERSAL_BAND_RAD:
+            return current + dt_s * rate_max  # a near-reversal: sweep to starboard
         # (The error against where the turn alone would take it: a steady turn has none.)
         rate = turn_rate + COURSE_GAIN_PER_S * wrap(course - current - turn_rate * dt_s)
         return current + dt_s * (-rate_max if rate < -rate_max else min(rate, rate_max))
 
     def reset(self, velocity_m_s: Sequence[float]) -> None:
         """Take the target's course as it is (no rate limit), if it has one."""
-        course = self.course_of(velocity_m_s)
+        course = self.course_of(velocity_m_s, self.min_speed_m_s)
         if course is not None:
             self.value = course if self.value is None else self.value + wrap(course - self.value)
+            self.last_course = course
         self.limit_speed_m_s = math.hypot(*velocity_m_s)
 
     def follow(
@@ -219,6 +254,9 @@ class ReferenceCourse:
             change = math.hypot(*velocity_m_s) - self.limit_speed_m_s
             self.limit_speed_m_s += -slew if change < -slew else min(change, slew)
             self.value = self._turned(self.value, velocity_m_s, turn_rate_rad_s, dt_s)
+            course = self._known_course(velocity_m_s)
+            if course is not None:
+                self.last_course = course
         return self.value
 
     def replay(

@@ -132,18 +132,27 @@ def test_corner_recovery_is_the_longest_over_the_corners():
     assert m["corner_recovery_s"] == pytest.approx(4.0, abs=1e-12)
 
 
-def test_corner_never_recovered_is_inf_and_a_gentle_or_stopping_target_has_no_corner():
+def test_corner_never_recovered_is_inf_and_a_gentle_target_has_no_corner():
     rec = _square_corner_record()
     truth = rec.truth.copy()
     truth[-1, 0, 0] = 0.31  # out again at the very end: the second corner is never recovered
     assert compute_metrics(dataclasses.replace(rec, truth=truth))["corner_recovery_s"] == math.inf
-    # a turn of 0.45 rad per period, a stop and a restart at right angles: no corner
+    # a turn of 0.45 rad per period, and a slow change of speed: no corner
     course = np.concatenate([np.zeros(5), 0.45 * np.arange(1, 6), np.full(5, 2.25)])
-    v = np.stack([np.cos(course), np.sin(course)], axis=1)
-    v[8] = (0.04, 0.0)  # (nearly) stopped between two course changes
+    speed = np.linspace(1.0, 0.4, 15)[:, None]
+    v = speed * np.stack([np.cos(course), np.sin(course)], axis=1)
     gentle = _record(15, 2, target_velocity=v)
     m = compute_metrics(gentle)
     assert m["corners"] == 0 and m["corner_recovery_s"] is None
+
+
+def test_a_target_that_stops_or_sets_off_at_once_turns_a_corner():
+    v = np.tile([1.0, 0.0], (12, 1))
+    v[4:8] = (0.0, 0.0)  # stops at period 4 and sets off again at right angles at 8
+    v[8:] = (0.0, 1.0)
+    assert corner_indices(v) == [4, 8]
+    v[8] = (0.04, 0.0)  # still (nearly) stopped at 8: it sets off at 9
+    assert corner_indices(v) == [4, 9]
     # a course change spread over two consecutive periods is one manoeuvre
     v = np.tile([1.0, 0.0], (8, 1))
     v[3] = (math.cos(0.8), math.sin(0.8))

@@ -7,7 +7,9 @@ from fleetmpc.onboard.core.config import FormationSettings
 from fleetmpc.onboard.core.formation import (
     COURSE_GAIN_PER_S,
     MIN_COURSE_RATE_RAD_S,
+    REVERSAL_BAND_RAD,
     SPEED_RESERVE,
+    STOPPING_SHARE,
     CourseRateLimit,
     Formation,
     ReferenceCourse,
@@ -68,6 +70,41 @@ def test_a_still_target_keeps_the_course_and_ahead_leaves_the_state_alone():
     ahead = ref.ahead([_velocity(2.0)] * 5, 0.2)
     assert ahead == pytest.approx([1.0 + 0.01 * k for k in range(1, 6)])
     assert ref.value == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("side", [-1.0, 1.0])
+def test_a_reversal_sweeps_to_starboard_whichever_side_the_noise_puts_it(side):
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
+    ref.follow(_velocity(0.0), 0.2)
+    back = math.pi + side * 0.9 * REVERSAL_BAND_RAD  # (just inside the band, either side)
+    values = [ref.follow(_velocity(back), 0.2) for _ in range(5)]
+    assert np.diff([0.0, *values]) == pytest.approx(0.05 * 0.2)  # positive: to the right
+    # A sharp turn outside the band takes the short way, as any corner does.
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
+    ref.follow(_velocity(0.0), 0.2)
+    assert ref.follow(_velocity(-(math.pi - 1.1 * REVERSAL_BAND_RAD)), 0.2) < 0.0
+
+
+def test_a_target_that_stops_mid_sweep_leaves_the_reference_turning_on_to_its_last_course():
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
+    ref.follow(_velocity(0.0), 0.2)
+    for _ in range(10):  # a corner of 90 degrees: the sweep begins
+        ref.follow(_velocity(math.pi / 2), 0.2)
+    assert ref.value == pytest.approx(0.1)
+    for _ in range(400):  # then it stops
+        ref.follow((0.0, 0.0), 0.2)
+    assert ref.value == pytest.approx(math.pi / 2, abs=1e-3)
+
+
+def test_an_estimate_swinging_past_zero_as_the_target_stops_says_nothing_of_its_course():
+    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
+    for _ in range(20):
+        ref.follow(_velocity(0.0), 0.2)
+    # The velocity estimate of a target that stopped at once overshoots backwards, slower than
+    # a third of its speed: the reference keeps its course instead of reversing.
+    swing = 0.9 * STOPPING_SHARE
+    for speed in (swing, swing, 0.5 * swing, 0.1, 0.0):
+        assert ref.follow(_velocity(math.pi, speed), 0.2) == pytest.approx(0.0)
 
 
 def test_the_rate_limit_spends_the_spare_speed_on_the_longest_lever():

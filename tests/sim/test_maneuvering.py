@@ -106,3 +106,15 @@ def test_the_uturn_start_does_not_chatter_at_short_or_long_horizons(horizon):
     assert m["min_separation_m"] >= sc.controller.d_safe_m
     assert m["qp_fallbacks"] <= QP_FALLBACK_MAX_FRACTION * 301 * len(sc.vehicles)
     assert m["formation_rms_m"] <= SLOT_RMS_MAX_M
+
+
+def test_a_target_that_turns_straight_back_and_stops_keeps_its_formation():
+    """Before the starboard rule, the agents' reference swept one way round the reversal and the
+    true one the other (formation RMS 1.3-4.8 m), and `check` called the stop infeasible."""
+    sc = load_scenario("scenarios/hard/out-and-back.toml")
+    assert check_scenario(sc).feasible
+    m = compute_metrics(run_lockstep(sc))
+    assert m["corners"] == 2  # the reversal and the stop
+    assert m["formation_rms_m"] <= SLOT_RMS_MAX_M  # 40 s after the stop
+    assert m["min_separation_m"] >= sc.controller.d_safe_m
+    assert m["corner_recovery_s"] <= 30.0  # (about 21 s from the reversal)
