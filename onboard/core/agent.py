@@ -154,8 +154,6 @@ class Agent:
         self.mpc = vehicle_mpc(controller, self.formation)
         self.reference = ReferenceCourse(_course_limit(self.mpc, self.formation))
         self._reference_stamp_ns = 0
-        self._course_locked = False
-        """True once the target's course was known well enough to rate-limit the reference."""
         self._reference_history: deque[tuple[int, float]] = deque(maxlen=REFERENCE_HISTORY)
         """(stamp, value) of the reference course over the last periods outside manoeuvres."""
         self.u_max = self.mpc.u_max
@@ -218,19 +216,17 @@ class Agent:
     ) -> list[float]:
         """The formation's reference course at j = 0..M+1 along the predicted target path.
 
-        Until the target's course is known (its speed at least three standard deviations of its
-        estimate), the reference takes the estimated course as it is; from then on it turns at
-        most at its rate limit, now and along the prediction. A target that never moved leaves
-        the course at 0 (North).
+        The target's course is known while its speed stands clear of its estimate's
+        uncertainty (three standard deviations). The reference takes the first course known as
+        it is; from then on it turns at most at its rate limit, now and along the prediction,
+        and while the course is not known (a target that stops) it turns on to the last one
+        that was. A target that never moved leaves the course at 0 (North).
         """
         ref, v0 = self.reference, velocities[0]
         turn_rate = self.target.significant_turn_rate_rad_s
-        if self._course_locked:
-            # The course is known while the speed stands clear of its uncertainty; slower (a
-            # target that stops), the reference turns on to the last course that was known.
-            ref.min_speed_m_s = max(MIN_COURSE_SPEED_M_S, 3.0 * self.target.velocity_std_m_s())
+        ref.min_speed_m_s = max(MIN_COURSE_SPEED_M_S, 3.0 * self.target.velocity_std_m_s())
         onset_ns = self.target.manoeuvre_onset_ns
-        if self._course_locked and onset_ns is not None and self._reference_history:
+        if ref.value is not None and onset_ns is not None and self._reference_history:
             # A manoeuvre (a corner) noticed only now began at onset_ns: the reference turns as
             # if it had known since then, so its sweep starts with the target's, not later.
             then_ns, then = next(
@@ -241,17 +237,13 @@ class Agent:
             ref.value = ref.replay(
                 then, v0, self.settings.period_s, steps, turn_rate_rad_s=turn_rate
             )
-        elif self._course_locked:
+        elif ref.value is not None:
             dt_s = (stamp_ns - self._reference_stamp_ns) * 1e-9
             ref.follow(v0, dt_s, turn_rate_rad_s=turn_rate)
         else:
-            ref.reset(v0)
-            speed = math.hypot(*v0)
-            self._course_locked = (
-                ref.value is not None and speed >= 3.0 * self.target.velocity_std_m_s()
-            )
+            ref.reset(v0)  # (the first course known, as it is)
         self._reference_stamp_ns = stamp_ns
-        if ref.value is not None and self._course_locked and onset_ns is None:
+        if ref.value is not None and onset_ns is None:
             self._reference_history.append((stamp_ns, ref.value))
         if ref.value is None:
             return [0.0] * len(velocities)
