@@ -60,6 +60,12 @@ YAW_RATE_WINDOW_S = 2.0
 bound for a moment but not over the window costs its vehicle a heading lag of at most the excess
 rate times the window (about a degree at the end of a corner's sweep), not the formation."""
 
+TURN_LAG_MAX_M = 0.1
+"""A slot that turns faster than the bound over the window is infeasible only if the heading lag
+costs its vehicle more than this much position: about its air speed x the excess rate x the
+window^2 / 2 [m]. A slot that nearly stops can turn fast at little cost: a world-frame formation
+sweeping after a corner, its trail's swing nearly cancelling the target's velocity."""
+
 
 @dataclass(frozen=True)
 class _Requirements:
@@ -69,6 +75,9 @@ class _Requirements:
     """Peak airspeed command of each vehicle's slot (N,) [m/s]."""
     yaw_rates_rad_s: np.ndarray
     """Peak yaw-rate command of each vehicle's slot (N,) [rad/s]."""
+    turn_lags_m: np.ndarray
+    """Largest position lag each vehicle's slot's turns beyond the yaw-rate bound would cost it
+    (TURN_LAG_MAX_M) (N,) [m]."""
     corners: list[tuple[float, float, float, float]]
     """Per target corner: (time [s], largest turn of a slot's velocity [rad], the largest jump
     of a slot's velocity [m/s], the speed that slot's vehicle needs after the corner [m/s])."""
@@ -93,7 +102,7 @@ def _slot_requirements(
     steady = np.ones(len(t) - 1, dtype=bool)
     for k in corners:
         steady[max(k - 2, 0) : k + 2] = False
-    speeds, rates = [], []
+    speeds, rates, lags = [], [], []
     air_all = []
     for i, v in enumerate(sc.vehicles):
         wind = np.array([v.truth.wind.at(ti) for ti in t[:-1]])
@@ -112,6 +121,9 @@ def _slot_requirements(
         for k in np.flatnonzero(~steady):  # no window reaching over a corner
             judged[max(k - half, 0) : k + half + 1] = False
         rates.append(float(np.max(rate[judged])) if judged.any() else 0.0)
+        excess = np.maximum(rate - course_limit.yaw_rate_bound_rad_s, 0.0)
+        lag = speed * excess * YAW_RATE_WINDOW_S**2 / 2.0
+        lags.append(float(np.max(lag[judged])) if judged.any() else 0.0)
     jumps = []
     for k in corners:
         before, after = max(k - 3, 0), min(k + 2, len(t) - 2)
@@ -122,7 +134,7 @@ def _slot_requirements(
             turns.append((angle, float(np.hypot(*(b - a))), float(np.hypot(*b)), i))
         angle, jump, speed_after, _ = max(turns)
         jumps.append((float(t[k]), angle, jump, speed_after))
-    return _Requirements(np.array(speeds), np.array(rates), jumps)
+    return _Requirements(np.array(speeds), np.array(rates), np.array(lags), jumps)
 
 
 def check_scenario(sc: Scenario) -> FeasibilityReport:
@@ -150,11 +162,12 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
     course_limit = reference_course_limit(sc.controller, sc.formation)
     needs = _slot_requirements(sc, course_limit)
-    speeds, rates = needs.speeds_m_s, needs.yaw_rates_rad_s
-    for v, sp, wr in zip(sc.vehicles, speeds, rates, strict=True):
+    speeds, rates, lags = needs.speeds_m_s, needs.yaw_rates_rad_s, needs.turn_lags_m
+    for v, sp, wr, lag in zip(sc.vehicles, speeds, rates, lags, strict=True):
+        beyond = f"; beyond the bound, a heading lag worth {lag:.2f} m" if wr > w_bound else ""
         lines.append(
             f"vehicle {v.id}: slot needs airspeed up to {sp:.3f} m/s, yaw rate up to {wr:.3f} "
-            f"rad/s (over {YAW_RATE_WINDOW_S:g} s)"
+            f"rad/s (over {YAW_RATE_WINDOW_S:g} s{beyond})"
         )
     worst = int(np.argmax(speeds))
     if speeds[worst] > v_bound:
@@ -165,11 +178,12 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"but |V| <= {c.speed_max_m_s:g} m/s "
             f"({v_bound:.2f} m/s after tube tightening); expect a growing lag"
         )
-    if rates.max() > w_bound:
+    if lags.max() > TURN_LAG_MAX_M:
+        late = int(np.argmax(lags))
         problems.append(
-            f"vehicle {sc.vehicles[int(np.argmax(rates))].id}'s slot turns at "
-            f"{rates.max():.3f} rad/s, "
-            f"beyond |omega| <= {w_bound:.3f} rad/s after tightening"
+            f"vehicle {sc.vehicles[late].id}'s slot turns at up to {rates[late]:.3f} rad/s, "
+            f"beyond |omega| <= {w_bound:.3f} rad/s after tightening, at a speed where the "
+            f"heading lag costs about {lags[late]:.2f} m (more than {TURN_LAG_MAX_M:g} m)"
         )
     spare = v_bound - float(speeds.max())
     for t_c, angle, jump, speed_after in needs.corners:

@@ -5,6 +5,7 @@ Every scenario of the repository x 3 seeds x learning on and off, in lockstep on
 """
 
 import dataclasses
+import tomllib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import pytest
 
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.scenario import load_scenario
+from fleetmpc.scenario import load_scenario, parse_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 from fleetmpc.sim.suite import (
     CORNER_RECOVERY_MAX_S,
@@ -127,3 +128,19 @@ def test_a_target_that_never_moves_leaves_the_formation_facing_north():
     m = compute_metrics(run_lockstep(sc, seed=2))
     assert m["formation_rms_m"] <= SLOT_RMS_MAX_M
     assert m["min_separation_m"] >= sc.controller.d_safe_m
+
+
+def test_check_judges_a_turn_beyond_the_bound_by_the_position_it_costs():
+    doc = tomllib.loads(Path("scenarios/square.toml").read_text())
+    # World frame: after a corner the trail's swing nearly cancels the target's velocity, and
+    # the slowed slots turn faster than the bound for a moment, at little cost.
+    doc["formation"]["frame"] = "world"
+    report = check_scenario(parse_scenario(doc))
+    assert report.feasible, report.render()
+    assert any("beyond the bound, a heading lag worth 0.0" in line for line in report.lines)
+    # A circle tighter than the vehicles can turn round at speed is not.
+    doc["target"] = {"kind": "circle", "radius_m": 2.5, "speed_m_s": 1.0, "clockwise": True}
+    report = check_scenario(parse_scenario(doc))
+    assert not report.feasible
+    turning = [p for p in report.problems if "beyond |omega|" in p]
+    assert turning and "heading lag costs" in turning[0], report.problems
