@@ -122,7 +122,7 @@ def test_a_target_that_turns_straight_back_and_stops_keeps_its_formation():
 
 
 def test_a_target_that_never_moves_leaves_the_formation_facing_north():
-    """The target filter's first estimates swing at up to 0.6 m/s; taken for a course, they
+    """The target filter's first estimates swing while they settle; taken for a course, they
     turned the formation round (formation RMS 6.6-18.5 m)."""
     sc = load_scenario("scenarios/hard/still-target.toml")
     m = compute_metrics(run_lockstep(sc, seed=2))
