@@ -354,16 +354,7 @@ class Agent:
             start_ns, plans, here, inflations, ages, centres[0], offsets[0]
         )
         planes = neighbourhood.planes(
-            start_ns,
-            neighbours,
-            plans,
-            self._last_plan,
-            here,
-            drift,
-            ages,
-            inflations,
-            centres[0],
-            offsets[0],
+            start_ns, neighbours, self._last_plan, here, drift, ages, inflations
         )
         goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
         goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])

@@ -134,21 +134,21 @@ class Neighbourhood:
         ages: Mapping[int, float],
         centre: tuple[float, float],
         offsets: list[tuple[float, float]],
-    ) -> list[int]:
+    ) -> dict[int, tuple[float, float]]:
         """The vehicles within the safety radius of `here`, nearest first (by distance less
-        inflation, then id), at most K of them; `centre` and `offsets` place the formation's
-        slots now."""
+        inflation, then id), at most K of them, each with where it is taken to be (`_closest`);
+        `centre` and `offsets` place the formation's slots now."""
         hx, hy = here
         near = []
         for nid, inflation in inflations.items():
             px, py = self._closest(nid, stamp_ns, neighbour_plans, ages, centre, offsets, here)
             gap = math.hypot(px - hx, py - hy) - inflation
             if gap <= self.radius_m:
-                near.append((gap, nid))
+                near.append((gap, nid, (px, py)))
         near.sort()
         if len(near) > self.size:
             self.crowded += 1
-        return [nid for _, nid in near[: self.size]]
+        return {nid: position for _, nid, position in near[: self.size]}
 
     def pull(
         self,
@@ -189,22 +189,19 @@ class Neighbourhood:
     def planes(
         self,
         stamp_ns: int,
-        neighbours: list[int],
-        neighbour_plans: Mapping[int, Plan],
+        neighbours: Mapping[int, tuple[float, float]],
         last_plan: Plan | None,
         here: tuple[float, float],
         drift: tuple[float, float],
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
-        centre: tuple[float, float],
-        offsets: list[tuple[float, float]],
     ) -> list[list[Plane]]:
         """Separation half-planes against each of `neighbours` at j = 1..M
         (`separation_planes`), between where this vehicle's previous plan `last_plan` (or,
-        without one, the vehicle) and the neighbour's plan are now; the distance is shared while
-        the neighbour's plan is at most two periods old. A silent neighbour is kept clear of
-        from the point of its region nearest this vehicle, silent_allowance_m farther.
-        Padded to K neighbours with no planes."""
+        without one, the vehicle) and where `nearest` took the neighbour to be now: its plan's
+        position, or for a silent one the point of its region nearest this vehicle, kept
+        silent_allowance_m farther from. The distance is shared while the neighbour's plan is at
+        most two periods old. Padded to K neighbours with no planes."""
         s, M = self.settings, self.settings.horizon
         own = here if last_plan is None else last_plan.position_at(stamp_ns)
         drift_steps = [
@@ -216,7 +213,7 @@ class Neighbourhood:
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
             if self.silent(ages[nid]):
                 margin += s.silent_allowance_m
-            theirs = self._closest(nid, stamp_ns, neighbour_plans, ages, centre, offsets, here)
+            theirs = neighbours[nid]
             planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
         planes.extend([self._no_planes] * (self.size - len(planes)))
         return planes

@@ -71,11 +71,10 @@ def test_only_vehicles_within_the_radius_are_planned_against_nearest_first_at_mo
     inflations = hood.inflations(dict.fromkeys(gaps, 0.2), 0.0)
     ages = dict.fromkeys(gaps, 0.2)
     near = hood.nearest(NOW, plans, (0.0, 0.0), inflations, ages, (0.0, 0.0), [])
-    assert near == [4, 2, 3]  # within the radius: 4, 2, 3, 7; K = 3 keeps the nearest three
+    assert list(near) == [4, 2, 3]  # within the radius: 4, 2, 3, 7; K = 3 keeps the nearest 3
+    assert near[4] == pytest.approx((gaps[4], 0.0))  # (each where its plan puts it)
     assert hood.crowded == 1
-    planes = hood.planes(
-        NOW, near, plans, None, (0.0, 0.0), (0.0, 0.0), ages, inflations, (0.0, 0.0), []
-    )
+    planes = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), ages, inflations)
     assert len(planes) == hood.size == 3
     assert all(math.isfinite(p[0][2]) for p in planes)
 
@@ -86,8 +85,8 @@ def test_a_stale_plans_inflation_brings_its_vehicle_into_the_radius():
     plans = {2: _plan(2, NOW, far, 0.0)}
     fresh = hood.inflations({2: 0.2}, 0.0)
     stale = hood.inflations({2: 0.9}, 0.0)  # 0.9 s old: it may be 1.4 m nearer
-    assert hood.nearest(NOW, plans, (0.0, 0.0), fresh, {2: 0.2}, (0.0, 0.0), []) == []
-    assert hood.nearest(NOW, plans, (0.0, 0.0), stale, {2: 0.9}, (0.0, 0.0), []) == [2]
+    assert list(hood.nearest(NOW, plans, (0.0, 0.0), fresh, {2: 0.2}, (0.0, 0.0), [])) == []
+    assert list(hood.nearest(NOW, plans, (0.0, 0.0), stale, {2: 0.9}, (0.0, 0.0), [])) == [2]
 
 
 def test_a_silent_neighbour_is_kept_clear_of_between_its_last_plan_and_its_slot():
@@ -102,10 +101,9 @@ def test_a_silent_neighbour_is_kept_clear_of_between_its_last_plan_and_its_slot(
     here = (5.0, 4.0)
     inflations = hood.inflations({2: age}, 0.0)
     assert inflations == {2: 0.0}
-    assert hood.nearest(NOW, plans, here, inflations, {2: age}, centre, offsets) == [2]
-    (plane, *_), *_ = hood.planes(
-        NOW, [2], plans, None, here, (0.0, 0.0), {2: age}, inflations, centre, offsets
-    )
+    near = hood.nearest(NOW, plans, here, inflations, {2: age}, centre, offsets)
+    assert list(near) == [2]
+    (plane, *_), *_ = hood.planes(NOW, near, None, here, (0.0, 0.0), {2: age}, inflations)
     nx, ny, b = plane
     assert (nx, ny) == pytest.approx((0.0, -1.0))  # from (5, 10) on the segment, toward here
     alone = 2.0 * hood.margin_m - 0.1  # d_safe + s + r_M, the tube radius being 0.1 m
@@ -117,9 +115,8 @@ def test_planes_are_padded_to_k_with_no_planes():
     hood = _hood((1, 2, 3, 4))
     plans = {2: _plan(2, NOW, 3.0, 0.0)}
     inflations = hood.inflations({2: 0.2}, 0.0)
-    planes = hood.planes(
-        NOW, [2], plans, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations, (0.0, 0.0), []
-    )
+    near = {2: plans[2].position_at(NOW)}
+    planes = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
     assert len(planes) == 3
     assert all(math.isinf(b) for _, _, b in planes[1] + planes[2])
 
