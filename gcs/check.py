@@ -25,10 +25,10 @@ from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
 from fleetmpc.onboard.core.formation import (
+    CHORD_HALF_M,
     CourseRateLimit,
     Formation,
-    ReferenceCourse,
-    TrueReference,
+    true_reference,
 )
 from fleetmpc.onboard.core.neighbourhood import safety_radius
 from fleetmpc.onboard.core.unicycle import wrap
@@ -60,6 +60,10 @@ YAW_RATE_WINDOW_S = 2.0
 bound for a moment but not over the window costs its vehicle a heading lag of at most the excess
 rate times the window (about a degree at the end of a corner's sweep), not the formation."""
 
+SLOT_JUMP_M_S = 0.1
+"""A slot whose velocity changes by more than this from one check step to the next (2 m/s^2)
+jumps: a transient, as a corner is, not a steady need."""
+
 TURN_LAG_MAX_M = 0.1
 """A slot that turns faster than the bound over the window is infeasible only if the heading lag
 costs its vehicle more than this much position: about its air speed x the excess rate x the
@@ -78,30 +82,87 @@ class _Requirements:
     turn_lags_m: np.ndarray
     """Largest position lag each vehicle's slot's turns beyond the yaw-rate bound would cost it
     (TURN_LAG_MAX_M) (N,) [m]."""
-    corners: list[tuple[float, float, float, float]]
-    """Per target corner: (time [s], largest turn of a slot's velocity [rad], the largest jump
-    of a slot's velocity [m/s], the speed that slot's vehicle needs after the corner [m/s])."""
+    corners: list["_Corner"]
+    """The formation's transient at each of the target's corners."""
+
+
+@dataclass(frozen=True)
+class _Corner:
+    """How the formation goes round one of the target's corners (the worst vehicle's)."""
+
+    target_s: float
+    """When the target turns the corner [s]."""
+    start_s: float
+    """When the formation's centre starts round it [s]."""
+    duration_s: float
+    """How long its centre takes round it (its smoothing window crossing the corner) [s]."""
+    turn_rad: float
+    """The largest turn of a slot's velocity over that time [rad]."""
+    behind_m: float
+    """How far that slot's vehicle falls behind, turning at the tightened yaw-rate bound [m]."""
+    back_s: float
+    """When that vehicle is back on its slot, after the target's corner [s] (inf: never)."""
+
+
+def _corner_lag(
+    air: np.ndarray, first: int, last: int, yaw_rate_bound: float, speed_bound: float, dt: float
+) -> tuple[float, float]:
+    """A vehicle flying its slot's air velocity `air` (K, 2) round a corner (steps first..last)
+    with its heading turning at most at `yaw_rate_bound`: how far behind its slot it falls [m],
+    and how long after `first` it is back on it [s] (closing the gap at its spare speed)."""
+    course = np.unwrap(np.arctan2(air[:, 1], air[:, 0]))
+    heading, gap, worst, caught = course[first], np.zeros(2), 0.0, first
+    for k in range(first, len(air)):
+        turn = course[k] - heading
+        heading += max(-yaw_rate_bound * dt, min(turn, yaw_rate_bound * dt))
+        speed = float(np.hypot(*air[k]))
+        flown = speed * np.array((math.cos(heading), math.sin(heading)))
+        gap += (air[k] - flown) * dt
+        worst = max(worst, float(np.hypot(*gap)))
+        if abs(course[k] - heading) > 0.02:
+            caught = k
+        elif k > last:
+            break
+    spare = speed_bound - float(np.hypot(*air[min(caught, len(air) - 1)]))
+    closing = worst / spare if spare > 0 else math.inf
+    return worst, (caught - first) * dt + closing
 
 
 def _slot_requirements(
     sc: Scenario, course_limit: CourseRateLimit, dt_s: float = _CHECK_STEP_S
 ) -> _Requirements:
-    """The slots' airspeed and yaw-rate needs, and the corners' jumps, over the run, for a
+    """The slots' airspeed and yaw-rate needs, and the corners' transients, over the run, for a
     reference course turning at most as `course_limit` allows."""
     t = np.arange(0.0, sc.duration_s + dt_s, dt_s)
     formation = Formation(sc.formation)
-    reference = TrueReference(course_limit)
     states = [sc.target.state_at(ti) for ti in t]
     target = np.array([p for p, _ in states])
     target_vel = np.array([v for _, v in states])
-    courses = [reference.follow(v.tolist(), dt_s) for v in target_vel]
-    slots = formation.slots(target, courses)  # (K, N, 2)
+    centres, courses = true_reference(formation, course_limit, target, target_vel, dt_s)
+    slots = formation.slots(centres, courses)  # (K, N, 2)
     vel = np.diff(slots, axis=0) / dt_s  # over each step (K - 1, N, 2)
-    corners = corner_indices(target_vel)
-    # Steps next to a corner carry its jump: judged as a transient, not as a steady need.
+    # A corner of the target's (a change of course or speed at once) is a transient, not a
+    # steady need: its speed change reaches the slots at once (the centre moves along the path
+    # at the target's speed), and its turn while the formation's centre goes round it, that is
+    # while the centre's smoothing window (CHORD_HALF_M either side of it, d_s of path behind
+    # the target) lies across it; the slots turn faster there than elsewhere.
+    arc = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(target, axis=0).T))))[:-1]
+    behind = arc - sc.formation.trail_m
     steady = np.ones(len(t) - 1, dtype=bool)
-    for k in corners:
+    windows = []
+    for k in corner_indices(target_vel):
         steady[max(k - 2, 0) : k + 2] = False
+        across = np.flatnonzero(np.abs(behind - arc[k]) <= CHORD_HALF_M + 0.5)
+        across = across[across >= k] if sc.formation.trail_m >= 0 else across
+        if across.size == 0:
+            continue
+        first, last = int(across[0]), min(int(across[-1]), len(t) - 2)
+        steady[first : last + 1] = False
+        windows.append((k, first, last))
+    # So is a slot's velocity that jumps (a sweep that ends: its turn rate stops at once).
+    jumps = np.max(np.hypot(*np.diff(vel, axis=0).transpose(2, 0, 1)), axis=1)
+    for k in np.flatnonzero(jumps > SLOT_JUMP_M_S):
+        steady[max(k - 1, 0) : k + 3] = False
     speeds, rates, lags = [], [], []
     air_all = []
     for i, v in enumerate(sc.vehicles):
@@ -124,17 +185,27 @@ def _slot_requirements(
         excess = np.maximum(rate - course_limit.yaw_rate_bound_rad_s, 0.0)
         lag = speed * excess * YAW_RATE_WINDOW_S**2 / 2.0
         lags.append(float(np.max(lag[judged])) if judged.any() else 0.0)
-    jumps = []
-    for k in corners:
-        before, after = max(k - 3, 0), min(k + 2, len(t) - 2)
-        turns = []
-        for i, air in enumerate(air_all):
-            a, b = air[before], air[after]
+    corners = []
+    for k, first, last in windows:
+        worst = None
+        for air in air_all:
+            a, b = air[max(first - 1, 0)], air[min(last + 1, len(air) - 1)]
             angle = abs(wrap(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])))
-            turns.append((angle, float(np.hypot(*(b - a))), float(np.hypot(*b)), i))
-        angle, jump, speed_after, _ = max(turns)
-        jumps.append((float(t[k]), angle, jump, speed_after))
-    return _Requirements(np.array(speeds), np.array(rates), np.array(lags), jumps)
+            behind_m, back_s = _corner_lag(
+                air,
+                first,
+                last,
+                course_limit.yaw_rate_bound_rad_s,
+                course_limit.speed_bound_m_s,
+                dt_s,
+            )
+            lateness = (first - k) * dt_s + back_s
+            if worst is None or (behind_m, lateness) > (worst.behind_m, worst.back_s):
+                worst = _Corner(
+                    float(t[k]), float(t[first]), (last - first) * dt_s, angle, behind_m, lateness
+                )
+        corners.append(worst)
+    return _Requirements(np.array(speeds), np.array(rates), np.array(lags), corners)
 
 
 def check_scenario(sc: Scenario) -> FeasibilityReport:
@@ -186,21 +257,21 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"heading lag costs about {lags[late]:.2f} m (more than {TURN_LAG_MAX_M:g} m)"
         )
     spare = v_bound - float(speeds.max())
-    for t_c, angle, jump, speed_after in needs.corners:
-        turn_s = angle / w_bound
-        behind_m = 0.5 * jump * turn_s  # the velocity error closes linearly while it turns
-        catch_up = v_bound - speed_after
-        sweep_rate = course_limit.at(float(np.hypot(*sc.target.state_at(t_c)[1])))
+    for corner in needs.corners:
+        sweep = "a world-frame formation does not turn"
+        if sc.formation.frame == "course":
+            speed = float(np.hypot(*sc.target.state_at(corner.target_s)[1]))
+            sweep = f"the formation itself sweeps round at {course_limit.at(speed):.3f} rad/s"
         back = (
-            f"back on its slot about {turn_s + behind_m / catch_up:.0f} s after it"
-            if catch_up > 0
+            f"back on its slot about {corner.back_s:.0f} s after the target's corner"
+            if math.isfinite(corner.back_s)
             else "no spare speed to catch up"
         )
         lines.append(
-            f"corner at t = {t_c:.1f} s: a slot's velocity turns {math.degrees(angle):.0f} deg "
-            f"at once; its vehicle needs about {turn_s:.1f} s to turn, falls up to about "
-            f"{behind_m:.1f} m behind, {back} (the formation itself sweeps round at "
-            f"{sweep_rate:.3f} rad/s)"
+            f"corner at t = {corner.target_s:.1f} s: the formation's centre goes round it from "
+            f"t = {corner.start_s:.1f} s for {corner.duration_s:.1f} s; a slot's velocity turns "
+            f"{math.degrees(corner.turn_rad):.0f} deg, its vehicle falls up to about "
+            f"{corner.behind_m:.1f} m behind, {back} ({sweep})"
         )
     formation = Formation(sc.formation)
     radius = safety_radius(c, float(mpc.tube_radius_m[-1]))
@@ -220,8 +291,10 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         )
     reach = c.horizon * c.period_s * c.speed_max_m_s
     p0, v0 = sc.target.state_at(0.0)
-    course0 = ReferenceCourse.course_of(v0.tolist())  # (None: the target starts still)
-    slots0 = formation.slots(p0[None, :], [0.0 if course0 is None else course0])[0]
+    course0 = 0.0 if math.hypot(*v0) == 0.0 else math.atan2(v0[1], v0[0])  # (still: North)
+    trail = sc.formation.trail_m
+    centre0 = p0 - trail * np.array((math.cos(course0), math.sin(course0)))
+    slots0 = formation.slots(centre0[None, :], [course0])[0]
     gaps = [
         math.hypot(v.initial[0] - s[0], v.initial[1] - s[1])
         for v, s in zip(sc.vehicles, slots0, strict=True)

@@ -61,8 +61,9 @@ def compute_metrics(rec: FlightRecord) -> dict:
     for a, b in pairs:
         d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
         sep_err.append(float(np.mean(np.abs(d[w10] - rec.desired_distance_m[a, b]))))
+    # The fleet's centre (each vehicle less its slot's offset, averaged) against the formation's.
     centre = np.mean(pos - rec.slot_offsets_world, axis=1)
-    centre_err = np.abs(np.linalg.norm(centre - rec.target, axis=1) - rec.trail_m)
+    centre_err = np.linalg.norm(centre - (rec.slots[:, 0] - rec.slot_offsets_world[:, 0]), axis=1)
     slot_dist = np.linalg.norm(pos - rec.slots, axis=2)
     c_norm = np.linalg.norm(rec.c, axis=2)
     tol = 1e-9

@@ -9,7 +9,7 @@ import numpy as np
 
 from fleetmpc.gcs.growable import Growable
 from fleetmpc.onboard.core.agent import reference_course_limit
-from fleetmpc.onboard.core.formation import Formation, TrueReference
+from fleetmpc.onboard.core.formation import Formation, FormationReference, true_reference
 from fleetmpc.scenario import Scenario
 
 __all__ = ["FIELDS", "ScenarioRows", "formation_reference"]
@@ -20,7 +20,7 @@ FIELDS = ("target", "target_velocity", "slots", "slot_offsets_world", "beta_trut
 
 def formation_reference(
     formation: Formation,
-    course: TrueReference,
+    reference: FormationReference,
     target_m: np.ndarray,
     target_velocity_m_s: np.ndarray,
     period_s: float,
@@ -28,16 +28,14 @@ def formation_reference(
     """Slots (K, N, 2) of the true target over K consecutive periods and each slot's offset from
     the formation centre (K, N, 2), for target positions and velocities (K, 2).
 
-    The reference course is stateful (rate-limited, held while the target is nearly still), so
-    the periods go through `course` in order, continuing where its previous call stopped.
+    The reference is stateful (the target's path, a rate-limited course), so the periods go
+    through `reference` in order, continuing where its previous call stopped.
     """
-    velocities = np.asarray(target_velocity_m_s).tolist()
-    placements = [formation.placement(course.follow(v, period_s)) for v in velocities]
-    trail = np.array([(x, y) for x, y, _ in placements]).reshape(-1, 2)
-    offsets = np.array([o for _, _, o in placements]).reshape(len(placements), formation.size, 2)
-    centre = np.asarray(target_m, dtype=float).reshape(-1, 2) - trail
-    slots = centre[:, None, :] + offsets
-    return slots, slots - centre[:, None, :]
+    centres, courses = true_reference(
+        formation, reference.limit, target_m, target_velocity_m_s, period_s, reference
+    )
+    slots = formation.slots(centres, courses)
+    return slots, slots - centres[:, None, :]
 
 
 class ScenarioRows:
@@ -46,10 +44,10 @@ class ScenarioRows:
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
         self.formation = Formation(scenario.formation)
-        self._course = TrueReference(
-            reference_course_limit(scenario.controller, scenario.formation)
+        self._reference = FormationReference(
+            self.formation, reference_course_limit(scenario.controller, scenario.formation)
         )
-        """The reference course of the true target, advanced as the periods are."""
+        """The formation reference of the true target, advanced as the periods are."""
         self._rows = {name: Growable() for name in FIELDS}
 
     @property
@@ -78,7 +76,7 @@ class ScenarioRows:
         values = np.array(flat, dtype=float).reshape(len(times), 4 + 4 * n)
         target, target_vel = values[:, 0:2], values[:, 2:4]
         slots, offsets = formation_reference(
-            self.formation, self._course, target, target_vel, period_s
+            self.formation, self._reference, target, target_vel, period_s
         )
         new = {
             "target": target,

@@ -20,7 +20,7 @@ import numpy as np
 from fleetmpc.gcs.record import FlightRecord, RunConstants
 from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
 from fleetmpc.onboard.core.agent import AgentInput, reference_course_limit
-from fleetmpc.onboard.core.formation import Formation, TrueReference
+from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
@@ -74,9 +74,11 @@ def _fly(
         for v in sc.vehicles
     ]
     truth_formation = Formation(sc.formation)
-    truth_course = TrueReference(reference_course_limit(sc.controller, sc.formation))
-    """The slots the run is judged against: the formation at the rate-limited reference course
-    of the true target, as the agents place it from their estimates."""
+    truth_reference = FormationReference(
+        truth_formation, reference_course_limit(sc.controller, sc.formation)
+    )
+    """The slots the run is judged against: the formation along the true target's path, as the
+    agents place it along their estimates'."""
     n = len(plants)
     ids = sc.vehicle_ids
     obs_period_ns = round(1e9 / sc.target.observation_rate_hz)
@@ -154,10 +156,10 @@ def _fly(
             outs.append((out, step_ms))
             if interest is not None:
                 bus.listen_near(*interest)
-        course = truth_course.follow(tgt_vel.tolist(), period_ns * 1e-9)
-        trail_x, trail_y, offsets = truth_formation.placement(course)
-        cx, cy = float(tgt_pos[0]) - trail_x, float(tgt_pos[1]) - trail_y
-        slots = np.array([(cx + ox, cy + oy) for ox, oy in offsets])
+        (cx, cy), course = truth_reference.follow(
+            tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
+        )
+        slots = np.array([(cx + ox, cy + oy) for ox, oy in truth_formation.offsets(course)])
         prediction = None
         if ground_target is not None and ((k + 1) % flush_every == 0 or k == periods - 1):
             prediction, _ = ground_target.predict(t_ns, period_ns, sc.controller.horizon + 1)

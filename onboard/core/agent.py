@@ -2,8 +2,9 @@
 
 Per period: fuse the telemetry into the DEKF (state and learned beta); fuse any target observation
 and predict the target over the horizon (positions and velocities along a possibly curved path);
-advance the formation's reference course, rate-limited, along that path and place the slots of
-every step at the predicted target and reference course of that step; compute the steady-state
+grow the target's path by the estimate and place the formation at every step along it (its
+centre d_s of path behind the predicted target, its reference course rate-limited toward the
+path's course there) and the slots around it; compute the steady-state
 inputs u_s under the *learned* model from consecutive slots; gather the neighbours' assumed
 trajectories (extrapolated while stale, formation term dropped when too old); place the
 separation half-planes between this vehicle's previous plan and each neighbour's; pick a
@@ -26,10 +27,9 @@ from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.onboard.core.dekf import DualEkf
 from fleetmpc.onboard.core.formation import (
-    MIN_COURSE_SPEED_M_S,
     CourseRateLimit,
     Formation,
-    ReferenceCourse,
+    FormationReference,
     course_rate_limit,
 )
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
@@ -41,9 +41,6 @@ from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
 from fleetmpc.protocol.plan import Plan
 
 __all__ = ["Agent", "AgentInput", "AgentOutput", "reference_course_limit", "vehicle_mpc"]
-
-REFERENCE_HISTORY = 50
-"""Periods of reference course kept to restart a sweep where a manoeuvre began."""
 
 
 def reference_course_limit(
@@ -152,10 +149,9 @@ class Agent:
         self.target = TargetEstimator(observation_std_m=target_observation_std_m)
         self.formation = Formation(formation)
         self.mpc = vehicle_mpc(controller, self.formation)
-        self.reference = ReferenceCourse(_course_limit(self.mpc, self.formation))
-        self._reference_stamp_ns = 0
-        self._reference_history: deque[tuple[int, float]] = deque(maxlen=REFERENCE_HISTORY)
-        """(stamp, value) of the reference course over the last periods outside manoeuvres."""
+        self.reference = FormationReference(self.formation, _course_limit(self.mpc, self.formation))
+        """The formation's centre and reference course, along the estimated target path."""
+        self._reference_stamp_ns: int | None = None
         self.u_max = self.mpc.u_max
         M = controller.horizon
         self._input_box = (np.tile(self.mpc.u_min, (M, 1)), np.tile(self.u_max, (M, 1)))
@@ -211,44 +207,24 @@ class Agent:
     # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
     # such (it reads them as floats): for a handful of points a float loop is cheaper than numpy
     # calls.
-    def _reference_courses(
-        self, stamp_ns: int, velocities: list[tuple[float, float]]
-    ) -> list[float]:
-        """The formation's reference course at j = 0..M+1 along the predicted target path.
-
-        The target's course is known while its speed stands clear of its estimate's
-        uncertainty (three standard deviations). The reference takes the first course known as
-        it is; from then on it turns at most at its rate limit, now and along the prediction,
-        and while the course is not known (a target that stops) it turns on to the last one
-        that was. A target that never moved leaves the course at 0 (North).
-        """
-        ref, v0 = self.reference, velocities[0]
-        turn_rate = self.target.significant_turn_rate_rad_s
-        ref.min_speed_m_s = max(MIN_COURSE_SPEED_M_S, 3.0 * self.target.velocity_std_m_s())
-        onset_ns = self.target.manoeuvre_onset_ns
-        if ref.value is not None and onset_ns is not None and self._reference_history:
-            # A manoeuvre (a corner) noticed only now began at onset_ns: the reference turns as
-            # if it had known since then, so its sweep starts with the target's, not later.
-            then_ns, then = next(
-                ((t, v) for t, v in reversed(self._reference_history) if t <= onset_ns),
-                self._reference_history[0],
-            )
-            steps = min(round((stamp_ns - then_ns) / self.settings.period_ns), REFERENCE_HISTORY)
-            ref.value = ref.replay(
-                then, v0, self.settings.period_s, steps, turn_rate_rad_s=turn_rate
-            )
-        elif ref.value is not None:
+    def _placement(
+        self,
+        stamp_ns: int,
+        track: list[tuple[float, float]],
+        velocities: list[tuple[float, float]],
+    ) -> list[tuple[tuple[float, float], float]]:
+        """The formation's centre and reference course at j = 0..M+1 along the predicted target
+        track: the reference follows the estimate now (its path grows by it) and looks ahead
+        along the rest of the track, which it leaves as it is."""
+        ref, period_s = self.reference, self.settings.period_s
+        dt_s = period_s
+        if self._reference_stamp_ns is not None:
             dt_s = (stamp_ns - self._reference_stamp_ns) * 1e-9
-            ref.follow(v0, dt_s, turn_rate_rad_s=turn_rate)
-        else:
-            ref.reset(v0)  # (the first course known, as it is)
         self._reference_stamp_ns = stamp_ns
-        if ref.value is not None and onset_ns is None:
-            self._reference_history.append((stamp_ns, ref.value))
-        if ref.value is None:
-            return [0.0] * len(velocities)
-        ahead = ref.ahead(velocities[1:], self.settings.period_s, turn_rate_rad_s=turn_rate)
-        return [ref.value, *ahead]
+        now = ref.follow(
+            track[0], velocities[0], dt_s, velocity_std_m_s=self.target.velocity_std_m_s()
+        )
+        return [now, *ref.ahead(track[1:], period_s)]
 
     def _safe_fallback(
         self, z0: list[float], u: np.ndarray, beta: list[float], planes: list[list[Plane]]
@@ -327,16 +303,12 @@ class Agent:
             z0 = np.array(advance(*z0.tolist(), v, w, beta.tolist(), tau))
         start_ns = inp.stamp_ns + self._delay_periods * s.period_ns
         z0_f, beta_f = z0.tolist(), beta.tolist()
-        # The target, the reference course and the slots over j = 0..M+1: at each step, slot
-        # i = target - trail + offset i, both turned to that step's reference course.
+        # The target, the formation's centre and reference course, and the slots over
+        # j = 0..M+1: at each step, slot i = centre + offset i turned to the reference course.
         track, velocities = self.target.predicted_track(start_ns, s.period_ns, M + 2)
-        centres, offsets = [], []
-        for (tx, ty), course in zip(
-            track, self._reference_courses(start_ns, velocities), strict=True
-        ):
-            trail_x, trail_y, step_offsets = self.formation.placement(course)
-            centres.append((tx - trail_x, ty - trail_y))
-            offsets.append(step_offsets)
+        placed = self._placement(start_ns, track, velocities)
+        centres = [centre for centre, _ in placed]
+        offsets = [self.formation.offsets(course) for _, course in placed]
         mine = [
             (cx + o[self.index][0], cy + o[self.index][1])
             for (cx, cy), o in zip(centres, offsets, strict=True)

@@ -18,8 +18,7 @@ innovations: while their normalized square, averaged over the last few observati
 what a target that keeps to the models would give (MANEUVER_NIS), the process noise of each
 prediction is scaled up (MANEUVER_SCALE), so the velocity follows the new course within a couple
 of observations instead of tens of seconds (Bar-Shalom et al. 2001, Sec. 11.2: maneuver
-detection and process noise adjustment). The filter also reports when that manoeuvre began
-(the last observation that still fit), so the formation's reference can start its turn there.
+detection and process noise adjustment).
 """
 
 import math
@@ -38,16 +37,6 @@ MANEUVER_AVERAGING = 0.5
 
 MANEUVER_SCALE = 1000.0
 """Factor on the process noise while the target manoeuvres (about 30x the standard deviations)."""
-
-QUIET_NIS = 9.21
-"""An observation whose own normalized innovation squared is at most this (the chi-square 99 %
-point for 2 degrees of freedom) still fits the models: a manoeuvre began after the last one."""
-
-TURN_SIGNIFICANCE = 2.0
-"""A turn-rate estimate within this many standard deviations of zero is taken for a straight
-course by the reference course. Fed forward as it is, the noise of the turn rate of a target
-flying straight (about 1 mrad/s, the turning model's share) was integrated into the reference
-course and swung a slot 20 m behind the target by +-0.15 m; from 2 to 3 the figures are alike."""
 
 _SMALL_TURN = 1e-6
 """Below this |omega dt| [rad] the turn's formulas use their series expansions."""
@@ -164,11 +153,6 @@ class TargetEstimator:
         self._stamp_ns: int | None = None
         self._nis = 2.0
         """The averaged normalized innovation squared (its mean while the models hold)."""
-        self._quiet_ns: int | None = None
-        """Stamp of the last observation that still fit the models (QUIET_NIS)."""
-        self.manoeuvre_onset_ns: int | None = None
-        """While the target manoeuvres: when the manoeuvre began (the last observation that fit
-        before it); None otherwise."""
         self.observations = 0
 
     @property
@@ -180,14 +164,6 @@ class TargetEstimator:
     def turn_rate_rad_s(self) -> float:
         """The estimated turn rate [rad/s]."""
         return float(self.x[4])
-
-    @property
-    def significant_turn_rate_rad_s(self) -> float:
-        """The estimated turn rate where it differs from zero by more than TURN_SIGNIFICANCE
-        standard deviations, else 0: the turn rate that feeds the formation's reference course
-        forward (docs/design.md, "Target")."""
-        w = float(self.x[4])
-        return w if w * w > TURN_SIGNIFICANCE**2 * self.P[4, 4] else 0.0
 
     @property
     def P(self) -> np.ndarray:
@@ -234,7 +210,7 @@ class TargetEstimator:
         P = np.diag([r, r, v * v, v * v, w * w])
         self._xs = np.stack([self.x] * len(self.models))
         self._Ps = np.stack([P] * len(self.models))
-        self._stamp_ns = self._quiet_ns = stamp_ns
+        self._stamp_ns = stamp_ns
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
         """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
@@ -281,12 +257,6 @@ class TargetEstimator:
         # Manoeuvre detection, on the innovation as the models together expected it.
         observed_nis = float(prior.dot(nis))
         self._nis += MANEUVER_AVERAGING * (observed_nis - self._nis)
-        if not self.manoeuvring:
-            self.manoeuvre_onset_ns = None
-        elif self.manoeuvre_onset_ns is None:
-            self.manoeuvre_onset_ns = self._quiet_ns
-        if observed_nis <= QUIET_NIS:
-            self._quiet_ns = stamp_ns
         self._stamp_ns = stamp_ns
         self.observations += 1
         return True

@@ -5,155 +5,220 @@ import pytest
 
 from fleetmpc.onboard.core.config import FormationSettings
 from fleetmpc.onboard.core.formation import (
-    COURSE_GAIN_PER_S,
+    CHORD_HALF_M,
     MIN_COURSE_RATE_RAD_S,
     REVERSAL_BAND_RAD,
     SPEED_RESERVE,
-    STOPPING_SHARE,
     CourseRateLimit,
     Formation,
-    ReferenceCourse,
-    TrueReference,
+    FormationReference,
+    TargetPath,
     course_rate_limit,
-    reference_courses,
+    true_reference,
 )
 
-
-def _velocity(course: float, speed: float = 1.0) -> tuple[float, float]:
-    return speed * math.cos(course), speed * math.sin(course)
+DT = 0.2
 
 
-def test_a_corner_becomes_a_sweep_at_the_rate_limit():
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    ref.follow(_velocity(0.0), 0.2)
-    values = [ref.follow(_velocity(math.pi / 2), 0.2) for _ in range(400)]
-    steps = np.diff([0.0, *values])
-    # It sweeps at exactly the limit until it is close, then settles on the new course.
-    assert steps[:100] == pytest.approx(0.05 * 0.2)
-    assert values[-1] == pytest.approx(math.pi / 2, abs=1e-3)
-    assert np.all(np.abs(steps) <= 0.05 * 0.2 + 1e-12)
+def _reference(trail_m: float = 5.0, rate: float = 0.05, frame: str = "course"):
+    formation = Formation(FormationSettings(slots_m=((0.0, 0.0),), frame=frame, trail_m=trail_m))
+    return FormationReference(formation, CourseRateLimit.fixed(rate))
 
 
-def test_a_replay_turns_as_the_reference_would_have_from_a_past_value():
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    ref.follow(_velocity(0.0), 0.2)
-    replayed = ref.replay(0.0, _velocity(math.pi / 2), 0.2, 10, turn_rate_rad_s=0.0)
-    assert ref.value == 0.0  # (the state stays)
-    followed = [ref.follow(_velocity(math.pi / 2), 0.2) for _ in range(10)][-1]
-    assert replayed == pytest.approx(followed) == pytest.approx(0.05 * 0.2 * 10)
-    assert ref.replay(0.3, _velocity(1.0), 0.2, 0) == 0.3
+def _fly(ref, positions, velocities, std=0.0):
+    """Follow the target through positions and velocities (K, 2): centres (K, 2), courses."""
+    out = [
+        ref.follow(p, v, DT, velocity_std_m_s=std)
+        for p, v in zip(positions, velocities, strict=True)
+    ]
+    return np.array([c for c, _ in out]), np.array([c for _, c in out])
 
 
-def test_a_steady_turn_below_the_limit_is_followed_without_lag():
-    rate, dt = 0.03, 0.2
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    courses = rate * dt * np.arange(300)
-    for c in courses:
-        value = ref.follow(_velocity(c), dt, turn_rate_rad_s=rate)
-    assert value == pytest.approx(courses[-1], abs=1e-9)
+def _line(course: float, seconds: float, speed: float = 1.0, start=(0.0, 0.0)):
+    t = DT * np.arange(int(round(seconds / DT)))
+    u = np.array([math.cos(course), math.sin(course)])
+    return np.asarray(start) + speed * t[:, None] * u, np.tile(speed * u, (len(t), 1))
 
 
-def test_course_noise_reaches_the_reference_attenuated():
+def test_on_a_straight_line_the_centre_trails_the_target_by_d_s():
+    p, v = _line(0.7, 30.0)
+    centres, courses = _fly(_reference(trail_m=6.0), p, v)
+    u = np.array([math.cos(0.7), math.sin(0.7)])
+    np.testing.assert_allclose(centres, p - 6.0 * u, atol=1e-9)
+    np.testing.assert_allclose(courses, 0.7, atol=1e-12)
+
+
+def test_on_a_steady_turn_the_centre_stays_on_the_path_and_the_course_follows_without_lag():
+    radius, speed = 40.0, 1.0
+    w = speed / radius
+    t = DT * np.arange(1500)
+    p = radius * np.column_stack([np.sin(w * t), 1.0 - np.cos(w * t)])
+    v = speed * np.column_stack([np.cos(w * t), np.sin(w * t)])
+    centres, courses = _fly(_reference(trail_m=10.0), p, v)
+    late = t > 60.0
+    # d_s of arc behind the target, moved inside the turn by about CHORD_HALF_M^2 / (6 R).
+    back = w * (t - 10.0 / speed)
+    on_path = radius * np.column_stack([np.sin(back), 1.0 - np.cos(back)])
+    inside = np.linalg.norm(centres - on_path, axis=1)[late]
+    assert np.all(np.abs(inside - CHORD_HALF_M**2 / (6.0 * radius)) < 0.01)
+    # Its course is the path's there, the tangent at the centre: no lag.
+    np.testing.assert_allclose(np.unwrap(courses)[late], back[late], atol=2e-3)
+
+
+def test_jitter_of_an_estimated_path_reaches_the_course_and_the_centre_attenuated():
     rng = np.random.default_rng(0)
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    noise = 0.02 * rng.standard_normal(500)
-    values = [ref.follow(_velocity(n), 0.2) for n in noise]
-    assert np.std(values[50:]) < 0.3 * np.std(noise)
-    assert COURSE_GAIN_PER_S * 0.2 < 0.1
+    p, v = _line(0.0, 120.0)
+    noisy = p + 0.03 * rng.standard_normal(p.shape)
+    centres, courses = _fly(_reference(trail_m=10.0), noisy, v)
+    assert np.std(courses[100:]) < 0.003  # (rad; a position jitter of 3 cm over 8 m of path)
+    assert np.std(centres[100:, 1]) < 0.01  # (across the path)
+    # Along the path the centre steps as the target's estimate does, no more.
+    steps = np.linalg.norm(np.diff(centres[100:], axis=0), axis=1)
+    target_steps = np.linalg.norm(np.diff(noisy[100:], axis=0), axis=1)
+    assert np.std(steps) <= np.std(target_steps)
 
 
-def test_a_still_target_keeps_the_course_and_ahead_leaves_the_state_alone():
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    assert ref.follow((0.0, 0.0), 0.2) is None
-    ref.follow(_velocity(1.0), 0.2)
-    assert ref.follow((0.01, 0.0), 0.2) == pytest.approx(1.0)
-    ahead = ref.ahead([_velocity(2.0)] * 5, 0.2)
-    assert ahead == pytest.approx([1.0 + 0.01 * k for k in range(1, 6)])
-    assert ref.value == pytest.approx(1.0)
+def test_a_corner_becomes_a_sweep_at_the_rate_limit_when_the_centre_gets_there():
+    p1, v1 = _line(0.0, 40.0)
+    p2, v2 = _line(math.pi / 2, 80.0, start=p1[-1] + v1[-1] * DT)
+    p, v = np.vstack([p1, p2]), np.vstack([v1, v2])
+    centres, courses = _fly(_reference(trail_m=5.0, rate=0.05), p, v)
+    steps = np.diff(courses)
+    t = DT * np.arange(len(p))
+    # Nothing turns before the centre's window reaches the corner (d_s - CHORD_HALF_M after
+    # the target's), then the course sweeps at the limit and settles on the new course.
+    assert np.all(courses[t < 40.0 + (5.0 - CHORD_HALF_M) - DT] == 0.0)
+    assert np.all(np.abs(steps) <= 0.05 * DT + 1e-12)
+    assert np.sum(np.isclose(steps, 0.05 * DT)) > 100
+    assert courses[-1] == pytest.approx(math.pi / 2, abs=1e-6)
+    # The centre goes round the corner smoothly: its speed dips, it never jumps.
+    speed = np.linalg.norm(np.diff(centres, axis=0), axis=1) / DT
+    assert speed.max() < 1.0 + 1e-6 and speed[t[1:] > 50.0].min() > 0.6
 
 
 @pytest.mark.parametrize("side", [-1.0, 1.0])
 def test_a_reversal_sweeps_to_starboard_whichever_side_the_noise_puts_it(side):
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    ref.follow(_velocity(0.0), 0.2)
-    back = math.pi + side * 0.9 * REVERSAL_BAND_RAD  # (just inside the band, either side)
-    values = [ref.follow(_velocity(back), 0.2) for _ in range(5)]
-    assert np.diff([0.0, *values]) == pytest.approx(0.05 * 0.2)  # positive: to the right
+    out, v_out = _line(0.0, 50.0)
+    lateral = side * 0.05  # (the way back a few centimetres to either side of the way out)
+    back, v_back = _line(math.pi, 90.0, start=out[-1] + (0.0, lateral))
+    p, v = np.vstack([out, back]), np.vstack([v_out, v_back])
+    centres, courses = _fly(_reference(trail_m=5.0, rate=0.05), p, v)
+    steps = np.diff(courses)
+    # (The way back beside the way out tilts the path's course there by a few milliradians.)
+    assert courses.min() > -0.01 and courses[-1] == pytest.approx(math.pi, abs=0.01)
+    assert np.sum(np.isclose(steps, 0.05 * DT)) > 100  # to starboard, at the limit
+    # The centre goes on to where the target turned and comes back behind it.
+    assert centres[:, 0].max() == pytest.approx(50.0 - DT, abs=CHORD_HALF_M / 2)
+    assert centres[-1, 0] == pytest.approx(p[-1, 0] + 5.0, abs=0.05)
     # A sharp turn outside the band takes the short way, as any corner does.
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    ref.follow(_velocity(0.0), 0.2)
-    assert ref.follow(_velocity(-(math.pi - 1.1 * REVERSAL_BAND_RAD)), 0.2) < 0.0
+    turn, v_turn = _line(-(math.pi - 1.5 * REVERSAL_BAND_RAD), 30.0, start=out[-1])
+    _, courses = _fly(_reference(trail_m=5.0), np.vstack([out, turn]), np.vstack([v_out, v_turn]))
+    assert courses[-1] < 0.0
 
 
-def test_a_target_that_stops_mid_sweep_leaves_the_reference_turning_on_to_its_last_course():
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    ref.follow(_velocity(0.0), 0.2)
-    for _ in range(10):  # a corner of 90 degrees: the sweep begins
-        ref.follow(_velocity(math.pi / 2), 0.2)
-    assert ref.value == pytest.approx(0.1)
-    for _ in range(400):  # then it stops
-        ref.follow((0.0, 0.0), 0.2)
-    assert ref.value == pytest.approx(math.pi / 2, abs=1e-3)
+def test_a_target_that_stops_leaves_the_centre_where_the_path_puts_it_despite_an_overshoot():
+    p, v = _line(0.0, 30.0)
+    stop = p[-1] + v[-1] * DT
+    # An estimate that overshoots the stop by 30 cm, moving, then comes back and settles.
+    over = stop + np.array([[0.15, 0.0], [0.3, 0.0], [0.2, 0.0], [0.1, 0.0]])
+    v_over = np.array([[0.75, 0.0], [0.5, 0.0], [-0.5, 0.0], [-0.5, 0.0]])
+    still = np.tile(stop, (100, 1))
+    positions = np.vstack([p, over, still])
+    velocities = np.vstack([v, v_over, np.zeros((100, 2))])
+    centres, courses = _fly(_reference(trail_m=5.0), positions, velocities)
+    assert centres[-1] == pytest.approx(stop - (5.0, 0.0), abs=0.02)
+    assert courses[-1] == pytest.approx(0.0, abs=1e-3)
+    # Moving on, it resumes from where it stopped, with no jump.
+    on, v_on = _line(0.0, 10.0, start=stop)
+    ref = _reference(trail_m=5.0)
+    _fly(ref, positions, velocities)
+    centres_on, _ = _fly(ref, on, v_on)
+    assert np.max(np.linalg.norm(np.diff(centres_on, axis=0), axis=1)) < 0.25
 
 
-def test_an_estimate_swinging_past_zero_as_the_target_stops_says_nothing_of_its_course():
-    ref = ReferenceCourse(CourseRateLimit.fixed(0.05))
-    for _ in range(20):
-        ref.follow(_velocity(0.0), 0.2)
-    # The velocity estimate of a target that stopped at once overshoots backwards, slower than
-    # a third of its speed: the reference keeps its course instead of reversing.
-    swing = 0.9 * STOPPING_SHARE
-    for speed in (swing, swing, 0.5 * swing, 0.1, 0.0):
-        assert ref.follow(_velocity(math.pi, speed), 0.2) == pytest.approx(0.0)
+def test_a_target_that_never_moves_has_no_course_and_its_jitter_lays_no_path():
+    rng = np.random.default_rng(1)
+    still = 0.02 * rng.standard_normal((300, 2))
+    velocity = 0.05 * rng.standard_normal((300, 2))  # (its uncertainty: 0.05 m/s)
+    ref = _reference(trail_m=6.0)
+    centres, courses = _fly(ref, still, velocity, std=0.05)
+    assert ref.value is None and np.all(courses == 0.0)  # (North, while unknown)
+    np.testing.assert_allclose(centres, still - (6.0, 0.0), atol=0.01)
+    assert ref.path.length_m == 0.0
+
+
+def test_ahead_places_the_prediction_as_following_would_and_leaves_the_state_alone():
+    p, v = _line(0.3, 20.0)
+    ref, copy = _reference(trail_m=2.0), _reference(trail_m=2.0)
+    _fly(ref, p[:80], v[:80])
+    _fly(copy, p[:80], v[:80])
+    state = (ref.value, ref.path.length_m, list(ref.path.xs))
+    ahead = ref.ahead([tuple(x) for x in p[80:90]], DT)
+    assert (ref.value, ref.path.length_m, list(ref.path.xs)) == state
+    followed = [copy.follow(x, y, DT) for x, y in zip(p[80:90], v[80:90], strict=True)]
+    for (c1, k1), (c2, k2) in zip(ahead, followed, strict=True):
+        assert c1 == pytest.approx(c2, abs=1e-9) and k1 == pytest.approx(k2, abs=1e-9)
+
+
+def test_a_path_keeps_only_what_the_centre_can_reach():
+    path = TargetPath(tail_m=10.0, keep_m=20.0)
+    for x in np.arange(0.0, 200.0, 0.2):
+        path.extend(float(x), 0.0, 0.0)
+    assert path.length_m == pytest.approx(199.8)
+    assert path.ss[0] >= path.length_m - 20.5 and len(path.xs) < 110
+    assert path.point_at(path.length_m - 15.0) == pytest.approx((184.8, 0.0))
 
 
 def test_the_rate_limit_spends_the_spare_speed_on_the_longest_lever():
     course_frame = Formation(
         FormationSettings(slots_m=((0.0, 0.0), (-3.0, 4.0)), frame="course", trail_m=5.0)
     )
-    np.testing.assert_allclose(course_frame.lever_arms_m(), [5.0, math.hypot(8.0, 4.0)])
+    np.testing.assert_allclose(course_frame.lever_arms_m(), [0.0, 5.0])
     limit = course_rate_limit(course_frame, speed_bound_m_s=1.9, yaw_rate_bound_rad_s=0.4)
-    lever = math.hypot(8.0, 4.0)
-    assert limit.at(1.0) == pytest.approx((1 - SPEED_RESERVE) * 0.9 / lever)
+    assert limit.at(1.0) == pytest.approx((1 - SPEED_RESERVE) * 0.9 / 5.0)
     # A slower target leaves more spare speed for the turn; one at the bound leaves the floor.
-    assert limit.at(0.5) == pytest.approx((1 - SPEED_RESERVE) * 1.4 / lever)
+    assert limit.at(0.5) == pytest.approx((1 - SPEED_RESERVE) * 1.4 / 5.0)
     assert limit.at(1.9) == MIN_COURSE_RATE_RAD_S
     world = Formation(FormationSettings(slots_m=((0.0, 0.0), (0.0, 10.0)), trail_m=5.0))
-    np.testing.assert_allclose(world.lever_arms_m(), [5.0, 5.0])
-    fast = course_rate_limit(world, speed_bound_m_s=10.0, yaw_rate_bound_rad_s=0.4)
+    np.testing.assert_allclose(world.lever_arms_m(), [0.0, 0.0])  # (it does not turn)
+    fast = course_rate_limit(world, speed_bound_m_s=1.9, yaw_rate_bound_rad_s=0.4)
     assert fast.at(1.0) == pytest.approx(0.2)  # half the tightened yaw-rate bound
     assert CourseRateLimit.fixed(0.05).at(1.7) == 0.05
 
 
 def test_the_reference_turns_faster_where_the_target_slows_down():
-    limit = course_rate_limit(
-        Formation(FormationSettings(slots_m=((0.0, 0.0),), frame="course", trail_m=10.0)),
-        speed_bound_m_s=1.8,
-        yaw_rate_bound_rad_s=0.4,
+    formation = Formation(
+        FormationSettings(slots_m=((0.0, 0.0), (0.0, 5.0)), frame="course", trail_m=2.0)
     )
+    limit = course_rate_limit(formation, speed_bound_m_s=1.8, yaw_rate_bound_rad_s=0.4)
     swept = []
     for speed in (1.2, 0.6):
-        ref = ReferenceCourse(limit)
-        ref.follow(_velocity(0.0, speed), 0.2)
-        swept.append(ref.follow(_velocity(math.pi / 2, speed), 0.2) / 0.2)
+        p1, v1 = _line(0.0, 20.0, speed=speed)
+        p2, v2 = _line(math.pi / 2, 20.0, speed=speed, start=p1[-1])
+        _, courses = _fly(FormationReference(formation, limit), np.vstack([p1, p2]),
+                          np.vstack([v1, v2]))  # fmt: skip
+        swept.append(np.max(np.diff(courses)) / DT)
     assert swept == pytest.approx([limit.at(1.2), limit.at(0.6)])
-    assert swept[1] == pytest.approx(2.0 * swept[0])
+    assert swept[1] > 1.5 * swept[0]
 
 
-def test_slots_turn_with_the_reference_course():
+def test_slots_turn_with_the_reference_course_about_the_centre():
     f = Formation(FormationSettings(slots_m=((2.0, 1.0),), frame="course", trail_m=5.0))
     slots = f.slots(np.array([[10.0, 0.0], [10.0, 0.0]]), [0.0, math.pi / 2])
-    np.testing.assert_allclose(slots[0, 0], [10.0 - 5.0 + 2.0, 1.0])
-    np.testing.assert_allclose(slots[1, 0], [10.0 - 1.0, -5.0 + 2.0], atol=1e-12)
+    np.testing.assert_allclose(slots[0, 0], [12.0, 1.0])
+    np.testing.assert_allclose(slots[1, 0], [9.0, 2.0], atol=1e-12)
+    world = Formation(FormationSettings(slots_m=((2.0, 1.0),), trail_m=5.0))
+    np.testing.assert_allclose(world.slots(np.array([[10.0, 0.0]]), [1.0])[0, 0], [12.0, 1.0])
 
 
 def test_the_true_reference_of_a_run_is_the_stateful_one_period_by_period():
-    t = 0.2 * np.arange(400)
-    course = np.where(t < 40.0, 0.0, math.pi / 2)
-    v = np.column_stack([np.cos(course), np.sin(course)])
-    ref = TrueReference(CourseRateLimit.fixed(0.04))
-    one_by_one = [ref.follow(tuple(x), 0.2) for x in v]
-    np.testing.assert_allclose(
-        reference_courses(v, 0.2, CourseRateLimit.fixed(0.04)), one_by_one, atol=1e-12
-    )
-    assert max(np.diff(one_by_one)) <= 0.04 * 0.2 + 1e-12
+    p1, v1 = _line(0.0, 40.0)
+    p2, v2 = _line(math.pi / 2, 40.0, start=p1[-1])
+    p, v = np.vstack([p1, p2]), np.vstack([v1, v2])
+    formation = Formation(FormationSettings(slots_m=((0.0, 0.0),), frame="course", trail_m=5.0))
+    limit = CourseRateLimit.fixed(0.04)
+    ref = FormationReference(formation, limit)
+    one_by_one = [ref.follow(a, b, DT) for a, b in zip(p.tolist(), v.tolist(), strict=True)]
+    centres, courses = true_reference(formation, limit, p, v, DT)
+    np.testing.assert_allclose(centres, [c for c, _ in one_by_one], atol=1e-12)
+    np.testing.assert_allclose(courses, [k for _, k in one_by_one], atol=1e-12)
