@@ -39,7 +39,6 @@ import bisect
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import pairwise
 
 import numpy as np
 
@@ -195,6 +194,20 @@ def course_rate_limit(
     )
 
 
+def _piece_moments(x0, y0, x1, y1) -> tuple:
+    """The integrals of 1, x, y, xx, yy, xy along the straight piece from (x0, y0) to (x1, y1):
+    six floats, or six arrays for arrays of pieces."""
+    w = ((x1 - x0) ** 2 + (y1 - y0) ** 2) ** 0.5
+    return (
+        w,
+        w * (x0 + x1) / 2.0,
+        w * (y0 + y1) / 2.0,
+        w * (x0 * x0 + x0 * x1 + x1 * x1) / 3.0,
+        w * (y0 * y0 + y0 * y1 + y1 * y1) / 3.0,
+        w * (2.0 * x0 * y0 + x0 * y1 + x1 * y0 + 2.0 * x1 * y1) / 6.0,
+    )
+
+
 class TargetPath:
     """The target's path behind it: a polyline of the positions it was at (its estimates, for an
     agent), a point kept once it lies PATH_SPACING_M from the last, with their arc lengths.
@@ -226,6 +239,8 @@ class TargetPath:
         self._start_m = START_MIN_M
         self._stopped = False
         """True from a stop until the target has got `start_m` clear of where it stopped."""
+        self._moments: tuple[np.ndarray, float, float] | None = None
+        """The running moments of the points (`_running_moments`), None when out of date."""
         self._kept = 0
         """How many of the points stay (the rest: the newest position, too close to stay)."""
 
@@ -248,6 +263,7 @@ class TargetPath:
         about a hovering target stands clear of its uncertainty now and then; a course that is
         certain, the judge's, may pass 0)."""
         self._start_m = start_m
+        self._moments = None
         xs, ys, ss = self.xs, self.ys, self.ss
         starting = ss and ss[0] == 0.0 and self.length_m < start_m
         if not xs or self._start_course is None or (course is None and starting):
@@ -313,6 +329,7 @@ class TargetPath:
         """End the path at arc length s (no earlier than its first point): what lay beyond
         (an estimate's overshoot of a stop) is dropped."""
         s = max(s, self.ss[0])
+        self._moments = None
         x, y = self.point_at(s)
         keep = bisect.bisect_left(self.ss, s)
         del self.xs[keep:], self.ys[keep:], self.ss[keep:]
@@ -364,6 +381,18 @@ class TargetPath:
         f = (s - ss[i - 1]) / (ss[i] - ss[i - 1])
         return xs[i - 1] + f * (xs[i] - xs[i - 1]), ys[i - 1] + f * (ys[i] - ys[i - 1])
 
+    def _running_moments(self) -> tuple[np.ndarray, float, float]:
+        """The integrals of 1, x, y, xx, yy, xy along the path from its first point to each
+        point (K, 6), about an origin at its newest point (kept small, for precision), and that
+        origin; computed once per change of the path."""
+        if self._moments is None:
+            ox, oy = self.xs[-1], self.ys[-1]
+            x, y = np.asarray(self.xs) - ox, np.asarray(self.ys) - oy
+            pieces = np.column_stack(_piece_moments(x[:-1], y[:-1], x[1:], y[1:]))
+            running = np.vstack([np.zeros((1, 6)), np.cumsum(pieces, axis=0)])
+            self._moments = (running, ox, oy)
+        return self._moments
+
     def at(self, s: float) -> tuple[tuple[float, float], float | None]:
         """The path smoothed at arc length s: the mean of the path from CHORD_HALF_M before s
         to CHORD_HALF_M after it (no further than the newest point, unless s lies beyond it),
@@ -374,34 +403,31 @@ class TargetPath:
         None where it is not known: on a tail not yet set, or where the path folds back on
         itself (its chord shorter than FOLD_SHARE of its arc: a target that turned straight
         back)."""
-        px, py = self.point_at(s)
         lo = s - CHORD_HALF_M
         hi = s + CHORD_HALF_M if s >= self.length_m else min(s + CHORD_HALF_M, self.length_m)
         if self.tail_course is None and lo < self.ss[0]:
-            return (px, py), None
+            return self.point_at(s), None
         # The path between the window's ends, each piece weighed by its length (so that the fit
         # moves smoothly as the ends slide along): its mean, and the principal axis of its
-        # spread, from the pieces' moments (about the point at s).
+        # spread, from the pieces' moments: the whole pieces' from the running sums, the two
+        # partial ones at the ends on their own.
         (ax, ay), (bx, by) = self.point_at(lo), self.point_at(hi)
         i, j = bisect.bisect_right(self.ss, lo), bisect.bisect_left(self.ss, hi)
-        xs = [ax - px, *(x - px for x in self.xs[i:j]), bx - px]
-        ys = [ay - py, *(y - py for y in self.ys[i:j]), by - py]
-        m = [0.0] * 6  # integrals of 1, x, y, xx, yy, xy over the path
-        for (x0, y0), (x1, y1) in pairwise(zip(xs, ys, strict=True)):
-            w = math.hypot(x1 - x0, y1 - y0)
-            m[0] += w
-            m[1] += w * (x0 + x1) / 2.0
-            m[2] += w * (y0 + y1) / 2.0
-            m[3] += w * (x0 * x0 + x0 * x1 + x1 * x1) / 3.0
-            m[4] += w * (y0 * y0 + y0 * y1 + y1 * y1) / 3.0
-            m[5] += w * (2.0 * x0 * y0 + x0 * y1 + x1 * y0 + 2.0 * x1 * y1) / 6.0
+        running, ox, oy = self._running_moments()
+        if i < j:
+            whole = (running[j - 1] - running[i]).tolist()
+            first = _piece_moments(ax - ox, ay - oy, self.xs[i] - ox, self.ys[i] - oy)
+            last = _piece_moments(self.xs[j - 1] - ox, self.ys[j - 1] - oy, bx - ox, by - oy)
+            m = [a + b + c for a, b, c in zip(whole, first, last, strict=True)]
+        else:
+            m = _piece_moments(ax - ox, ay - oy, bx - ox, by - oy)
         if m[0] < PATH_SPACING_M:  # (a target that has not moved)
-            return (px, py), None
+            return self.point_at(s), None
         mx, my = m[1] / m[0], m[2] / m[0]
         sxx, syy, sxy = m[3] / m[0] - mx * mx, m[4] / m[0] - my * my, m[5] / m[0] - mx * my
         axis = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
         ux, uy = math.cos(axis), math.sin(axis)
-        point = (px + mx, py + my)
+        point = (ox + mx, oy + my)
         dx, dy = bx - ax, by - ay
         if math.hypot(dx, dy) < max(FOLD_SHARE * (hi - lo), PATH_SPACING_M):
             return point, None
