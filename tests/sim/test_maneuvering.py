@@ -73,14 +73,11 @@ def test_formation_error_gates_with_learning(rows):
 
 def test_learning_reduces_the_error_in_every_scenario_with_unmodeled_dynamics(rows):
     judged = [r for r in rows if r["learning"] and r["feasible"] and r["unmodeled_dynamics"]]
-    # The figure eight misses the 0.3 on two seeds of three (0.38, 0.41): its target's
-    # estimated course, magnified by the formation's 15 m lever arm, is the same error with
-    # learning on and off (with near-exact target observations its ratio is 0.13-0.17; README).
-    eight = [r for r in judged if r["scenario"] == "figure-eight"]
-    others = [r for r in judged if r["scenario"] != "figure-eight"]
-    assert len(eight) == 3 and others
-    assert not _ids([r for r in others if not r["learning_ratio"] <= LEARNING_RATIO_MAX])
-    assert not _ids([r for r in eight if not r["learning_ratio"] <= 0.45])
+    # (The figure eight missed it, 0.33 on seed 43, while the formation's centre trailed the
+    # target along its estimated course: that course's error, magnified by a 15 m lever arm,
+    # was the same with learning on and off. On the path, 0.22-0.29.)
+    assert {r["scenario"] for r in judged} >= {"figure-eight", "square", "wedge-circle"}
+    assert not _ids([r for r in judged if not r["learning_ratio"] <= LEARNING_RATIO_MAX])
 
 
 def test_the_target_prediction_on_a_circle(rows):
