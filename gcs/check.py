@@ -291,10 +291,8 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         )
     reach = c.horizon * c.period_s * c.speed_max_m_s
     p0, v0 = sc.target.state_at(0.0)
-    course0 = 0.0 if math.hypot(*v0) == 0.0 else math.atan2(v0[1], v0[0])  # (still: North)
-    trail = sc.formation.trail_m
-    centre0 = p0 - trail * np.array((math.cos(course0), math.sin(course0)))
-    slots0 = formation.slots(centre0[None, :], [course0])[0]
+    centre0, course0 = true_reference(formation, course_limit, p0[None, :], v0[None, :], 1.0)
+    slots0 = formation.slots(centre0, course0)[0]
     gaps = [
         math.hypot(v.initial[0] - s[0], v.initial[1] - s[1])
         for v, s in zip(sc.vehicles, slots0, strict=True)

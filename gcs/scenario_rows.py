@@ -9,7 +9,7 @@ import numpy as np
 
 from fleetmpc.gcs.growable import Growable
 from fleetmpc.onboard.core.agent import reference_course_limit
-from fleetmpc.onboard.core.formation import Formation, FormationReference, true_reference
+from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.scenario import Scenario
 
 __all__ = ["FIELDS", "ScenarioRows", "formation_reference"]
@@ -31,9 +31,7 @@ def formation_reference(
     The reference is stateful (the target's path, a rate-limited course), so the periods go
     through `reference` in order, continuing where its previous call stopped.
     """
-    centres, courses = true_reference(
-        formation, reference.limit, target_m, target_velocity_m_s, period_s, reference
-    )
+    centres, courses = reference.follow_run(target_m, target_velocity_m_s, period_s)
     slots = formation.slots(centres, courses)
     return slots, slots - centres[:, None, :]
 

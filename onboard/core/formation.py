@@ -10,8 +10,8 @@ the target (`TargetPath`), where the target was, not a point d_s behind it along
 On a straight line the two are the same; in a turn the centre stays on the path, and the
 direction the target points now, the least certain thing an estimate knows of it, no longer
 swings a centre 10 m behind it by a lever of 10 m: what reaches the slots is where the target
-was (an estimate a few centimetres off) and the path's course there, read from a chord of the
-path a few metres long, past positions all (`TargetPath.course_at`). At a corner the centre goes
+was (an estimate a few centimetres off) and the path's course there, read from a few metres of
+path already flown (`TargetPath.at`). At a corner the centre goes
 round the corner when it gets there, as the target did. A target that hovers or stops leaves
 its path as it is: the centre stops where it is.
 
@@ -19,9 +19,9 @@ The reference course follows the path's course at the centre but turns at most a
 rate, so a slot never asks its vehicle for more than it can fly: when a course-frame formation
 turns at rate r, slot i moves at the centre's velocity (the target's, when it was there) plus r
 times its lever arm L_i = |o_i|, so at most at the target's speed v plus r L_i. With the
-tightened speed bound V̄, the limit spends three quarters of the spare speed V̄ - v on the turn
-and keeps a quarter (SPEED_RESERVE) for wind, effectiveness errors and catching up, and half the
-tightened yaw-rate bound ω̄:
+tightened speed bound V̄, the limit spends half the spare speed V̄ - v on the turn and keeps
+half (SPEED_RESERVE) for wind, effectiveness errors and catching up, and half the tightened
+yaw-rate bound ω̄:
     r_max(v) = min(ω̄ / 2, (1 - SPEED_RESERVE) (V̄ - v) / max_i L_i)
 (`CourseRateLimit`), at the target's speed: a target that slows down to turn (the lobes of a
 figure eight) leaves the formation more room to turn with it. The speed the limit reads follows
@@ -29,7 +29,7 @@ the target's at most at SPEED_SLEW_M_S2, so the dip and overshoot of an estimate
 the filter turns its velocity round a corner move neither the sweep's rate. Each period the
 reference course steps toward the path's course, at most r_max dt: on a turn the formation can
 follow it keeps up without lag, and at a waypoint corner it sweeps round at r_max. Where the
-path turned straight back (an out-and-back) the chord folds and tells no course: the reference
+path turned straight back (an out-and-back) it folds and tells no course: the reference
 holds until the path leads away again, then, the target's course being near its opposite with
 no side to sweep by, it sweeps at +r_max, to starboard (the positive rotation in NED), as the
 give-way rule turns vessels meeting head-on: every agent, and the judge, sweep the same way.
@@ -59,9 +59,9 @@ PATH_SPACING_M = 0.05
 estimate's jitter about a target that hovers adds no length."""
 
 CHORD_HALF_M = 4.0
-"""The path's course at a point is the chord from this much arc before it to this much after:
-an estimated path's jitter of a few centimetres tilts it by under a hundredth of a radian, and
-on a steady turn the chord's course is the tangent's at its middle, without lag."""
+"""The path is smoothed at a point over this much arc before it and after it (`TargetPath.at`):
+an estimated path's jitter of a few centimetres tilts its course by under a hundredth of a
+radian, and on a steady turn the course is the tangent's at the middle, without lag."""
 
 FOLD_SHARE = 0.5
 """A chord shorter than this share of the arc it spans folds back on itself (the target turned
@@ -503,6 +503,22 @@ class FormationReference:
         self.value = self._turned(self.value, course, dt_s)
         return centre, self.course
 
+    def follow_run(
+        self, positions_m: np.ndarray, velocities_m_s: np.ndarray, dt_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`follow` through positions and velocities (K, 2) dt_s apart, whose course is certain
+        (the truth's): centres (K, 2) and reference courses (K,)."""
+        centres, courses = [], []
+        for p, v in zip(
+            np.asarray(positions_m, float).tolist(),
+            np.asarray(velocities_m_s, float).tolist(),
+            strict=True,
+        ):
+            centre, course = self.follow(p, v, dt_s)
+            centres.append(centre)
+            courses.append(course)
+        return np.array(centres, float).reshape(-1, 2), np.array(courses, float)
+
     def ahead(
         self, positions_m: Sequence[tuple[float, float]], dt_s: float
     ) -> list[tuple[tuple[float, float], float]]:
@@ -524,20 +540,8 @@ def true_reference(
     positions_m: np.ndarray,
     velocities_m_s: np.ndarray,
     dt_s: float,
-    reference: "FormationReference | None" = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Centres (K, 2) and reference courses (K,) of the formation around the true target, at
-    positions and velocities (K, 2) dt_s apart: the reference a run is judged against, as the
-    agents would place it from a perfect estimate. Pass `reference` to go on where a previous
-    call stopped."""
-    ref = FormationReference(formation, limit) if reference is None else reference
-    centres, courses = [], []
-    for p, v in zip(
-        np.asarray(positions_m, float).tolist(),
-        np.asarray(velocities_m_s, float).tolist(),
-        strict=True,
-    ):
-        centre, course = ref.follow(p, v, dt_s)
-        centres.append(centre)
-        courses.append(course)
-    return np.array(centres, float).reshape(-1, 2), np.array(courses, float)
+    positions and velocities (K, 2) dt_s apart from the start of a run: the reference a run is
+    judged against, as the agents would place it from a perfect estimate."""
+    return FormationReference(formation, limit).follow_run(positions_m, velocities_m_s, dt_s)
