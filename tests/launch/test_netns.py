@@ -11,6 +11,7 @@ Needs root and iproute2 (`ip netns`); no traffic leaves the namespaces.
 
 import json
 import os
+import secrets
 import shutil
 import subprocess
 import sys
@@ -34,25 +35,50 @@ pytestmark = pytest.mark.skipif(
 )
 
 
+class NamespaceRefused(RuntimeError):
+    """The kernel (or the container this runs in) does not let this process make a namespace."""
+
+
 def _ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, timeout=10)
+    done = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
+    if done.returncode != 0:
+        message = f"ip {' '.join(args)}: {done.stderr.strip() or f'exit status {done.returncode}'}"
+        refused = ("Operation not permitted", "Permission denied")
+        if args[:2] == ("netns", "add") and any(word in done.stderr for word in refused):
+            raise NamespaceRefused(message)
+        raise RuntimeError(message)
 
 
 class Hosts:
     """Network namespaces joined by a bridge (in a namespace of its own): one per host name,
-    each with one address on a /24 and its loopback up."""
+    each with one address on a /24 and its loopback up. The names carry a random tag, so a run
+    never meets the namespaces of another run (or of one that was killed before it cleaned up);
+    whatever was made is removed again if making the rest fails."""
 
     def __init__(self, names: list[str]) -> None:
-        tag = os.getpid() % 1000
+        tag = secrets.token_hex(3)
         self.bridge_ns = f"fm{tag}-br"
         self.ns = {name: f"fm{tag}-{name}" for name in names}
-        self.address = {name: SUBNET.format(tag % 250, 10 + i) for i, name in enumerate(names)}
-        _ip("netns", "add", self.bridge_ns)
+        subnet = int(tag, 16) % 250
+        self.address = {name: SUBNET.format(subnet, 10 + i) for i, name in enumerate(names)}
+        self.made: list[str] = []
+        try:
+            self._make(names)
+        except BaseException:
+            self.remove()
+            raise
+
+    def _add(self, ns: str) -> None:
+        _ip("netns", "add", ns)
+        self.made.append(ns)
+
+    def _make(self, names: list[str]) -> None:
+        self._add(self.bridge_ns)
         _ip("-n", self.bridge_ns, "link", "add", "br0", "type", "bridge")
         _ip("-n", self.bridge_ns, "link", "set", "br0", "up")
         for i, name in enumerate(names):
             ns = self.ns[name]
-            _ip("netns", "add", ns)
+            self._add(ns)
             _ip("-n", ns, "link", "set", "lo", "up")
             _ip("-n", ns, "link", "add", "eth0", "type", "veth", "peer", "name", f"p{i}")
             _ip("-n", ns, "link", "set", f"p{i}", "netns", self.bridge_ns)
@@ -61,13 +87,17 @@ class Hosts:
             _ip("-n", ns, "link", "set", "eth0", "up")
 
     def remove(self) -> None:
-        for ns in (*self.ns.values(), self.bridge_ns):
+        for ns in reversed(self.made):
             subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
+        self.made.clear()
 
 
 @pytest.fixture
 def hosts() -> Iterator[Hosts]:
-    made = Hosts(["ground", "uav1", "uav2", "uav3"])
+    try:
+        made = Hosts(["ground", "uav1", "uav2", "uav3"])
+    except NamespaceRefused as refused:  # a container without CAP_SYS_ADMIN, say
+        pytest.skip(f"this host does not allow network namespaces ({refused})")
     try:
         yield made
     finally:
