@@ -221,10 +221,9 @@ class Agent:
         if self._reference_stamp_ns is not None:
             dt_s = (stamp_ns - self._reference_stamp_ns) * 1e-9
         self._reference_stamp_ns = stamp_ns
-        now = ref.follow(
-            track[0], velocities[0], dt_s, velocity_std_m_s=self.target.velocity_std_m_s()
-        )
-        return [now, *ref.ahead(track[1:], period_s)]
+        std = self.target.velocity_std_m_s()
+        now = ref.follow(track[0], velocities[0], dt_s, velocity_std_m_s=std)
+        return [now, *ref.ahead(track[1:], velocities[1:], period_s, velocity_std_m_s=std)]
 
     def _safe_fallback(
         self, z0: list[float], u: np.ndarray, beta: list[float], planes: list[list[Plane]]
@@ -325,11 +324,12 @@ class Agent:
         neighbours = neighbourhood.nearest(
             start_ns, plans, here, inflations, ages, centres[0], offsets[0]
         )
-        planes = neighbourhood.planes(
+        planes, lines = neighbourhood.planes(
             start_ns, neighbours, self._last_plan, here, drift, ages, inflations
         )
         goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
         goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])
+        goal = neighbourhood.draw_out(goal, lines)
         # Linearization trajectory.
         (sx0, sy0), (sx1, sy1) = mine[0], mine[-1]
         slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))

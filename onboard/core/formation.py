@@ -36,6 +36,7 @@ give-way rule turns vessels meeting head-on: every agent, and the judge, sweep t
 """
 
 import bisect
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -239,8 +240,9 @@ class TargetPath:
         self._start_m = START_MIN_M
         self._stopped = False
         """True from a stop until the target has got `start_m` clear of where it stopped."""
-        self._moments: tuple[np.ndarray, float, float] | None = None
-        """The running moments of the points (`_running_moments`), None when out of date."""
+        self._moments: tuple[list[list[float]], float, float] | None = None
+        """The running moments of the points (`_running_moments`), None when out of date; a
+        point added at the end adds its piece to them."""
         self._kept = 0
         """How many of the points stay (the rest: the newest position, too close to stay)."""
 
@@ -263,7 +265,6 @@ class TargetPath:
         about a hovering target stands clear of its uncertainty now and then; a course that is
         certain, the judge's, may pass 0)."""
         self._start_m = start_m
-        self._moments = None
         xs, ys, ss = self.xs, self.ys, self.ss
         starting = ss and ss[0] == 0.0 and self.length_m < start_m
         if not xs or self._start_course is None or (course is None and starting):
@@ -271,9 +272,12 @@ class TargetPath:
             # that hovers.)
             self.xs, self.ys, self.ss, self._kept = [x], [y], [0.0], 1
             self._start_course, self.length_m, self._stopped = course, 0.0, False
+            self._moments = None
             return
         if len(xs) > self._kept:  # (the previous end, too close to stay)
             del xs[-1], ys[-1], ss[-1]
+            if self._moments is not None:
+                self._moments[0].pop()
         if course is not None and self._stopped:  # (moving again once it has got clear)
             sx, sy = self.point_at(self.length_m)
             self._stopped = math.hypot(x - sx, y - sy) < start_m
@@ -288,6 +292,10 @@ class TargetPath:
         ys.append(y)
         ss.append(ss[-1] + step)
         self.length_m = ss[-1]
+        if self._moments is not None:
+            running, ox, oy = self._moments
+            piece = _piece_moments(xs[-2] - ox, ys[-2] - oy, x - ox, y - oy)
+            running.append([a + b for a, b in zip(running[-1], piece, strict=True)])
         if ss[0] == 0.0 and ss[-1] <= self._tail_m:  # (the tail is still in use)
             self._start_course = course
         if step < PATH_SPACING_M:
@@ -297,6 +305,7 @@ class TargetPath:
             drop = bisect.bisect_left(ss, ss[-1] - self._keep_m) - 1
             del xs[:drop], ys[:drop], ss[:drop]
             self._kept -= drop
+            self._moments = None
 
     def _locate(self, x: float, y: float) -> float:
         """Where a stopped target at (x, y) is on the path [m of arc]: the nearest point of the
@@ -338,23 +347,15 @@ class TargetPath:
         self.ss.append(s)
         self._kept = len(self.xs)
 
-    def extended(self, points: Sequence[tuple[float, float]]) -> "TargetPath":
-        """A copy of the path up to the target's newest position, with `points` (a prediction)
-        added in order, each as it is."""
-        out = TargetPath(tail_m=self._tail_m, keep_m=math.inf)
-        end = bisect.bisect_left(self.ss, self.length_m)
-        out.xs, out.ys, out.ss = self.xs[:end], self.ys[:end], self.ss[:end]
-        x, y = self.point_at(self.length_m)
-        out.xs.append(x)
-        out.ys.append(y)
-        out.ss.append(self.length_m)
-        out._start_course = self._start_course
-        for x, y in points:
-            out.ss.append(out.ss[-1] + math.hypot(x - out.xs[-1], y - out.ys[-1]))
-            out.xs.append(x)
-            out.ys.append(y)
-        out.length_m = out.ss[-1]
-        out._kept = len(out.xs)
+    def copy(self) -> "TargetPath":
+        """A copy that extends on its own (a prediction's path) and keeps all it is given (a
+        prediction is short; what it would drop lies beyond every window)."""
+        out = copy.copy(self)
+        out.xs, out.ys, out.ss = self.xs[:], self.ys[:], self.ss[:]
+        out._keep_m = math.inf
+        if self._moments is not None:
+            running, ox, oy = self._moments
+            out._moments = (running[:], ox, oy)
         return out
 
     def _end_course(self) -> float | None:
@@ -381,7 +382,7 @@ class TargetPath:
         f = (s - ss[i - 1]) / (ss[i] - ss[i - 1])
         return xs[i - 1] + f * (xs[i] - xs[i - 1]), ys[i - 1] + f * (ys[i] - ys[i - 1])
 
-    def _running_moments(self) -> tuple[np.ndarray, float, float]:
+    def _running_moments(self) -> tuple[list[list[float]], float, float]:
         """The integrals of 1, x, y, xx, yy, xy along the path from its first point to each
         point (K, 6), about an origin at its newest point (kept small, for precision), and that
         origin; computed once per change of the path."""
@@ -390,7 +391,7 @@ class TargetPath:
             x, y = np.asarray(self.xs) - ox, np.asarray(self.ys) - oy
             pieces = np.column_stack(_piece_moments(x[:-1], y[:-1], x[1:], y[1:]))
             running = np.vstack([np.zeros((1, 6)), np.cumsum(pieces, axis=0)])
-            self._moments = (running, ox, oy)
+            self._moments = (running.tolist(), ox, oy)
         return self._moments
 
     def at(self, s: float) -> tuple[tuple[float, float], float | None]:
@@ -415,7 +416,7 @@ class TargetPath:
         i, j = bisect.bisect_right(self.ss, lo), bisect.bisect_left(self.ss, hi)
         running, ox, oy = self._running_moments()
         if i < j:
-            whole = (running[j - 1] - running[i]).tolist()
+            whole = [a - b for a, b in zip(running[j - 1], running[i], strict=True)]
             first = _piece_moments(ax - ox, ay - oy, self.xs[i] - ox, self.ys[i] - oy)
             last = _piece_moments(self.xs[j - 1] - ox, self.ys[j - 1] - oy, bx - ox, by - oy)
             m = [a + b + c for a, b, c in zip(whole, first, last, strict=True)]
@@ -520,18 +521,27 @@ class FormationReference:
         return np.array(centres, float).reshape(-1, 2), np.array(courses, float)
 
     def ahead(
-        self, positions_m: Sequence[tuple[float, float]], dt_s: float
+        self,
+        positions_m: Sequence[tuple[float, float]],
+        velocities_m_s: Sequence[tuple[float, float]],
+        dt_s: float,
+        *,
+        velocity_std_m_s: float = 0.0,
     ) -> list[tuple[tuple[float, float], float]]:
-        """The centres and reference courses along predicted target positions (dt_s apart,
-        after the one followed last), from the current state (which stays as it is)."""
-        path = self.path.extended(positions_m)
-        out, current = [], self.value
-        for k in range(len(path.ss) - len(positions_m), len(path.ss)):
-            path.length_m = path.ss[k]  # (the target there: the path as it will be then)
-            centre, course = path.at(path.ss[k] - self.trail_m)
-            current = self._turned(current, course, dt_s)
-            out.append((centre, 0.0 if current is None else current))
-        return out
+        """The centres and reference courses along a predicted target track (positions and
+        velocities dt_s apart, after the ones followed last): `follow` along it from the
+        current state, which stays as it is. So a prediction is placed as the estimates it
+        predicts will be: a moving target's positions lay its path, a stopped one's are placed
+        on the path where it stopped."""
+        kept = self.path, self.value, self.limit_speed_m_s
+        self.path = self.path.copy()
+        try:
+            return [
+                self.follow(p, v, dt_s, velocity_std_m_s=velocity_std_m_s)
+                for p, v in zip(positions_m, velocities_m_s, strict=True)
+            ]
+        finally:
+            self.path, self.value, self.limit_speed_m_s = kept
 
 
 def true_reference(

@@ -3,13 +3,12 @@
 
 From the neighbours' latest plans and their ages: the margin inflation of each (v_max x the age
 beyond one period; a forgotten plan drops its neighbour), and where a silent one may be (between
-its last plan and its slot); the formation terms of the linked
-vehicles (the formation graph) whose plans are fresh, and their pull on this vehicle's goal; the
-nearest vehicles within the safety radius, at most K (a neighbourhood whose size does not grow
-with the fleet), and the separation half-planes against each
-(`fleetmpc.onboard.core.separation` places them) and the give-way rule that breaks a deadlock
-between two vehicles stopped nose to nose. Plain floats throughout: the horizon is a handful of
-points.
+its last plan and its slot); the formation terms of the linked vehicles (the formation graph)
+whose plans are fresh, and their pull on this vehicle's goal; the nearest vehicles within the
+safety radius, at most K (a neighbourhood whose size does not grow with the fleet), and the
+separation half-planes against each (`fleetmpc.onboard.core.separation` places them), the
+give-way rule that breaks a deadlock between two vehicles stopped nose to nose, and the goal
+kept in the vehicle's own cell. Plain floats throughout: the horizon is a handful of points.
 """
 
 import math
@@ -195,7 +194,7 @@ class Neighbourhood:
         drift: tuple[float, float],
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
-    ) -> list[list[Plane]]:
+    ) -> tuple[list[list[Plane]], list[list[Plane]]]:
         """Separation half-planes against each of `neighbours` at j = 1..M
         (`separation_planes`), between where this vehicle's previous plan `last_plan` (or,
         without one, the vehicle) and where `nearest` took the neighbour to be now: its plan's
@@ -207,7 +206,7 @@ class Neighbourhood:
         drift_steps = [
             (drift[0] * j * s.period_s, drift[1] * j * s.period_s) for j in range(1, M + 1)
         ]
-        planes = []
+        planes, lines = [], []
         for nid in sorted(neighbours, key=self._fleet_index.__getitem__):  # (in fleet order)
             shared = ages[nid] <= 2.0 * s.period_s + 1e-9
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
@@ -215,8 +214,32 @@ class Neighbourhood:
                 margin += s.silent_allowance_m
             theirs = neighbours[nid]
             planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
+            lines.append(
+                separation_planes(own, theirs, margin, here, drift_steps, shared=shared, hold=False)
+            )
         planes.extend([self._no_planes] * (self.size - len(planes)))
-        return planes
+        lines.extend([self._no_planes] * (self.size - len(lines)))
+        return planes, lines
+
+    @staticmethod
+    def draw_out(
+        goal: list[tuple[float, float]], lines: list[list[Plane]]
+    ) -> list[tuple[float, float]]:
+        """The goal kept on this vehicle's side of every margin line (`planes`' second list):
+        each goal point beyond a line is moved onto it, along its normal, so the cost draws a
+        vehicle found inside its margin back out instead of pressing it against the line
+        through where it is (where each period's model error would be kept)."""
+        out = []
+        for j, (x, y) in enumerate(goal):
+            for line in lines:
+                nx, ny, b = line[j]
+                if not math.isfinite(b):
+                    continue
+                short = b - (nx * x + ny * y)
+                if short > 0.0:
+                    x, y = x + short * nx, y + short * ny
+            out.append((x, y))
+        return out
 
     def goal(
         self,

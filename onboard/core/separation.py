@@ -20,7 +20,8 @@ A vehicle found inside its margin (pushed there by what the model does not know,
 tube's W) keeps to the line through where it is: it may not close further, rather than being
 asked for a jump out that no plan can make. (A vehicle still closing on the line at speed may
 not be able to stop within the speed-rate limit; its problem is then infeasible and the
-fallback takes over.)
+fallback takes over.) Its goal is drawn back onto the margin's line meanwhile
+(`fleetmpc.onboard.core.neighbourhood`), so the cost takes it out again.
 
 A neighbour whose plan is stale (older than two periods: it may not be getting ours either) is
 not trusted to keep to its half: the line then passes through the neighbour's position itself,
@@ -54,6 +55,7 @@ def separation_planes(
     drift_steps: Sequence[tuple[float, float]],
     *,
     shared: bool = True,
+    hold: bool = True,
 ) -> list[Plane]:
     """The half-planes this vehicle keeps to against one neighbour at j = 1..M (module
     docstring).
@@ -63,7 +65,9 @@ def separation_planes(
     is this vehicle's position (its direction from the neighbour gives the normal when the two
     plans meet at a point); `drift_steps` the drift's displacement d j tau at j = 1..M. The line
     bisects the pair when they `shared` the distance and passes through the neighbour's position
-    otherwise. A non-finite margin gives none.
+    otherwise. A vehicle inside its margin keeps to the line through `here`; with `hold` False
+    the margin's own line is returned instead (where such a vehicle is drawn back to). A
+    non-finite margin gives none.
     """
     if not math.isfinite(margin):
         return [NO_PLANE] * len(drift_steps)
@@ -78,7 +82,9 @@ def separation_planes(
     nx, ny = nx / dist, ny / dist
     if shared:
         bx, by = 0.5 * (ax + bx), 0.5 * (ay + by)
-    line = min(nx * bx + ny * by + margin, nx * here[0] + ny * here[1])
+    line = nx * bx + ny * by + margin
+    if hold:
+        line = min(line, nx * here[0] + ny * here[1])
     return [(nx, ny, line + nx * dx + ny * dy) for dx, dy in drift_steps]
 
 

@@ -153,11 +153,54 @@ def test_ahead_places_the_prediction_as_following_would_and_leaves_the_state_alo
     _fly(ref, p[:80], v[:80])
     _fly(copy, p[:80], v[:80])
     state = (ref.value, ref.path.length_m, list(ref.path.xs))
-    ahead = ref.ahead([tuple(x) for x in p[80:90]], DT)
+    ahead = ref.ahead([tuple(x) for x in p[80:90]], [tuple(x) for x in v[80:90]], DT)
     assert (ref.value, ref.path.length_m, list(ref.path.xs)) == state
     followed = [copy.follow(x, y, DT) for x, y in zip(p[80:90], v[80:90], strict=True)]
     for (c1, k1), (c2, k2) in zip(ahead, followed, strict=True):
         assert c1 == pytest.approx(c2, abs=1e-9) and k1 == pytest.approx(k2, abs=1e-9)
+
+
+@pytest.mark.parametrize("moved", [True, False])
+def test_ahead_of_a_stopped_target_the_centre_stays_where_it_is(moved):
+    """A stopped target's prediction lays no path: its positions, a few centimetres from where
+    the target was placed on its path (an estimate), are placed there too. Laid as path, the
+    first step ahead moved the centre by that gap, and the slots' first chord with it (a steady
+    yaw rate beyond the limit for a vehicle holding station in a wind)."""
+    ref = _reference(trail_m=5.0)
+    if moved:
+        p, v = _line(0.0, 30.0)
+        _fly(ref, p, v)
+        stop = p[-1] + v[-1] * DT
+    else:
+        stop = np.zeros(2)
+    estimate = stop + (0.03, 0.04)  # (off the path, as an estimate is)
+    _fly(ref, np.tile(estimate, (20, 1)), np.full((20, 2), 0.01), std=0.02)
+    centre, course = ref.follow(estimate, (0.01, 0.01), DT, velocity_std_m_s=0.02)
+    track = [tuple(estimate + 0.002 * j) for j in range(1, 10)]
+    ahead = ref.ahead(track, [(0.01, 0.01)] * 9, DT, velocity_std_m_s=0.02)
+    centres = np.array([centre, *(c for c, _ in ahead)])
+    moved_by = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    assert np.all(moved_by <= 0.002 * math.sqrt(2.0) + 1e-9)  # (no more than the target)
+    assert all(k == pytest.approx(course) for _, k in ahead)
+
+
+def test_a_paths_moments_kept_up_as_points_come_match_moments_computed_afresh():
+    rng = np.random.default_rng(4)
+    path = TargetPath(tail_m=10.0, keep_m=20.0)
+    for k in range(300):  # (a wavy path; some steps shorter than the spacing, replaced)
+        step = 0.02 if k % 7 == 0 else 0.2
+        x, y = step * k, math.sin(0.02 * k) * 5.0 + 0.01 * rng.standard_normal()
+        path.extend(x, y, 0.0)
+        path.at(path.length_m - 5.0)  # (its moments: now kept up as points come)
+        ahead = path.copy()
+        for j in range(1, 8):
+            ahead.extend(x + 0.2 * j, y, 0.0)
+            ahead.at(ahead.length_m - 5.0)
+        fresh = ahead.copy()
+        fresh._moments = None  # (recomputed from the points)
+        for s in (ahead.length_m - 5.0, ahead.length_m - 1.0):
+            (c1, k1), (c2, k2) = ahead.at(s), fresh.at(s)
+            assert c1 == pytest.approx(c2, abs=1e-9) and k1 == pytest.approx(k2, abs=1e-9)
 
 
 def test_a_path_keeps_only_what_the_centre_can_reach():

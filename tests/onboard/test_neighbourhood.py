@@ -74,7 +74,7 @@ def test_only_vehicles_within_the_radius_are_planned_against_nearest_first_at_mo
     assert list(near) == [4, 2, 3]  # within the radius: 4, 2, 3, 7; K = 3 keeps the nearest 3
     assert near[4] == pytest.approx((gaps[4], 0.0))  # (each where its plan puts it)
     assert hood.crowded == 1
-    planes = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), ages, inflations)
+    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), ages, inflations)
     assert len(planes) == hood.size == 3
     assert all(math.isfinite(p[0][2]) for p in planes)
 
@@ -103,7 +103,7 @@ def test_a_silent_neighbour_is_kept_clear_of_between_its_last_plan_and_its_slot(
     assert inflations == {2: 0.0}
     near = hood.nearest(NOW, plans, here, inflations, {2: age}, centre, offsets)
     assert list(near) == [2]
-    (plane, *_), *_ = hood.planes(NOW, near, None, here, (0.0, 0.0), {2: age}, inflations)
+    ((plane, *_), *_), _ = hood.planes(NOW, near, None, here, (0.0, 0.0), {2: age}, inflations)
     nx, ny, b = plane
     assert (nx, ny) == pytest.approx((0.0, -1.0))  # from (5, 10) on the segment, toward here
     alone = 2.0 * hood.margin_m - 0.1  # d_safe + s + r_M, the tube radius being 0.1 m
@@ -116,9 +116,31 @@ def test_planes_are_padded_to_k_with_no_planes():
     plans = {2: _plan(2, NOW, 3.0, 0.0)}
     inflations = hood.inflations({2: 0.2}, 0.0)
     near = {2: plans[2].position_at(NOW)}
-    planes = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
+    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
     assert len(planes) == 3
     assert all(math.isinf(b) for _, _, b in planes[1] + planes[2])
+
+
+def test_a_vehicle_inside_its_margin_is_held_at_where_it_is_and_drawn_back_out():
+    """Found 0.3 m inside its margin of a neighbour 2 m away, the vehicle's plane passes through
+    where it is (it may not close further), and its goal, which lies beyond the neighbour, is
+    put back on the margin's own line: the cost draws the vehicle out, where pressing it against
+    the plane through where it is would keep every period's model error."""
+    hood = _hood((1, 2))
+    here, theirs = (0.0, 0.0), (2.0, 0.0)
+    near = {2: theirs}
+    inflations = hood.inflations({2: 0.2}, 0.0)
+    planes, lines = hood.planes(NOW, near, None, here, (0.0, 0.0), {2: 0.2}, inflations)
+    (nx, ny, b), line = planes[0][0], lines[0][0]
+    assert (nx, ny) == pytest.approx((-1.0, 0.0))
+    assert b == pytest.approx(0.0)  # through where it is
+    assert line[2] == pytest.approx(-(1.0 - hood.margin_m))  # the margin's line, x = 1 - margin
+    goal = [(3.0, 0.5 * j) for j in range(M)]  # beyond the neighbour
+    drawn = hood.draw_out(goal, lines)
+    expected = [(1.0 - hood.margin_m, 0.5 * j) for j in range(M)]
+    assert np.array(drawn) == pytest.approx(np.array(expected))
+    behind = [(-3.0, 1.0)] * M  # already on its side: untouched
+    assert hood.draw_out(behind, lines) == behind
 
 
 def test_the_formation_graph_links_each_grid_slot_to_its_eight_nearest():

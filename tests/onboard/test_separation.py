@@ -44,6 +44,8 @@ def test_a_vehicle_inside_its_margin_keeps_to_the_line_through_where_it_is():
     (nx, ny, b), *_ = separation_planes(here, (1.0, 0.0), 2.0, here, NO_DRIFT)
     assert b == pytest.approx(0.0)  # not -0.5 + 2.0: it may not close, it is not thrown out
     assert plane_slack(0.0, 0.0, (nx, ny, b)) == pytest.approx(0.0)
+    (_, _, line), *_ = separation_planes(here, (1.0, 0.0), 2.0, here, NO_DRIFT, hold=False)
+    assert line == pytest.approx(-0.5 + 2.0)  # the margin's own line, where it is drawn back to
 
 
 def test_intersample_allowance():

@@ -137,6 +137,23 @@ def test_a_target_that_never_moves_leaves_the_formation_facing_north():
     assert m["min_separation_m"] >= sc.controller.d_safe_m
 
 
+@pytest.mark.parametrize("learning", [True, False])
+def test_vehicles_crossing_each_others_paths_keep_d_safe(learning):
+    """Four vehicles turn about and cross each other's paths at M = 15. Pressed against the
+    line through where it was, each period's model error that took a vehicle further in was
+    kept: seed 5 came to 1.88 m with learning (d_safe 2 m). Its goal drawn back onto its
+    margin's line, the cost takes it out again. (Without learning, a vehicle pressed against
+    its line by a wind it does not know turns in place: its fallbacks and reversals are not
+    held to the suite's gates here; README, "Four harder cases".)"""
+    sc = load_scenario("scenarios/hard/crossing-start-m15.toml")
+    m = compute_metrics(run_lockstep(sc, learning=learning, seed=5))
+    assert m["min_separation_m"] >= sc.controller.d_safe_m
+    if learning:
+        steps = (round(sc.duration_s / sc.controller.period_s) + 1) * len(sc.vehicles)
+        assert m["qp_fallbacks"] <= QP_FALLBACK_MAX_FRACTION * steps
+        assert m["yaw_rate_reversals_per_vehicle_min"] <= REVERSALS_MAX_PER_VEHICLE_MIN
+
+
 def test_check_judges_a_turn_beyond_the_bound_by_the_position_it_costs():
     doc = tomllib.loads(Path("scenarios/square.toml").read_text())
     # World frame: the formation does not turn, its centre goes round each corner over a few
