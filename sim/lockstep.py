@@ -156,10 +156,10 @@ def _fly(
             outs.append((out, step_ms))
             if interest is not None:
                 bus.listen_near(*interest)
-        (cx, cy), course = truth_reference.follow(
+        centre, course = truth_reference.follow(
             tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
         )
-        slots = np.array([(cx + ox, cy + oy) for ox, oy in truth_formation.offsets(course)])
+        slots = truth_formation.slots(np.array([centre]), np.array([course]))[0]
         prediction = None
         if ground_target is not None and ((k + 1) % flush_every == 0 or k == periods - 1):
             prediction, _ = ground_target.predict(t_ns, period_ns, sc.controller.horizon + 1)
@@ -170,7 +170,7 @@ def _fly(
             target=tgt_pos,
             target_velocity=tgt_vel,
             slots=slots,
-            slot_offsets_world=slots - np.array((cx, cy)),
+            slot_offsets_world=slots - np.array(centre),
             command=np.array([o.command for o, _ in outs]),
             c=np.array([o.c[0] for o, _ in outs]),
             beta=np.array([o.beta for o, _ in outs]),

@@ -18,8 +18,9 @@ from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.separation import (
     NO_PLANE,
     Plane,
+    held_inside,
     intersample_allowance,
-    separation_planes,
+    separation_lines,
 )
 from fleetmpc.protocol.plan import Plan
 
@@ -195,12 +196,13 @@ class Neighbourhood:
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
     ) -> tuple[list[list[Plane]], list[list[Plane]]]:
-        """Separation half-planes against each of `neighbours` at j = 1..M
-        (`separation_planes`), between where this vehicle's previous plan `last_plan` (or,
-        without one, the vehicle) and where `nearest` took the neighbour to be now: its plan's
-        position, or for a silent one the point of its region nearest this vehicle, kept
-        silent_allowance_m farther from. The distance is shared while the neighbour's plan is at
-        most two periods old. Padded to K neighbours with no planes."""
+        """Separation half-planes against each of `neighbours` at j = 1..M (`separation_lines`,
+        `held_inside`), between where this vehicle's previous plan `last_plan` (or, without one,
+        the vehicle) and where `nearest` took the neighbour to be now: its plan's position, or
+        for a silent one the point of its region nearest this vehicle, kept silent_allowance_m
+        farther from. The distance is shared while the neighbour's plan is at most two periods
+        old. Padded to K neighbours with no planes. With them, the margins' own lines (the same
+        where the vehicle is not inside its margin), which `draw_out` keeps the goal behind."""
         s, M = self.settings, self.settings.horizon
         own = here if last_plan is None else last_plan.position_at(stamp_ns)
         drift_steps = [
@@ -213,10 +215,8 @@ class Neighbourhood:
             if self.silent(ages[nid]):
                 margin += s.silent_allowance_m
             theirs = neighbours[nid]
-            planes.append(separation_planes(own, theirs, margin, here, drift_steps, shared=shared))
-            lines.append(
-                separation_planes(own, theirs, margin, here, drift_steps, shared=shared, hold=False)
-            )
+            lines.append(separation_lines(own, theirs, margin, here, drift_steps, shared=shared))
+            planes.append(held_inside(lines[-1], here, drift_steps))
         planes.extend([self._no_planes] * (self.size - len(planes)))
         lines.extend([self._no_planes] * (self.size - len(lines)))
         return planes, lines

@@ -31,7 +31,14 @@ and this vehicle keeps the whole distance, d_safe + r_M + s + v_max (age - tau),
 import math
 from collections.abc import Sequence
 
-__all__ = ["NO_PLANE", "Plane", "intersample_allowance", "plane_slack", "separation_planes"]
+__all__ = [
+    "NO_PLANE",
+    "Plane",
+    "held_inside",
+    "intersample_allowance",
+    "plane_slack",
+    "separation_lines",
+]
 
 Plane = tuple[float, float, float]
 """A half-plane (n_x, n_y, b): positions p with n' p >= b; a non-finite b means none."""
@@ -47,7 +54,7 @@ def intersample_allowance(*, speed_max_m_s: float, period_s: float, d_safe_m: fl
     return chord * chord / (8.0 * max(d_safe_m, 1e-9))
 
 
-def separation_planes(
+def separation_lines(
     own: tuple[float, float],
     neighbour: tuple[float, float],
     margin: float,
@@ -55,19 +62,16 @@ def separation_planes(
     drift_steps: Sequence[tuple[float, float]],
     *,
     shared: bool = True,
-    hold: bool = True,
 ) -> list[Plane]:
-    """The half-planes this vehicle keeps to against one neighbour at j = 1..M (module
-    docstring).
+    """The margin's lines this vehicle keeps to against one neighbour at j = 1..M (module
+    docstring), before `held_inside` holds a vehicle inside its margin where it is.
 
     `own` and `neighbour` are where this vehicle's previous plan (its position when it has none)
     and the neighbour's plan put them now; `margin` is the distance to keep from the line; `here`
     is this vehicle's position (its direction from the neighbour gives the normal when the two
     plans meet at a point); `drift_steps` the drift's displacement d j tau at j = 1..M. The line
     bisects the pair when they `shared` the distance and passes through the neighbour's position
-    otherwise. A vehicle inside its margin keeps to the line through `here`; with `hold` False
-    the margin's own line is returned instead (where such a vehicle is drawn back to). A
-    non-finite margin gives none.
+    otherwise. A non-finite margin gives none.
     """
     if not math.isfinite(margin):
         return [NO_PLANE] * len(drift_steps)
@@ -83,9 +87,22 @@ def separation_planes(
     if shared:
         bx, by = 0.5 * (ax + bx), 0.5 * (ay + by)
     line = nx * bx + ny * by + margin
-    if hold:
-        line = min(line, nx * here[0] + ny * here[1])
     return [(nx, ny, line + nx * dx + ny * dy) for dx, dy in drift_steps]
+
+
+def held_inside(
+    lines: Sequence[Plane], here: tuple[float, float], drift_steps: Sequence[tuple[float, float]]
+) -> list[Plane]:
+    """The half-planes kept to along the margin's `lines` (`separation_lines`): where the vehicle
+    at `here` is inside its margin, the line through where it is, drifting as the margin's does
+    (module docstring)."""
+    hx, hy = here
+    out = []
+    for (nx, ny, b), (dx, dy) in zip(lines, drift_steps, strict=True):
+        if math.isfinite(b):
+            b = min(b, nx * hx + ny * hy + nx * dx + ny * dy)
+        out.append((nx, ny, b))
+    return out
 
 
 def plane_slack(x: float, y: float, plane: Plane) -> float:

@@ -5,7 +5,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from fleetmpc.onboard.core.separation import intersample_allowance, plane_slack, separation_planes
+from fleetmpc.onboard.core.separation import (
+    held_inside,
+    intersample_allowance,
+    plane_slack,
+    separation_lines,
+)
 
 coord = st.floats(-50.0, 50.0)
 NO_DRIFT = [(0.0, 0.0)] * 3
@@ -16,8 +21,8 @@ def test_a_pair_computes_one_line_and_keeping_to_it_keeps_them_apart(ax, ay, bx,
     a, b = (ax, ay), (bx, by)
     if math.hypot(ax - bx, ay - by) < 2.0 * margin + 1e-3:
         return  # (inside the margins: each keeps to where it is, the next test)
-    mine = separation_planes(a, b, margin, a, NO_DRIFT)[0]
-    theirs = separation_planes(b, a, margin, b, NO_DRIFT)[0]
+    mine = separation_lines(a, b, margin, a, NO_DRIFT)[0]
+    theirs = separation_lines(b, a, margin, b, NO_DRIFT)[0]
     # Opposite normals, one bisecting line: the two sides are 2 margin apart.
     assert mine[0] == pytest.approx(-theirs[0]) and mine[1] == pytest.approx(-theirs[1])
     assert mine[2] + theirs[2] == pytest.approx(2.0 * margin, abs=1e-6)
@@ -32,19 +37,20 @@ def test_a_pair_computes_one_line_and_keeping_to_it_keeps_them_apart(ax, ay, bx,
 
 def test_a_stale_neighbour_is_kept_at_the_whole_distance_and_drift_moves_the_line():
     here = (0.0, 0.0)
-    (nx, ny, b), *_ = separation_planes(here, (10.0, 0.0), 3.0, here, NO_DRIFT, shared=False)
+    (nx, ny, b), *_ = separation_lines(here, (10.0, 0.0), 3.0, here, NO_DRIFT, shared=False)
     assert (nx, ny) == pytest.approx((-1.0, 0.0)) and b == pytest.approx(-7.0)
     drift = [(0.1 * j, 0.0) for j in range(1, 4)]
-    planes = separation_planes(here, (10.0, 0.0), 1.0, here, drift)
+    planes = separation_lines(here, (10.0, 0.0), 1.0, here, drift)
     assert [p[2] for p in planes] == pytest.approx([-4.0 - 0.1 * j for j in range(1, 4)])
 
 
 def test_a_vehicle_inside_its_margin_keeps_to_the_line_through_where_it_is():
     here = (0.0, 0.0)
-    (nx, ny, b), *_ = separation_planes(here, (1.0, 0.0), 2.0, here, NO_DRIFT)
+    lines = separation_lines(here, (1.0, 0.0), 2.0, here, NO_DRIFT)
+    (nx, ny, b), *_ = held_inside(lines, here, NO_DRIFT)
     assert b == pytest.approx(0.0)  # not -0.5 + 2.0: it may not close, it is not thrown out
     assert plane_slack(0.0, 0.0, (nx, ny, b)) == pytest.approx(0.0)
-    (_, _, line), *_ = separation_planes(here, (1.0, 0.0), 2.0, here, NO_DRIFT, hold=False)
+    (_, _, line), *_ = separation_lines(here, (1.0, 0.0), 2.0, here, NO_DRIFT)
     assert line == pytest.approx(-0.5 + 2.0)  # the margin's own line, where it is drawn back to
 
 
