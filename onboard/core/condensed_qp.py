@@ -312,7 +312,7 @@ class CondensedQp:
         hundred floats becomes an array 3-4x faster than through np.array). With M a handful of
         steps, a float loop is cheaper than a few dozen numpy calls on (M,)-arrays.
         """
-        tau, trust = self.tau, self.settings.yaw_rate_trust_rad_s
+        tau, trust_at = self.tau, self.settings.yaw_rate_trust
         a_v, a_w, d_x, d_y = _rows(d.beta)
         tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
         hn = 0.5 * tau  # nominal, a_V = a_w = 1
@@ -335,7 +335,9 @@ class CondensedQp:
         )
         for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
             c, s = cos(th), sin(th)
-            # The yaw rate keeps within the trust region about the linearization's.
+            # The yaw rate keeps within the trust region about the linearization's, wider the
+            # slower the linearization flies (`ControllerSettings.yaw_rate_trust`).
+            trust = trust_at(v)
             lo_w, hi_w = max(lo_w, min(w - trust, hi_w)), min(hi_w, max(w + trust, lo_w))
             out += (
                 k01 * s - k00 * c, -k00 * s - k01 * c,  # -K_j's position columns

@@ -1,5 +1,6 @@
 """Frozen configuration of the onboard controller, validated at construction."""
 
+import math
 from dataclasses import dataclass
 
 from fleetmpc.errors import ConfigError
@@ -61,8 +62,9 @@ class ControllerSettings:
     speed_rate_max_m_s2: float = 2.0
     """How fast a plan may change its speed [m/s^2]: planned stops take time, as real ones do."""
     yaw_rate_trust_rad_s: float = 0.25
-    """Trust region of the QP: each planned yaw rate stays within this of the linearization
-    trajectory's, so the plan's headings stay where the linearized model holds [rad/s]."""
+    """Trust region of the QP at reference_speed_m_s: each planned yaw rate stays within
+    `yaw_rate_trust(v)` of the linearization trajectory's (v its speed there), so the plan's
+    headings stay where the linearized model holds [rad/s]."""
     seed_switch_ratio: float = 0.7
     """The linearization keeps following its previous plan unless another seed's rollout scores
     at most this fraction of the plan's (hysteresis against alternating seeds)."""
@@ -118,6 +120,14 @@ class ControllerSettings:
             raise ConfigError(
                 "controller.min_linearization_speed_m_s", "must not exceed speed_max_m_s"
             )
+
+    def yaw_rate_trust(self, speed_m_s: float) -> float:
+        """The trust region's half-width about a yaw rate linearized at `speed_m_s` (> 0)
+        [rad/s]: yaw_rate_trust_rad_s at the reference speed, times sqrt(reference speed /
+        speed). The linearized model's position error from a heading dth off the
+        linearization's grows as v dth^2, so a plan may turn as far from it at every speed
+        for the same error: further when slow (docs/design.md, "Linearization seed")."""
+        return self.yaw_rate_trust_rad_s * math.sqrt(self.reference_speed_m_s / speed_m_s)
 
     @property
     def period_ns(self) -> int:

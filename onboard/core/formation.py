@@ -487,7 +487,11 @@ class FormationReference:
         velocity swings past zero, and its course then says nothing)."""
         speed_m_s = math.hypot(*velocity_m_s)
         slew = SPEED_SLEW_M_S2 * dt_s
-        if not self.path.xs:
+        if self.value is None:
+            # No course yet, so nothing to sweep: the limit reads the speed as it is, and the
+            # first course is swept at the rate of the speed the target has then (slewing up
+            # from a settling estimate's first few cm/s took 20 s, during which the reference
+            # turned faster than the judge's, a lead it kept while both turned at the limit).
             self.limit_speed_m_s = speed_m_s
         else:
             change = speed_m_s - self.limit_speed_m_s

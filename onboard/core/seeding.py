@@ -48,6 +48,9 @@ class Seeder:
         flies a step along its midpoint heading (`fleetmpc.onboard.core.unicycle`), so the heading
         at a slot is the mean of the courses of the chords either side of it, and a step along a
         chord then keeps to it (exactly, when the slots turn steadily). Headings are unwrapped.
+        Each u_s,j is clipped to the tightened box of step j: slots that jump within a horizon (as
+        they do the period a formation's first course is known) would otherwise ask for tens of
+        m/s, which the cost would then pull every input toward.
         """
         tau = self.settings.period_s
         a_v, a_w, d_x, d_y = beta
@@ -65,7 +68,10 @@ class Seeder:
         headings = [c0 - 0.5 * (c1 - c0)] + [0.5 * (a + b) for a, b in ahead]
         tw = tau * a_w
         steps = zip(speeds, headings, headings[1:], strict=False)
-        u_s = [(v / a_v, (h1 - h0) / tw) for v, h0, h1 in steps]  # (M pairs)
+        u_s = [
+            (min(v / a_v, v_hi), max(w_lo, min(w_hi, (h1 - h0) / tw)))
+            for (v, h0, h1), (_, w_lo, v_hi, w_hi) in zip(steps, self.input_box, strict=True)
+        ]  # (M pairs)
         return u_s, headings
 
     def pursuit_inputs(

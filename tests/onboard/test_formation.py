@@ -265,3 +265,34 @@ def test_the_true_reference_of_a_run_is_the_stateful_one_period_by_period():
     centres, courses = true_reference(formation, limit, p, v, DT)
     np.testing.assert_allclose(centres, [c for c, _ in one_by_one], atol=1e-12)
     np.testing.assert_allclose(courses, [k for _, k in one_by_one], atol=1e-12)
+
+
+def test_an_estimate_that_settles_sweeps_as_the_truth_does_on_a_turn_beyond_the_limit():
+    """A target circling faster than r_max: the agents' reference and the judge's both turn at
+    the limit for as long as it circles, so a lead either takes at the start is kept. The
+    agents' estimate starts at a few cm/s; the speed the limit reads, slewed up from there, took
+    20 s to reach the target's, while the reference turned faster than the judge's (a 25 m
+    circle, 12 m lever arms: 0.04 rad of formation, 0.4 m at the outer slots, for good)."""
+    formation = Formation(
+        FormationSettings(slots_m=((0.0, 12.0), (0.0, -12.0)), frame="course", trail_m=6.0)
+    )
+    limit = course_rate_limit(formation, speed_bound_m_s=1.6, yaw_rate_bound_rad_s=0.45)
+    radius, speed = 25.0, 1.0
+    assert limit.at(speed) < speed / radius  # (the circle turns faster than the limit)
+    t = DT * np.arange(300)
+    w = speed / radius
+    p = radius * np.column_stack([np.sin(w * t), 1.0 - np.cos(w * t)])
+    v = speed * np.column_stack([np.cos(w * t), np.sin(w * t)])
+    _, truth = _fly(FormationReference(formation, limit), p, v)
+    # The estimate: its velocity settles over the first 0.6 s, uncertain until then (as the
+    # target filter's does); the judge has the truth from the start.
+    settle = np.clip(t / 0.6, 0.0, 1.0)[:, None]
+    stds = np.where(t < 0.6, 0.5, 0.02)
+    estimate = FormationReference(formation, limit)
+    courses = np.array(
+        [estimate.follow(a, b, DT, velocity_std_m_s=s)[1]
+         for a, b, s in zip(p, settle * v, stds, strict=True)]
+    )  # fmt: skip
+    # Left: what the circle turned beyond the limit before the estimate's path told a course
+    # (about 1.4 s at 0.015 rad/s); it was 0.1 rad.
+    np.testing.assert_allclose(courses[t > 20.0], truth[t > 20.0], atol=0.015)

@@ -45,7 +45,8 @@ def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.nda
     linearization's."""
     lower = mpc.u_min + mpc.tightening[j] * [0.0, 1.0]
     upper = mpc.u_max - mpc.tightening[j]
-    w, trust = d.lin_inputs[j, 1], SETTINGS.yaw_rate_trust_rad_s
+    v, w = d.lin_inputs[j]
+    trust = SETTINGS.yaw_rate_trust(float(v))
     lower[1], upper[1] = (
         max(lower[1], min(w - trust, upper[1])),
         min(upper[1], max(w + trust, lower[1])),
@@ -152,12 +153,37 @@ def test_the_plan_flies_forward_keeps_the_yaw_rate_trust_region_and_its_speed_ra
         sol = mpc.solve(QpData(**{**d.__dict__, "u_s": u_s}))
         assert sol.ok, sol.status
         assert np.all(sol.inputs[:, 0] >= -1e-6)
+        trust = [SETTINGS.yaw_rate_trust(v) for v in d.lin_inputs[:, 0]]
         np.testing.assert_array_less(
-            np.abs(sol.inputs[:, 1] - d.lin_inputs[:, 1]), SETTINGS.yaw_rate_trust_rad_s + 1e-5
+            np.abs(sol.inputs[:, 1] - d.lin_inputs[:, 1]), np.array(trust) + 1e-5
         )
         speeds = np.concatenate([[d.speed_now_m_s], sol.inputs[:, 0]])
         step = SETTINGS.speed_rate_max_m_s2 * mpc.tau
         np.testing.assert_array_less(np.abs(np.diff(speeds)), step + 1e-5)
+
+
+def test_the_trust_region_is_wider_about_a_slow_linearization():
+    """The linearized position's error from a heading dth off the linearization's grows as
+    v dth^2: at a quarter of the reference speed the yaw rate may go twice as far from it. A
+    vehicle holding station in a wind it does not know, linearized at 0.3 m/s while it barely
+    moves, had its yaw rate held 0.25 rad/s from seeds that turned opposite ways, one period
+    after the other (5 yaw-rate reversals per vehicle-minute)."""
+    v_ref = SETTINGS.reference_speed_m_s
+    assert SETTINGS.yaw_rate_trust(v_ref) == pytest.approx(SETTINGS.yaw_rate_trust_rad_s)
+    assert SETTINGS.yaw_rate_trust(v_ref / 4) == pytest.approx(2 * SETTINGS.yaw_rate_trust_rad_s)
+    assert SETTINGS.yaw_rate_trust(2 * v_ref) < SETTINGS.yaw_rate_trust_rad_s
+    mpc = TubeLbmpc(SETTINGS, n_neighbours=2)
+    d = _random_data(np.random.default_rng(5), mpc, separation=False)
+    lin_u = np.column_stack([np.full(mpc.M, 0.3), np.full(mpc.M, 0.4)])
+    # Steady inputs that turn hard the other way: the plan turns as far as the region lets it.
+    u_s = np.column_stack([np.full(mpc.M, 0.3), np.full(mpc.M, -0.5)])
+    lin_z = rollout(d.z0, lin_u, d.beta, mpc.tau)
+    d = QpData(**{**d.__dict__, "lin_inputs": lin_u, "lin_states": lin_z, "u_s": u_s})
+    sol = mpc.solve(d)
+    assert sol.ok, sol.status
+    w = sol.inputs[:, 1]
+    assert w.min() < 0.4 - SETTINGS.yaw_rate_trust_rad_s - 0.05  # beyond the old region
+    assert np.all(w >= 0.4 - SETTINGS.yaw_rate_trust(0.3) - 1e-5)
 
 
 def test_terminal_weight_is_the_rotated_dare_solution():
