@@ -122,7 +122,8 @@ def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.nda
     its yaw rate also within the trust region about the linearization's."""
     lower = mpc.u_min + mpc.tightening[j] * [0.0, 1.0]
     upper = mpc.u_max - mpc.tightening[j]
-    w, trust = d.lin_inputs[j, 1], mpc.settings.yaw_rate_trust_rad_s
+    v, w = np.asarray(d.lin_inputs, float)[j].tolist()
+    trust = mpc.settings.yaw_rate_trust(v)
     lower[1], upper[1] = (
         max(lower[1], min(w - trust, upper[1])),
         min(upper[1], max(w + trust, lower[1])),

@@ -68,7 +68,8 @@ def test_the_cvxpy_rebuild_solves_the_same_qp(seed):
     step = SETTINGS.speed_rate_max_m_s2 * mpc.tau
     assert np.max(changes) < step + 1e-5 and np.max(changes) > step - 1e-5
     turn = np.abs(sol.inputs[:, 1] - d.lin_inputs[:, 1])
-    assert np.min(np.abs(turn - SETTINGS.yaw_rate_trust_rad_s)) < 1e-5
+    trust = np.array([SETTINGS.yaw_rate_trust(v) for v in d.lin_inputs[:, 0]])
+    assert np.min(np.abs(turn - trust)) < 1e-5
     n, b = d.separation_planes[0, :2, :2], d.separation_planes[0, :2, 2]
     separation_slack = np.sum(n * sol.learned[1:3, :2], axis=1) - b
     assert separation_slack.min() > -1e-5 and separation_slack.min() < 1e-5
