@@ -64,6 +64,10 @@ SLOT_JUMP_M_S = 0.1
 """A slot whose velocity changes by more than this from one check step to the next (2 m/s^2)
 jumps: a transient, as a corner is, not a steady need."""
 
+COURSE_LAG_REPORT_RAD = math.radians(2.0)
+"""A course-frame formation's reference course falling this far behind the target's on a turn
+it may not follow as fast (docs/design.md, "Formation reference") is reported."""
+
 TURN_LAG_MAX_M = 0.1
 """A slot that turns faster than the bound over the window is infeasible only if the heading lag
 costs its vehicle more than this much position: about its air speed x the excess rate x the
@@ -84,6 +88,11 @@ class _Requirements:
     (TURN_LAG_MAX_M) (N,) [m]."""
     corners: list["_Corner"]
     """The formation's transient at each of the target's corners."""
+    course_lag_rad: float
+    """How far a course-frame formation's reference course falls behind the target's where the
+    target turns steadily faster than the reference may (outside corners) [rad]."""
+    course_lag_for_s: float
+    """How long that turn lasts [s]."""
 
 
 @dataclass(frozen=True)
@@ -205,7 +214,30 @@ def _slot_requirements(
                     float(t[k]), float(t[first]), (last - first) * dt_s, angle, behind_m, lateness
                 )
         corners.append(worst)
-    return _Requirements(np.array(speeds), np.array(rates), np.array(lags), corners)
+    lag_rad, lag_for_s = 0.0, 0.0
+    if sc.formation.frame == "course":
+        lag_rad, lag_for_s = _course_lag(target_vel, steady, course_limit, dt_s)
+    return _Requirements(
+        np.array(speeds), np.array(rates), np.array(lags), corners, lag_rad, lag_for_s
+    )
+
+
+def _course_lag(
+    target_vel: np.ndarray, steady: np.ndarray, course_limit: CourseRateLimit, dt_s: float
+) -> tuple[float, float]:
+    """Outside corners, the longest stretch the target turns faster than r_max at its speed:
+    what the reference course loses to it there [rad], and how long it lasts [s]."""
+    speed = np.hypot(target_vel[:-1, 0], target_vel[:-1, 1])
+    course = np.unwrap(np.arctan2(target_vel[:, 1], target_vel[:, 0]))
+    rate = np.abs(np.diff(course)) / dt_s
+    limit = np.array([course_limit.at(v) for v in speed.tolist()])
+    excess = np.where(steady & (speed > 0.1), rate - limit, 0.0)
+    best, best_for, run, run_for = 0.0, 0.0, 0.0, 0.0
+    for e in excess.tolist():
+        run, run_for = (run + e * dt_s, run_for + dt_s) if e > 0.0 else (0.0, 0.0)
+        if run > best:
+            best, best_for = run, run_for
+    return best, best_for
 
 
 def check_scenario(sc: Scenario) -> FeasibilityReport:
@@ -255,6 +287,13 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"vehicle {sc.vehicles[late].id}'s slot turns at up to {rates[late]:.3f} rad/s, "
             f"beyond |omega| <= {w_bound:.3f} rad/s after tightening, at a speed where the "
             f"heading lag costs about {lags[late]:.2f} m (more than {TURN_LAG_MAX_M:g} m)"
+        )
+    if needs.course_lag_rad > COURSE_LAG_REPORT_RAD:
+        lines.append(
+            f"reference course: for {needs.course_lag_for_s:.0f} s the target turns faster than "
+            f"the formation may (r_max, {course_limit.at(t_speed):.3f} rad/s at "
+            f"{t_speed:.2f} m/s): the formation's course falls up to "
+            f"{math.degrees(needs.course_lag_rad):.0f} deg behind the target's"
         )
     spare = v_bound - float(speeds.max())
     for corner in needs.corners:

@@ -195,3 +195,17 @@ def test_check_judges_a_turn_beyond_the_bound_by_the_position_it_costs():
     assert not report.feasible
     turning = [p for p in report.problems if "beyond |omega|" in p]
     assert turning and "heading lag costs" in turning[0], report.problems
+
+
+def test_check_reports_a_steady_turn_the_course_frame_falls_behind_on():
+    doc = tomllib.loads(Path("scenarios/wedge-circle.toml").read_text())
+    assert not [
+        line
+        for line in check_scenario(parse_scenario(doc)).lines
+        if line.startswith("reference course")
+    ]
+    doc["target"]["radius_m"] = 25.0  # 0.04 rad/s, r_max 0.035 rad/s, for all 60 s
+    report = check_scenario(parse_scenario(doc))
+    assert report.feasible  # (its slots can be flown; the formation turns slower than the path)
+    lagging = [line for line in report.lines if line.startswith("reference course")]
+    assert len(lagging) == 1 and "for 56 s" in lagging[0] and "up to 17 deg" in lagging[0]
