@@ -30,6 +30,7 @@ from fleetmpc.gcs.metrics import pair_indices
 from fleetmpc.gcs.record import FlightRecord, LiveRows, RunConstants
 from fleetmpc.gcs.scenario_rows import ScenarioRows
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
+from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.protocol.messages import PlanMessage, StatusMessage, TargetObservation
 from fleetmpc.scenario import Scenario
 
@@ -42,7 +43,7 @@ def _unwrap_step(previous_rad: float, yaw_rad: float, *, correction: float) -> f
     (Python's float `%` is numpy's `np.mod`: fmod, then the divisor's sign), one sample at a
     time, as the samples arrive."""
     dd = yaw_rad - previous_rad
-    ddmod = (dd + math.pi) % (2 * math.pi) - math.pi
+    ddmod = wrap(dd)
     if ddmod == -math.pi and dd > 0:
         ddmod = math.pi
     return correction + (0.0 if abs(dd) < math.pi else ddmod - dd)

@@ -213,8 +213,7 @@ def unwrap(angles: np.ndarray) -> np.ndarray:
     a = np.asarray(angles, dtype=float)
     if a.size < 2:
         return a.copy()
-    d = np.diff(a)
-    d = (d + np.pi) % (2.0 * np.pi) - np.pi
+    d = wrap_angle(np.diff(a))
     out = np.empty_like(a)
     out[0] = a[0]
     np.cumsum(d, out=out[1:])
