@@ -126,7 +126,7 @@ class ControllerSettings:
         [rad/s]: yaw_rate_trust_rad_s at the reference speed, times sqrt(reference speed /
         speed). The linearized model's position error from a heading dth off the
         linearization's grows as v dth^2, so a plan may turn as far from it at every speed
-        for the same error: further when slow (docs/design.md, "Linearization seed")."""
+        for the same error: further when slow (docs/design.md, "Yaw-rate trust region")."""
         return self.yaw_rate_trust_rad_s * math.sqrt(self.reference_speed_m_s / speed_m_s)
 
     @property
