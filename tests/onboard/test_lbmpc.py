@@ -2,6 +2,7 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
+from fleetmpc.bench.step import _input_bounds
 from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
@@ -38,20 +39,6 @@ def _random_data(rng: np.random.Generator, mpc: TubeLbmpc, *, separation: bool =
         speed_now_m_s=float(lin_u[0, 0]),
         yaw_rate_now_rad_s=float(lin_u[0, 1]),
     )
-
-
-def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.ndarray]:
-    """U tightened at step j (not at speed 0), its yaw rate within the trust region about the
-    linearization's."""
-    lower = mpc.u_min + mpc.tightening[j] * [0.0, 1.0]
-    upper = mpc.u_max - mpc.tightening[j]
-    v, w = d.lin_inputs[j]
-    trust = SETTINGS.yaw_rate_trust(float(v))
-    lower[1], upper[1] = (
-        max(lower[1], min(w - trust, upper[1])),
-        min(upper[1], max(w + trust, lower[1])),
-    )
-    return lower, upper
 
 
 def _reference_solution(mpc: TubeLbmpc, d: QpData) -> np.ndarray:
