@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetmpc.errors import ConfigError
+from fleetmpc.network import Network, check_ports
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.sitl.plant import TruthParams, Wind
 from fleetmpc.sitl.target import TargetScript
@@ -21,19 +22,14 @@ from fleetmpc.validate import finite, in_range, positive, vector
 __all__ = [
     "flight_time",
     "AUTOPILOTS",
-    "Network",
     "Scenario",
     "Site",
     "VehicleSpec",
     "load_scenario",
-    "mavlink_url",
-    "vehicle_host",
     "parse_scenario",
     "pattern_slots",
     "PATTERN_KINDS",
     "toml_files",
-    "PX4_GCS_LOCAL_BASE_PORT",
-    "PX4_OFFBOARD_LOCAL_BASE_PORT",
 ]
 
 AUTOPILOTS = ("px4", "ardupilot")
@@ -58,163 +54,6 @@ class Site:
         in_range("site.home_lon_deg", self.home_lon_deg, -180.0, 180.0)
         finite("site.home_alt_m", self.home_alt_m)
         positive("site.altitude_m", self.altitude_m)
-
-
-@dataclass(frozen=True)
-class Network:
-    """Loopback ports of a fleet; vehicle (system id) i uses the base ports plus (i - 1)."""
-
-    host: str = "127.0.0.1"
-    """Address every process binds to or sends to, unless the fields below (and a vehicle's
-    `host`) place some of them on other machines."""
-    router_host: str | None = None
-    """Address of the Zenoh router (it binds there; every fleet process connects there);
-    None: `host`."""
-    ground_station_host: str | None = None
-    """Address of the ground station (every vehicle streams its telemetry there); None:
-    `host`."""
-    offboard_base_port: int = 14540
-    """PX4 offboard-API UDP port of vehicle 1 (vehicle i: + i - 1)."""
-    gcs_port: int = 14550
-    """UDP port every vehicle streams to for ground stations."""
-    ardupilot_tcp_base_port: int = 5760
-    """ArduPilot SITL TCP port of vehicle 1 (vehicle i: + 10 * (i - 1))."""
-    zenoh_port: int = 7447
-    """TCP port of the Zenoh router or first peer."""
-    offboard_local_base_port: int | None = None
-    """PX4: the UDP port vehicle 1's SITL binds its offboard link to (vehicle i: + i - 1);
-    None: PX4's 14580, moved with `offboard_base_port` (which leaves room for 40 vehicles)."""
-    gcs_local_base_port: int | None = None
-    """The UDP port vehicle 1's SITL binds its ground-station link to (vehicle i: + i - 1);
-    None: PX4's 18570, moved with `gcs_port`."""
-
-    def __post_init__(self) -> None:
-        for name in ("host", "router_host", "ground_station_host"):
-            value = getattr(self, name)
-            if value is None and name != "host":
-                continue
-            if not isinstance(value, str) or not value:
-                raise ConfigError(
-                    f"network.{name}", f"must be a host name or address, got {value!r}"
-                )
-        for name in (
-            "offboard_base_port",
-            "gcs_port",
-            "ardupilot_tcp_base_port",
-            "zenoh_port",
-            "offboard_local_base_port",
-            "gcs_local_base_port",
-        ):
-            port = getattr(self, name)
-            if port is None and name.endswith("_local_base_port"):
-                continue
-            if not isinstance(port, int) or not 1 <= port <= 65535:
-                raise ConfigError(f"network.{name}", f"must be a port number, got {port!r}")
-
-    @property
-    def router_address(self) -> str:
-        """Where the Zenoh router is."""
-        return self.router_host or self.host
-
-    @property
-    def ground_station_address(self) -> str:
-        """Where the ground station listens for the vehicles' telemetry."""
-        return self.ground_station_host or self.host
-
-    def offboard_port(self, vehicle_id: int) -> int:
-        """PX4: the offboard-API UDP port vehicle `vehicle_id` streams to (agents listen here)."""
-        return _derived_port("network.offboard_base_port", self.offboard_base_port, vehicle_id - 1)
-
-    def offboard_local_port(self, vehicle_id: int) -> int:
-        """PX4: the UDP port vehicle `vehicle_id`'s SITL binds its offboard link to (PX4's
-        14580 + i - 1 on PX4's default network, moved with `offboard_base_port`)."""
-        base = self.offboard_local_base_port
-        if base is None:
-            base = (
-                PX4_OFFBOARD_LOCAL_BASE_PORT + self.offboard_base_port - Network.offboard_base_port
-            )
-        return _derived_port("network.offboard_local_base_port", base, vehicle_id - 1)
-
-    def gcs_local_port(self, vehicle_id: int) -> int:
-        """The UDP port vehicle `vehicle_id`'s SITL binds its ground-station link to (PX4's
-        18570 + i - 1 on PX4's default network, moved with `gcs_port`)."""
-        base = self.gcs_local_base_port
-        if base is None:
-            base = PX4_GCS_LOCAL_BASE_PORT + self.gcs_port - Network.gcs_port
-        return _derived_port("network.gcs_local_base_port", base, vehicle_id - 1)
-
-    def ports(self, vehicles: "tuple[VehicleSpec, ...]") -> list[tuple[str, int, str, str]]:
-        """Every port a fleet of `vehicles` binds or streams to on `host`, as (protocol, port,
-        whose, the field it derives from)."""
-        out = [
-            ("udp", self.gcs_port, "the ground station", "network.gcs_port"),
-            ("tcp", self.zenoh_port, "the Zenoh router", "network.zenoh_port"),
-        ]
-        for v in vehicles:
-            if v.autopilot == "ardupilot":
-                out.append(
-                    (
-                        "tcp",
-                        self.ardupilot_tcp_port(v.id),
-                        f"vehicle {v.id}'s ArduPilot link",
-                        "network.ardupilot_tcp_base_port",
-                    )
-                )
-            else:
-                out.append(
-                    (
-                        "udp",
-                        self.offboard_port(v.id),
-                        f"vehicle {v.id}'s offboard link",
-                        "network.offboard_base_port",
-                    )
-                )
-                out.append(
-                    (
-                        "udp",
-                        self.offboard_local_port(v.id),
-                        f"vehicle {v.id}'s SITL offboard port",
-                        "network.offboard_local_base_port",
-                    )
-                )
-            out.append(
-                (
-                    "udp",
-                    self.gcs_local_port(v.id),
-                    f"vehicle {v.id}'s SITL ground-station port",
-                    "network.gcs_local_base_port",
-                )
-            )
-        return out
-
-    def ardupilot_tcp_port(self, vehicle_id: int) -> int:
-        """ArduPilot: the TCP port vehicle `vehicle_id`'s SITL serves (agents connect here)."""
-        return _derived_port(
-            "network.ardupilot_tcp_base_port", self.ardupilot_tcp_base_port, 10 * (vehicle_id - 1)
-        )
-
-
-PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
-"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
-PX4_GCS_LOCAL_BASE_PORT = 18570
-"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1), on PX4's default network."""
-
-
-def _check_ports(network: Network, vehicles: "tuple[VehicleSpec, ...]") -> None:
-    """Refuse a fleet two of whose processes would use the same port (naming the field)."""
-    seen: dict[tuple[str, int], str] = {}
-    for proto, port, whose, field in network.ports(vehicles):
-        other = seen.get((proto, port))
-        if other is not None:
-            raise ConfigError(field, f"{proto.upper()} port {port} of {whose} is already {other}'s")
-        seen[(proto, port)] = whose
-
-
-def _derived_port(field: str, base: int, step: int) -> int:
-    port = base + step
-    if not 1 <= port <= 65535:
-        raise ConfigError(field, f"{base} + {step} is not a port number")
-    return port
 
 
 @dataclass(frozen=True)
@@ -264,23 +103,6 @@ class VehicleSpec:
 
 def _quoted(value: object) -> str:
     return f'"{value}"' if isinstance(value, str) else repr(value)
-
-
-def mavlink_url(network: Network, vehicle: VehicleSpec) -> str:
-    """The pymavlink URL of a vehicle's autopilot as its SITL serves it by default.
-
-    PX4: ``udpin:HOST:offboard_base_port + i - 1`` (the SITL streams there, the agent listens);
-    ArduPilot: ``tcp:HOST:ardupilot_tcp_base_port + 10 (i - 1)``; i is the vehicle's system id.
-    """
-    host = vehicle_host(network, vehicle)
-    if vehicle.autopilot == "ardupilot":
-        return f"tcp:{host}:{network.ardupilot_tcp_port(vehicle.id)}"
-    return f"udpin:{host}:{network.offboard_port(vehicle.id)}"
-
-
-def vehicle_host(network: Network, vehicle: VehicleSpec) -> str:
-    """The address of a vehicle's companion computer (its agent and autopilot link)."""
-    return vehicle.host or network.host
 
 
 @dataclass(frozen=True)
@@ -567,7 +389,7 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
     for v in vehicles:  # every vehicle's default ports exist (either profile can fly it)
         network.offboard_port(v.id)
         network.ardupilot_tcp_port(v.id)
-    _check_ports(network, tuple(vehicles))
+    check_ports(network, tuple(vehicles))
     return Scenario(
         name=name,
         description=str(doc.get("description", "")),

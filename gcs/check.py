@@ -24,13 +24,9 @@ import numpy as np
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
-from fleetmpc.onboard.core.formation import (
-    CHORD_HALF_M,
-    CourseRateLimit,
-    Formation,
-    true_reference,
-)
+from fleetmpc.onboard.core.formation import CourseRateLimit, Formation, true_reference
 from fleetmpc.onboard.core.neighbourhood import safety_radius
+from fleetmpc.onboard.core.target_path import CHORD_HALF_M
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.scenario import Scenario, load_scenario
 

@@ -23,10 +23,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import PurePath
 
+from fleetmpc.network import vehicle_host
 from fleetmpc.protocol.mavlink_signing import key_file_name
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.zenoh_security import ZenohSecurity, zenoh_user
-from fleetmpc.scenario import Scenario, vehicle_host
+from fleetmpc.protocol.zenoh_access import zenoh_user
+from fleetmpc.protocol.zenoh_security import ZenohSecurity
+from fleetmpc.scenario import Scenario
 
 __all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
 

@@ -4,7 +4,7 @@
         --zenoh-connect 127.0.0.1:7447 --wait-epoch --speed 4
 
 MAVLink: ``--mavlink URL`` (any pymavlink URL), by default the vehicle's SITL as the scenario
-describes it (`fleetmpc.scenario.mavlink_url`: PX4 ``udpin:HOST:14540 + I - 1``, ArduPilot
+describes it (`fleetmpc.network.mavlink_url`: PX4 ``udpin:HOST:14540 + I - 1``, ArduPilot
 ``tcp:HOST:5760 + 10 (I - 1)``). Zenoh: by default a member of the fleet's full peer mesh on
 explicit endpoints (`fleetmpc.protocol.zenoh_config.options_from_args`), scouting off;
 ``--zenoh-connect`` makes a client of a router, ``--zenoh-config FILE`` loads a Zenoh config file.
@@ -27,13 +27,15 @@ from pathlib import Path
 
 from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
+from fleetmpc.network import mavlink_url
+from fleetmpc.onboard.agent_feed import agent_for
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
 from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
 from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
-from fleetmpc.onboard.runner import FleetRunner, RunnerSettings, agent_for
+from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import COMMAND_LIFETIME_PERIODS, SetpointStreamer, wind_down
 from fleetmpc.protocol.mavlink_signing import read_key_file
-from fleetmpc.scenario import load_scenario, mavlink_url
+from fleetmpc.scenario import load_scenario
 
 __all__ = ["add_arguments", "run"]
 

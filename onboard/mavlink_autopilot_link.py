@@ -23,6 +23,7 @@ from collections.abc import Callable
 
 from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, LinkState
 from fleetmpc.onboard.faults import LinkFaults
+from fleetmpc.onboard.local_origin import OriginShift
 from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
@@ -61,43 +62,6 @@ GLOBAL_FIX_INTERVAL_US = 200_000
 """GLOBAL_POSITION_INT's interval on a link given the scenario's home (5 Hz): it places the
 autopilot's local origin."""
 
-_ORIGIN_SAMPLES = 25
-"""Global fixes averaged into the local origin's place (5 s at 5 Hz): a fix is quantized to
-1e-7 degrees, about a centimetre."""
-_ORIGIN_MAX_DT_NS = 100_000_000
-"""A global fix and a local position further apart in time than this are not compared [ns]."""
-
-
-class _OriginShift:
-    """Where an autopilot's local origin (LOCAL_POSITION_NED's) lies in the scenario's frame,
-    from global fixes placed against the scenario's home: the mean of (global - local) over
-    recent pairs, the local position carried to the fix's time with its velocity. A real
-    autopilot's local origin is where its estimator started, not the scenario's origin."""
-
-    def __init__(self) -> None:
-        self._last_local: tuple[int, float, float, float, float] | None = None
-        self._samples: list[tuple[float, float]] = []
-        self.value: tuple[float, float] | None = None
-
-    def local(self, t_ns: int, x: float, y: float, vx: float, vy: float) -> None:
-        self._last_local = (t_ns, float(x), float(y), float(vx), float(vy))
-
-    def global_fix(self, t_ns: int, north: float, east: float) -> None:
-        if self._last_local is None:
-            return
-        t_l, x, y, vx, vy = self._last_local
-        dt_ns = t_ns - t_l
-        if abs(dt_ns) > _ORIGIN_MAX_DT_NS:
-            return
-        dt = dt_ns * 1e-9
-        self._samples = [
-            *self._samples[-(_ORIGIN_SAMPLES - 1) :],
-            (north - x - vx * dt, east - y - vy * dt),
-        ]
-        n = len(self._samples)
-        self.value = (sum(s[0] for s in self._samples) / n, sum(s[1] for s in self._samples) / n)
-
-
 _MAX_POSITION_M = 1e6
 _MAX_BOOT_MS = 2**32 - 1
 
@@ -131,7 +95,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._home_deg = home_deg
         self.faults: LinkFaults | None = None
         """Injected autopilot-link faults (None: none)."""
-        self._origin = _OriginShift() if home_deg is not None else None
+        self._origin = OriginShift() if home_deg is not None else None
         """Where the autopilot's local origin lies in the scenario's frame (None: taken to be
         the scenario's origin, when no home is given)."""
         os.environ["MAVLINK20"] = "1"

@@ -100,10 +100,11 @@ def open_fleet_bus(
     options_from_args` says what they mean); the fleet name defaults to the scenario's, and
     `sender_id` is the bus identity, the peer-mesh member
     (`fleetmpc.protocol.zenoh_config.peer_mesh_index`) and, with ``--zenoh-secrets``, the user
-    it logs in as (`fleetmpc.protocol.zenoh_security.zenoh_user`).
+    it logs in as (`fleetmpc.protocol.zenoh_access.zenoh_user`).
     """
+    from fleetmpc.protocol.zenoh_access import zenoh_user
     from fleetmpc.protocol.zenoh_config import MeshLogin, options_from_args, peer_mesh_index
-    from fleetmpc.protocol.zenoh_security import ZenohSecurity, zenoh_user
+    from fleetmpc.protocol.zenoh_security import ZenohSecurity
 
     login = None
     if getattr(args, "zenoh_secrets", None) is not None:

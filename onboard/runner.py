@@ -38,6 +38,7 @@ import numpy as np
 
 from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
+from fleetmpc.onboard.agent_feed import TargetFeed, listen_for
 from fleetmpc.onboard.autopilot_link import AutopilotLink, LinkState
 from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
 from fleetmpc.onboard.planbus import PlanBus
@@ -52,15 +53,8 @@ from fleetmpc.protocol.messages import (
     VehicleStatus,
 )
 from fleetmpc.protocol.plan import Plan
-from fleetmpc.scenario import Scenario, VehicleSpec
 
-__all__ = [
-    "FleetRunner",
-    "RunnerSettings",
-    "TargetFeed",
-    "agent_for",
-    "listen_for",
-]
+__all__ = ["FleetRunner", "RunnerSettings"]
 
 _MAX_NEIGHBOURS = 8
 _U32_MAX = 2**32 - 1
@@ -108,47 +102,6 @@ class RunnerSettings:
 _OWN_GAP_WINDOW_S = 5.0
 """How far back (fleet time) a setpoint gap counts as the cause of a lost mode [s]: PX4 leaves
 offboard 1 s (COM_OF_LOSS_T) and ArduCopter's guided mode 3 s (GUID_TIMEOUT) into a gap."""
-
-
-def listen_for(agent: Agent, bus: PlanBus) -> None:
-    """Narrow the plan bus to what the agent now needs to hear (`Agent.interest`)."""
-    interest = agent.interest()
-    if interest is not None:
-        bus.listen_near(*interest)
-
-
-def agent_for(scenario: Scenario, vehicle: VehicleSpec, *, learning: bool = True) -> Agent:
-    """The agent of one vehicle of a scenario, as every runner builds it (the live agent and the
-    lockstep simulation); `learning` False turns the scenario's learning off."""
-    enabled = learning and scenario.learning.enabled
-    return Agent(
-        vehicle.id,
-        fleet_ids=scenario.vehicle_ids,
-        controller=scenario.controller,
-        learning=dataclasses.replace(scenario.learning, enabled=enabled),
-        formation=scenario.formation,
-        target_observation_std_m=scenario.target.observation_noise_m,
-        response_delay_s=vehicle.response_delay_s,
-    )
-
-
-class TargetFeed:
-    """Each target observation on a plan bus once: `take` hands over the newest one no older
-    than `max_age_ns`, if it is newer than the last one handed over (the live runner's and the
-    lockstep simulation's, for each agent)."""
-
-    def __init__(self, bus: PlanBus, *, max_age_ns: int) -> None:
-        self._bus = bus
-        self._max_age_ns = max_age_ns
-        self._last_stamp_ns = -1
-
-    def take(self, now_ns: int) -> tuple[np.ndarray | None, int | None]:
-        """(North, East) [m] of a new observation and its stamp [ns], or (None, None)."""
-        target = self._bus.latest_target(now_ns, self._max_age_ns)
-        if target is None or target.stamp_ns <= self._last_stamp_ns:
-            return None, None
-        self._last_stamp_ns = target.stamp_ns
-        return np.array([target.north_m, target.east_m]), target.stamp_ns
 
 
 def _hold_plan(plan: Plan, state: LinkState) -> Plan:

@@ -31,22 +31,7 @@ sections from the directory as it sees it at start (`router_security_config`), s
 be mounted anywhere too. (``zenoh-router.json5`` names absolute paths: it is for running a
 ``zenohd`` on the same machine.)
 
-The access list (`fleet_access_control`) denies everything it does not allow, per user name
-(and, with mutual TLS, also per certificate common name, which is the user name):
-
-- agent <i> publishes under ``fleetmpc/<fleet>/uav/<i>/**`` and reads every vehicle's plans and
-  statuses, the target observation and the epoch;
-- the target publishes ``fleetmpc/<fleet>/target/observation`` and reads the epoch;
-- the ground station publishes the epoch and reads everything under ``fleetmpc/<fleet>/``.
-
-Through a router, a sample enters it from the publisher's session (ingress) and leaves it to each
-subscriber's session (egress). Tried with eclipse-zenoh 1.10.2, a flow needs exactly: ``put``
-(and ``delete``) ingress for the publisher on its keys; ``declare_subscriber`` ingress for the
-subscriber on its subscriptions and ``put`` (``delete``) egress to it on them; and
-``declare_subscriber`` *egress* to the publisher on the subscriptions: a client session sends a
-sample only where the router has told it a subscriber exists, so without that nothing leaves the
-publisher. Every user may hear of the fleet's subscriptions. Queries, replies, queryables and
-liveliness are not used by the fleet and stay denied.
+The access list is `fleetmpc.protocol.zenoh_access.fleet_access_control`'s.
 
 Passwords are random (192 bits) and stored in clear: zenoh 1.10's usrpwd authentication cannot
 take hashed passwords. The router checks an HMAC of its challenge keyed with the password itself,
@@ -62,9 +47,6 @@ import json
 import os
 import re
 import secrets
-import shutil
-import subprocess
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,17 +54,16 @@ from pathlib import Path
 import zenoh
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.keys import (
-    all_plans_key,
-    all_statuses_key,
-    epoch_key,
-    fleet_key,
-    plan_key,
-    target_observation_key,
-    validate_fleet,
-)
-from fleetmpc.protocol.messages import GROUND_STATION_ID, MAX_SENDER_ID, MIN_SENDER_ID, TARGET_ID
+from fleetmpc.protocol.keys import validate_fleet
 from fleetmpc.protocol.private_files import check_private, write_private
+from fleetmpc.protocol.zenoh_access import (
+    GROUND_STATION_USER,
+    TARGET_USER,
+    check_vehicle_ids,
+    fleet_access_control,
+    zenoh_user,
+)
+from fleetmpc.protocol.zenoh_certificates import make_certificates
 from fleetmpc.protocol.zenoh_config import (
     CONNECT_WAIT_S,
     RECONNECT_RETRY,
@@ -91,35 +72,17 @@ from fleetmpc.protocol.zenoh_config import (
 )
 
 __all__ = [
-    "CERTIFICATE_DAYS",
     "MANIFEST_NAME",
     "ZenohSecurity",
-    "fleet_access_control",
     "make_zenoh_security",
     "router_security_config",
     "zenoh_user",
 ]
 
-CERTIFICATE_DAYS = 30
-"""Validity of the run-local CA and of the certificates it signs [days]."""
-
-TARGET_USER = "target"
-GROUND_STATION_USER = "gcs"
 MANIFEST_NAME = "zenoh-security.json"
 """The file that says what a folder of the bus's secrets holds (`ZenohSecurity.load`)."""
-_NEW_KEY = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes")
-"""openssl req's options for a fresh unencrypted P-256 key (written by openssl, mode 0600)."""
 _LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
 _DNS_RE = re.compile(rf"(?=.{{1,253}}$){_LABEL}(\.{_LABEL})*")
-
-
-def zenoh_user(sender_id: int) -> str:
-    """The bus user of a sender: ``agent-<id>`` for a vehicle, ``target``, or ``gcs``."""
-    if sender_id == TARGET_ID:
-        return TARGET_USER
-    if sender_id == GROUND_STATION_ID:
-        return GROUND_STATION_USER
-    return f"agent-{_vehicle_id('sender_id', sender_id)}"
 
 
 @dataclass(frozen=True)
@@ -229,7 +192,7 @@ class ZenohSecurity:
             security = cls(
                 directory=directory,
                 fleet=validate_fleet(manifest["fleet"]),
-                vehicle_ids=_vehicle_ids(manifest["vehicle_ids"]),
+                vehicle_ids=check_vehicle_ids(manifest["vehicle_ids"]),
                 router_host=str(manifest["router_host"]),
                 router_port=_port("router_port", manifest["router_port"]),
                 tls=bool(manifest["tls"]),
@@ -260,7 +223,7 @@ def make_zenoh_security(
     certificate names it and ``localhost``. `mutual_tls` needs `tls`.
     """
     fleet = validate_fleet(fleet)
-    ids = _vehicle_ids(vehicle_ids)
+    ids = check_vehicle_ids(vehicle_ids)
     port = _port("router_port", router_port)
     host, san = _router_host(router_host)
     if mutual_tls and not tls:
@@ -275,7 +238,7 @@ def make_zenoh_security(
 
     passwords = {user: secrets.token_urlsafe(24) for user in security.users}
     if tls:
-        _make_certificates(security, san)
+        make_certificates(security, san)
     users = "".join(f"{u}:{p}\n" for u, p in passwords.items())
     write_private(security.dictionary_file, users, field="directory")
     for user, password in passwords.items():
@@ -303,67 +266,6 @@ def make_zenoh_security(
     }
     write_private(security.manifest_file, json.dumps(manifest, indent=2) + "\n", field="directory")
     return security
-
-
-def fleet_access_control(
-    fleet: str, vehicle_ids: Sequence[int], *, mutual_tls: bool = False
-) -> dict:
-    """The router's ``access_control`` section for a fleet (see the module docstring).
-
-    Default deny; one subject, policy and publish rule per user, matched by user name and, with
-    `mutual_tls`, also by the common name of the session's certificate.
-    """
-    fleet = validate_fleet(fleet)
-    ids = _vehicle_ids(vehicle_ids)
-    everything = fleet_key(fleet)
-    reads = {
-        "agent": [
-            all_plans_key(fleet),
-            all_statuses_key(fleet),
-            target_observation_key(fleet),
-            epoch_key(fleet),
-        ],
-        "target": [epoch_key(fleet)],
-        "gcs": [everything],
-    }
-    members = [
-        (f"agent-{v}", "agent", [plan_key(fleet, v).removesuffix("/plan") + "/**"]) for v in ids
-    ]
-    members += [
-        (TARGET_USER, "target", [target_observation_key(fleet)]),
-        (GROUND_STATION_USER, "gcs", [epoch_key(fleet)]),
-    ]
-    # A client sends a sample only where the router told it of a subscriber.
-    rules = [_rule("learn-subscribers", ["declare_subscriber"], "egress", [everything])]
-    for role, keys in reads.items():
-        rules.append(_rule(f"subscribe-{role}", ["declare_subscriber"], "ingress", keys))
-        rules.append(_rule(f"receive-{role}", ["put", "delete"], "egress", keys))
-    subjects, policies = [], []
-    for user, role, publishes in members:
-        rules.append(_rule(f"publish-{user}", ["put", "delete"], "ingress", publishes))
-        subject = {"id": user, "usernames": [user]}
-        if mutual_tls:
-            subject["cert_common_names"] = [user]
-        subjects.append(subject)
-        policies.append(
-            {
-                "id": user,
-                "rules": [
-                    "learn-subscribers",
-                    f"subscribe-{role}",
-                    f"receive-{role}",
-                    f"publish-{user}",
-                ],
-                "subjects": [user],
-            }
-        )
-    return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": rules,
-        "subjects": subjects,
-        "policies": policies,
-    }
 
 
 def router_security_config(conf: zenoh.Config, security_dir: str | Path) -> zenoh.Config:
@@ -396,16 +298,6 @@ def _tls(text: str) -> str:
     if proto not in ("tcp", "tls") or not address:
         raise ConfigError("listen/endpoints", f"a TLS router listens on tcp/ or tls/, not {text!r}")
     return f"tls/{address}"
-
-
-def _rule(rule_id: str, messages: list[str], flow: str, keys: list[str]) -> dict:
-    return {
-        "id": rule_id,
-        "messages": messages,
-        "flows": [flow],
-        "permission": "allow",
-        "key_exprs": keys,
-    }
 
 
 def _client_config(security: ZenohSecurity, user: str, password: str) -> dict:
@@ -456,85 +348,6 @@ def _router_config(security: ZenohSecurity) -> dict:
             security.fleet, security.vehicle_ids, mutual_tls=security.mutual_tls
         ),
     }
-
-
-def _make_certificates(security: ZenohSecurity, router_san: str) -> None:
-    """The CA, the router's certificate and with mutual TLS one per user, signed in a private
-    scratch folder inside the directory; the CA's key is deleted with it."""
-    if shutil.which("openssl") is None:
-        raise ConfigError("tls", "making the bus's certificates needs the openssl command line")
-    scratch = Path(tempfile.mkdtemp(prefix=".zenoh-ca-", dir=security.directory))
-    days = ("-days", str(CERTIFICATE_DAYS))
-    try:
-        ca_key, ca_cert = scratch / "ca.key", scratch / "ca.pem"
-        subject = ("-subj", f"/CN=fleetmpc {security.fleet} run CA")
-        ca_usage = ("-addext", "basicConstraints=critical,CA:TRUE")
-        ca_usage += ("-addext", "keyUsage=critical,keyCertSign,cRLSign")
-        outputs = ("-keyout", ca_key, "-out", ca_cert)
-        _openssl("req", "-x509", "-new", *_NEW_KEY, *outputs, *days, *subject, *ca_usage)
-        sans = [router_san] + (["DNS:localhost"] if router_san != "DNS:localhost" else [])
-        leaves = [("router", "serverAuth", f"subjectAltName={','.join(sans)}\n")]
-        if security.mutual_tls:
-            leaves += [(user, "clientAuth", "") for user in security.users]
-        copies = [(ca_cert, security.ca_certificate)]
-        for name, usage, extra in leaves:
-            extensions = scratch / f"{name}.ext"
-            extensions.write_text(
-                "basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\n"
-                f"extendedKeyUsage={usage}\n{extra}"
-            )
-            key, request, cert = (scratch / f"{name}.{ext}" for ext in ("key", "csr", "pem"))
-            _openssl(
-                "req", "-new", *_NEW_KEY, "-keyout", key, "-out", request, "-subj", f"/CN={name}"
-            )
-            serial = ("-set_serial", f"0x{secrets.token_hex(16)}")
-            signer = ("-CA", ca_cert, "-CAkey", ca_key, *serial, *days, "-extfile", extensions)
-            _openssl("x509", "-req", "-in", request, *signer, "-out", cert)
-            copies += [(cert, security.directory / f"zenoh-{name}.pem")]
-            copies += [(key, security.directory / f"zenoh-{name}.key")]
-        for source, dest in copies:
-            write_private(dest, source.read_text(encoding="ascii"), field="directory")
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
-
-
-def _openssl(*args: str | Path) -> None:
-    """Run the openssl command line (its arguments name files, never hold a secret)."""
-    argv = ["openssl", *(str(a) for a in args)]
-    result = subprocess.run(
-        argv, stdin=subprocess.DEVNULL, capture_output=True, text=True, umask=0o077
-    )
-    if result.returncode != 0:
-        raise ConfigError("tls", f"openssl {args[0]} failed: {result.stderr.strip()[-500:]}")
-
-
-def _vehicle_id(field: str, value: object) -> int:
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int)
-        or not MIN_SENDER_ID <= value <= MAX_SENDER_ID
-        or value in (GROUND_STATION_ID, TARGET_ID)
-    ):
-        raise ConfigError(
-            field,
-            f"must be a vehicle id in [{MIN_SENDER_ID}, {MAX_SENDER_ID}] other than the ground"
-            f" station's {GROUND_STATION_ID} and the target's {TARGET_ID}, got {value!r}",
-        )
-    return value
-
-
-def _vehicle_ids(values: Sequence[int]) -> tuple[int, ...]:
-    try:
-        items = None if isinstance(values, (str, bytes)) else tuple(values)
-    except TypeError:
-        items = None
-    if not items:
-        raise ConfigError("vehicle_ids", f"must be a non-empty list of vehicle ids, got {values!r}")
-    ids = tuple(_vehicle_id(f"vehicle_ids[{k}]", v) for k, v in enumerate(items))
-    for k, v in enumerate(ids):
-        if v in ids[:k]:
-            raise ConfigError(f"vehicle_ids[{k}]", f"vehicle {v} is listed twice")
-    return ids
 
 
 def _port(field: str, value: object) -> int:

@@ -14,8 +14,8 @@ import time
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
 
+from fleetmpc.onboard.agent_feed import agent_for
 from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
-from fleetmpc.onboard.runner import agent_for
 from fleetmpc.scenario import Scenario
 
 __all__ = ["AgentPool", "Stepped", "build_agents"]

@@ -19,12 +19,13 @@ import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord, RunConstants
 from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
+from fleetmpc.onboard.agent_feed import TargetFeed
 from fleetmpc.onboard.core.agent import AgentInput, reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
-from fleetmpc.onboard.runner import RunnerSettings, TargetFeed
+from fleetmpc.onboard.runner import RunnerSettings
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
 from fleetmpc.sim.agent_pool import AgentPool, build_agents

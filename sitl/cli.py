@@ -6,7 +6,7 @@ server on 5760 + 10 (I - 1), plus the same ground-station UDP stream (as ArduPil
 ``--out udp:HOST:14550``; ``--gcs-port 0`` turns it off). The profile is the vehicle's
 ``autopilot`` in the scenario unless --autopilot says otherwise. Base ports come from the
 scenario's [network] table (the agent's default URL uses the same arithmetic,
-`fleetmpc.scenario.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
+`fleetmpc.network.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
 to, so a [network] table that moves the offboard or ground-station port moves them too and two
 fleets with different tables share no port. --port-offset shifts all of them, and each can be
 set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
@@ -21,8 +21,9 @@ from pathlib import Path
 
 from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
+from fleetmpc.network import vehicle_host
 from fleetmpc.protocol.mavlink_signing import read_key_file
-from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario, vehicle_host
+from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetmpc.scenario import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT, Network
+from fleetmpc.network import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT, Network
 
 __all__ = [
     "ROOT",

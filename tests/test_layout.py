@@ -3,6 +3,7 @@ module that breaks them."""
 
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
@@ -73,3 +74,22 @@ def test_a_wheel_installs_only_the_fleetmpc_import_name(tmp_path):
         top = {name.split("/")[0] for name in archive.namelist()}
     assert {t for t in top if not t.endswith(".dist-info")} == {"fleetmpc"}
     assert any(name.startswith("fleetmpc/onboard/core/") for name in archive.namelist())
+
+
+MODULE_LINES_MAX = 500
+"""No module of the product is longer than this: past it a module holds more than one concept."""
+
+
+def test_no_module_of_the_product_is_over_500_lines():
+    """Every module of every folder the package is installed from (pyproject's package-dir)."""
+    with (ROOT / "pyproject.toml").open("rb") as f:
+        folders = set(tomllib.load(f)["tool"]["setuptools"]["package-dir"].values())
+    modules = [m for folder in sorted(folders) for m in sorted((ROOT / folder).rglob("*.py"))]
+    assert len(modules) > 50, modules  # (the folders were found)
+    long = {str(m.relative_to(ROOT)): n for m in modules if (n := _lines(m)) > MODULE_LINES_MAX}
+    assert long == {}, f"over {MODULE_LINES_MAX} lines: {long}"
+
+
+def _lines(path: Path) -> int:
+    with path.open(encoding="utf-8") as f:
+        return sum(1 for _ in f)

@@ -5,7 +5,8 @@ from pathlib import Path
 import pytest
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.scenario import Network, load_scenario, mavlink_url, parse_scenario
+from fleetmpc.network import Network, mavlink_url
+from fleetmpc.scenario import load_scenario, parse_scenario
 
 BASE = {
     "name": "t",

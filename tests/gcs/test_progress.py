@@ -13,7 +13,7 @@ import pytest
 from rich.console import Console
 
 from fleetmpc.gcs.progress import ProgressBar
-from fleetmpc.launch.up import _StatusView, status_renderable, status_table
+from fleetmpc.launch.status_view import StatusView, status_renderable, status_table
 
 HIDE_CURSOR, SHOW_CURSOR = "\x1b[?25l", "\x1b[?25h"
 
@@ -129,7 +129,7 @@ def test_status_view_off_a_terminal_prints_the_plain_lines(tmp_path):
     path = tmp_path / "status.json"
     path.write_text(json.dumps(STATUS))
     out = io.StringIO()
-    view = _StatusView(path, quiet=False, console=Console(file=out, force_terminal=False))
+    view = StatusView(path, quiet=False, console=Console(file=out, force_terminal=False))
     view.update()
     view.update()  # within a few seconds of the last: not printed again
     view.close()
@@ -139,7 +139,7 @@ def test_status_view_off_a_terminal_prints_the_plain_lines(tmp_path):
 def test_status_view_on_a_terminal_redraws_in_place(tmp_path):
     path = tmp_path / "status.json"
     console = _terminal()
-    view = _StatusView(path, quiet=False, console=console)
+    view = StatusView(path, quiet=False, console=console)
     view.update()  # no status file yet: nothing drawn
     assert console.file.getvalue() == ""
     path.write_text(json.dumps(STATUS))

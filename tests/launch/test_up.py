@@ -208,7 +208,8 @@ def test_an_ardupilot_answering_as_system_1_and_booted_elsewhere_flies_vehicle_2
     agent flies the first autopilot it hears and places it from its global position; the ground
     station knows it as vehicle 2 from the scenario's `system_id`; both see it at the same place."""
     from fleetmpc.gcs.rrd_reader import read_recording
-    from fleetmpc.scenario import load_scenario, mavlink_url
+    from fleetmpc.network import mavlink_url
+    from fleetmpc.scenario import load_scenario
 
     mixed = scenario_on_free_ports(
         ROOT / "scenarios" / "mixed-autopilots.toml", tmp_path / "m.toml"

@@ -178,8 +178,8 @@ def test_an_autopilot_that_responds_late_is_planned_for_from_when_it_will_fly():
     """With a response delay of two periods the agent learns from the command flown over the
     last period (sent three periods ago), plans from the state the two commands still to be
     flown lead to, and stamps its plan at the time its first input will be flown."""
+    from fleetmpc.onboard.agent_feed import agent_for
     from fleetmpc.onboard.core.unicycle import advance
-    from fleetmpc.onboard.runner import agent_for
     from fleetmpc.scenario import load_scenario
 
     paper = load_scenario("scenarios/paper.toml")

@@ -378,9 +378,9 @@ def test_a_disarm_by_the_autopilot_is_reported_by_name_within_a_second(pair) -> 
 def test_the_local_origin_is_placed_from_global_fixes() -> None:
     """An autopilot whose local frame starts where it booted, 12 m East of the scenario's
     origin: its global fixes, placed against the scenario's home, put it where it is."""
-    from fleetmpc.onboard.mavlink_autopilot_link import _OriginShift
+    from fleetmpc.onboard.local_origin import OriginShift
 
-    origin = _OriginShift()
+    origin = OriginShift()
     origin.global_fix(0, 0.0, 12.0)  # no local position yet: not compared
     assert origin.value is None
     for k in range(30):

@@ -5,17 +5,16 @@ import pytest
 
 from fleetmpc.onboard.core.config import FormationSettings
 from fleetmpc.onboard.core.formation import (
-    CHORD_HALF_M,
     MIN_COURSE_RATE_RAD_S,
     REVERSAL_BAND_RAD,
     SPEED_RESERVE,
     CourseRateLimit,
     Formation,
     FormationReference,
-    TargetPath,
     course_rate_limit,
     true_reference,
 )
+from fleetmpc.onboard.core.target_path import CHORD_HALF_M, TargetPath
 
 DT = 0.2
 

@@ -25,14 +25,10 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.keys import epoch_key, plan_key, status_key, target_observation_key
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
+from fleetmpc.protocol.zenoh_access import fleet_access_control, zenoh_user
 from fleetmpc.protocol.zenoh_config import ZenohOptions, connect_timeout
 from fleetmpc.protocol.zenoh_router import open_router, router_config
-from fleetmpc.protocol.zenoh_security import (
-    ZenohSecurity,
-    fleet_access_control,
-    make_zenoh_security,
-    zenoh_user,
-)
+from fleetmpc.protocol.zenoh_security import ZenohSecurity, make_zenoh_security
 
 REFUSED_WAIT_S = 2.0
 """How long a session the router refuses keeps trying in these tests [s]."""
