@@ -231,11 +231,22 @@ class FleetRunner:
         if self.steps and stamp > self.next_step_ns:
             self.overruns += int((stamp - self.next_step_ns) // period)
         self.next_step_ns = stamp + period
-        late_ns = fleet_now - stamp
+        late_ns = self._lateness_ns(fleet_now, stamp)
         if late_ns * 4 > period:
             self.late_steps += 1
         self.max_late_ns = max(self.max_late_ns, late_ns)
         return self._step(state, stamp, late_ns)
+
+    def _lateness_ns(self, fleet_now_ns: int, stamp_ns: int) -> int:
+        """How long after its period boundary `stamp_ns` a step taken now runs [ns]: by the
+        telemetry it steps on (fleet time `fleet_now_ns`), or by the host's clock where that
+        says later. On a host that starves this process the link's reader falls behind, and
+        the telemetry it hands over is seconds old: its time says the step is on time while
+        the vehicle has flown on (docs/design.md, "Safety": late steps)."""
+        clock = self.sync.clock
+        if clock.epoch_ns is None:  # (fleet time is the autopilot's: no other clock to ask)
+            return fleet_now_ns - stamp_ns
+        return max(fleet_now_ns, clock.fleet_ns(time.time_ns())) - stamp_ns
 
     def _step(self, state: LinkState, stamp_ns: int, late_ns: int) -> AgentOutput | None:
         t0 = time.perf_counter_ns()

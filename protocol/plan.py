@@ -30,6 +30,14 @@ class Plan:
     def horizon(self) -> int:
         return int(self.inputs.shape[0])
 
+    @property
+    def holds(self) -> bool:
+        """Every state at the same place: the plan of a vehicle its autopilot holds where it is
+        (a runner broadcasts its measured pose so while the vehicle is out of its agent's hands).
+        A planned stop still moves with the learned drift; a held vehicle does not."""
+        xy = self.states[:, :2]
+        return bool(np.all(xy == xy[0]))
+
     def position_at(self, stamp_ns: int) -> tuple[float, float]:
         """The planned position at stamp_ns (its first before the plan, held after its end)."""
         return self.position_list(stamp_ns, 1, max_extrapolation_s=0.0)[0]

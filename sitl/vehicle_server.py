@@ -3,7 +3,12 @@
 Each loop iteration: wait until the next plant tick or until a socket is readable; advance the
 plant tick by tick up to the clock's time (the autopilot picks each tick's command, telemetry due
 at that tick is sent, stamped with its simulated time); then read and handle every pending
-message. Mode and arming changes are announced at once with a HEARTBEAT, events with STATUSTEXT.
+message. A loop that finds the clock `LATE_TICKS` ticks or more ahead of the plant (the host
+kept the process from running) reads what arrived meanwhile first, so the catch-up flies the
+newest command: the autopilot's setpoint timeout then measures the gaps in what the agent sent,
+not this process's own stall (a SITL starved for 250 ms of wall time at x4 would otherwise leave
+OFFBOARD with setpoints waiting in its socket). Mode and arming changes are announced at once
+with a HEARTBEAT, events with STATUSTEXT.
 A parked vehicle (on the ground and not flying) does not move: wind only drifts a flying one, and
 only while it flies a velocity demand; otherwise the autopilot holds or flies to a point.
 Nothing raises out of the loop: a failing handler is counted and the loop goes on.
@@ -55,6 +60,9 @@ __all__ = ["ServerConfig", "UdpEndpoint", "VehicleServer"]
 
 _HEARTBEAT_ONLY = ((mavlink.MAVLINK_MSG_ID_HEARTBEAT, 1.0),)
 _MAX_WAIT_S = 0.05  # wall-clock bound on one wait, so a stop request is seen promptly
+LATE_TICKS = 2
+"""A loop iteration that finds the plant this many ticks behind the clock, or more, reads its input
+before catching up (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -263,6 +271,8 @@ class VehicleServer:
             if timeout_s > 0:
                 self._selector.select(timeout_s)
             now_ns = self.clock.now_ns()
+            if now_ns - self.plant.time_ns >= LATE_TICKS * self.config.tick_ns:
+                self._serve_input(now_ns)
             self._advance_to(now_ns)
             self._serve_input(now_ns)
             self._announce()

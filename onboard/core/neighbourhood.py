@@ -12,7 +12,7 @@ kept in the vehicle's own cell. Plain floats throughout: the horizon is a handfu
 """
 
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 
 from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.separation import (
@@ -186,6 +186,15 @@ class Neighbourhood:
             n_terms += 1
         return pull, n_terms
 
+    def unmoved_by_wind(
+        self, neighbours: Mapping[int, object], plans: Mapping[int, Plan], ages: Mapping[int, float]
+    ) -> set[int]:
+        """The neighbours the wind does not carry: a silent one (it flies its slot, or its
+        autopilot holds it) and one whose plan `holds` (its autopilot holds it now). The lines
+        against them stay where they are instead of drifting with this vehicle's learned drift
+        (docs/design.md, "Safety": held neighbours)."""
+        return {nid for nid in neighbours if self.silent(ages[nid]) or plans[nid].holds}
+
     def planes(
         self,
         stamp_ns: int,
@@ -195,6 +204,8 @@ class Neighbourhood:
         drift: tuple[float, float],
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
+        *,
+        still: Collection[int] = (),
     ) -> tuple[list[list[Plane]], list[list[Plane]]]:
         """Separation half-planes against each of `neighbours` at j = 1..M (`separation_lines`,
         `held_inside`), between where this vehicle's previous plan `last_plan` (or, without one,
@@ -202,21 +213,24 @@ class Neighbourhood:
         for a silent one the point of its region nearest this vehicle, kept silent_allowance_m
         farther from. The distance is shared while the neighbour's plan is at most two periods
         old. Padded to K neighbours with no planes. With them, the margins' own lines (the same
-        where the vehicle is not inside its margin), which `draw_out` keeps the goal behind."""
+        where the vehicle is not inside its margin), which `draw_out` keeps the goal behind.
+        The lines drift with `drift`, as the wind carries both vehicles, except against the
+        neighbours in `still` (`unmoved_by_wind`)."""
         s, M = self.settings, self.settings.horizon
         own = here if last_plan is None else last_plan.position_at(stamp_ns)
         drift_steps = [
             (drift[0] * j * s.period_s, drift[1] * j * s.period_s) for j in range(1, M + 1)
         ]
+        no_drift = [(0.0, 0.0)] * M
         planes, lines = [], []
         for nid in sorted(neighbours, key=self._fleet_index.__getitem__):  # (in fleet order)
             shared = ages[nid] <= 2.0 * s.period_s + 1e-9
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
             if self.silent(ages[nid]):
                 margin += s.silent_allowance_m
-            theirs = neighbours[nid]
-            lines.append(separation_lines(own, theirs, margin, here, drift_steps, shared=shared))
-            planes.append(held_inside(lines[-1], here, drift_steps))
+            theirs, steps = neighbours[nid], no_drift if nid in still else drift_steps
+            lines.append(separation_lines(own, theirs, margin, here, steps, shared=shared))
+            planes.append(held_inside(lines[-1], here, steps))
         planes.extend([self._no_planes] * (self.size - len(planes)))
         lines.extend([self._no_planes] * (self.size - len(lines)))
         return planes, lines

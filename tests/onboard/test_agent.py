@@ -212,7 +212,10 @@ def test_a_late_step_keeps_the_lateness_times_v_max_more_from_every_neighbour(pa
     for late_s in (0.0, 0.15):
         agent = _agent(paper)
         planes = agent.neighbourhood.planes
-        agent.neighbourhood.planes = lambda *a, _p=planes: (seen.append(dict(a[-1])), _p(*a))[1]
+        agent.neighbourhood.planes = lambda *a, _p=planes, **k: (
+            seen.append(dict(a[-1])),
+            _p(*a, **k),
+        )[1]
         fresh = _plan(2, PERIOD_NS, np.array([12.0, 5.0, 0.0]), np.array([1.0, 1.0]))
         z = np.array(paper.vehicles[0].initial, float)
         agent.step(AgentInput(0, z, np.array([5.0, 5.0])))

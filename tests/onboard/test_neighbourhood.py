@@ -168,3 +168,43 @@ def test_a_small_formation_is_linked_all_to_all():
 def test_neighbourhood_settings_are_validated(make, field):
     with pytest.raises(ConfigError, match=field):
         make()
+
+
+def _held(vehicle_id: int, stamp_ns: int, x: float, y: float) -> Plan:
+    """What a runner broadcasts while its autopilot holds the vehicle: its pose over the horizon."""
+    return Plan(vehicle_id, stamp_ns, PERIOD_NS, np.tile((x, y, 0.0), (M + 1, 1)), np.zeros((M, 2)))
+
+
+def test_a_plan_that_stands_still_holds_and_a_planned_stop_in_a_wind_does_not():
+    assert _held(2, NOW, 3.0, 0.0).holds
+    assert not _plan(2, NOW, 3.0).holds  # moving
+    drifting = np.array([(3.0 + 0.03 * j, 0.0, 0.0) for j in range(M + 1)])  # stopped, drifting
+    assert not Plan(2, NOW, PERIOD_NS, drifting, np.zeros((M, 2))).holds
+
+
+def test_the_lines_drift_with_the_wind_except_against_a_held_or_silent_neighbour():
+    """The wind carries two vehicles flying velocity commands alike, so the line between them
+    drifts with the learned drift; a held vehicle (its plan `holds`) and a silent one stay where
+    they are, and so does the line against them (docs/design.md, "Held neighbours do not
+    drift")."""
+    hood = _hood((1, 2, 3, 4))
+    drift = (0.3, 0.2)
+    plans = {
+        2: _plan(2, NOW, 3.0, 0.0),  # flying
+        3: _held(3, NOW, -3.0, 0.0),  # held by its autopilot
+        4: _plan(4, NOW - 5 * 10**9, 0.0, 3.0),  # silent for 5 s
+    }
+    ages = {2: 0.2, 3: 0.2, 4: 5.0}
+    inflations = hood.inflations(ages, 0.0)
+    near = {nid: plans[nid].position_at(NOW) for nid in plans}
+    still = hood.unmoved_by_wind(near, plans, ages)
+    assert still == {3, 4}
+    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), drift, ages, inflations, still=still)
+    by_id = dict(zip(sorted(near), planes, strict=True))
+    for nid, lines in by_id.items():
+        offsets = [b - lines[0][2] for _, _, b in lines]  # each step's bound less the first's
+        nx, ny, _ = lines[0]
+        moved = [nx * drift[0] * j * SETTINGS.period_s + ny * drift[1] * j * SETTINGS.period_s
+                 for j in range(M)]  # fmt: skip
+        expected = [0.0] * M if nid in still else moved
+        assert offsets == pytest.approx(expected, abs=1e-12), nid

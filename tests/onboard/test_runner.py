@@ -94,6 +94,35 @@ def test_runner_counts_overruns_and_stays_on_period_boundaries(paper) -> None:
     assert runner.tick(link.state()) is None  # nothing new before 0.8 s
 
 
+def test_a_step_on_telemetry_read_late_is_as_late_as_the_host_clock_says(paper) -> None:
+    """Telemetry handed over 1.5 s of fleet time after it was sent (the link's reader starved of
+    CPU) says the step is on time; the host's clock says how late it runs, and the agent is told
+    that (at x10, so that 1.5 s of fleet time is 0.15 s of waiting)."""
+    spec = paper.vehicles[0]
+    link = FakeAutopilotLink(system_id=spec.id, north_m=spec.initial[0], east_m=spec.initial[1])
+    link.connect(timeout_s=0.1)
+    link.engage(timeout_s=0.1)
+    period = paper.controller.period_ns
+    runner = FleetRunner(
+        build_agents(paper)[0],
+        link=link,
+        bus=InMemoryPlanBus(MemoryHubs().hub(FLEET), fleet=FLEET, vehicle_id=spec.id),
+        settings=RunnerSettings(period_ns=period, engage=False),
+        clock=FleetClock(epoch_ns=time.time_ns(), speed=10.0),
+    )
+    inputs = []
+    step = runner.agent.step
+    runner.agent.step = lambda inp: (inputs.append(inp), step(inp))[1]
+    runner.tick(dataclasses.replace(link.state(), received_ns=time.time_ns()))  # read at once
+    assert inputs[-1].stamp_ns == 0 and inputs[-1].late_s < 1.0
+    link.advance(period)
+    time.sleep(0.17)  # fleet time 1.7 s (or more) when the period's telemetry is read
+    runner.tick(dataclasses.replace(link.state(), received_ns=time.time_ns()))
+    assert inputs[-1].stamp_ns == period  # (by the telemetry's own time: on time)
+    assert inputs[-1].late_s >= 1.5
+    assert runner.late_steps >= 1 and runner.max_late_ns >= 1_500_000_000
+
+
 def test_a_failing_step_never_leaves_the_loop(paper) -> None:
     hub = MemoryHubs().hub(FLEET)
     links, _, runners = _fleet(paper, hub)

@@ -312,6 +312,37 @@ def test_the_autopilot_holds_position_against_the_wind_unless_flying_a_velocity(
         rig.close()
 
 
+def test_a_late_loop_flies_the_setpoints_that_came_while_it_did_not_run():
+    """The host keeps the SITL from running for 1.5 s of simulated time (0.4 s of wall time at
+    x4) while its agent streams a setpoint every 0.1 s: the late loop reads them before it
+    catches up, so the vehicle flies them and stays in OFFBOARD. A stream that really stops for
+    as long still ends in HOLD (PX4's 1 s offboard-loss timeout)."""
+    rig = Rig(scenario=PAPER)
+    plant, autopilot = rig.server.plant, rig.server.autopilot
+    forward = encode_setpoint(1.0, 0.0)
+    try:
+        rig.run(S)
+        rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        _fly(rig, forward, 2 * S)
+        rig.command(M.MAV_CMD_DO_SET_MODE, 1, *px4_split_custom_mode(OFFBOARD))
+        _fly(rig, forward, S)
+        assert autopilot.mode == FlightMode.OFFBOARD
+        start = plant.position_m
+        args = setpoint_message_args(forward, time_boot_ms=0, target_system=1)
+        for _ in range(15):  # the agent streams on; the server does not run
+            rig.client.send(lambda mav: mav.set_position_target_local_ned_encode(*args))
+            rig.clock.advance(S // 10)
+        rig.server.step()
+        assert autopilot.mode == FlightMode.OFFBOARD
+        flown = math.dist(plant.position_m, start)
+        assert 1.0 < flown < 2.0, flown  # 1.5 s at about 1 m/s (effectiveness, wind)
+        rig.clock.advance(15 * S // 10)  # nothing sent this time
+        rig.server.step()
+        assert autopilot.mode == FlightMode.HOLD
+    finally:
+        rig.close()
+
+
 def test_peers_that_talk_receive_telemetry_until_they_fall_silent(rig):
     other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     other.bind(("127.0.0.1", 0))
