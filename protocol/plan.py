@@ -1,6 +1,7 @@
 """A vehicle's assumed trajectory, as broadcast to its neighbours (Dunbar & Murray's scheme)."""
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -30,11 +31,12 @@ class Plan:
     def horizon(self) -> int:
         return int(self.inputs.shape[0])
 
-    @property
+    @cached_property
     def holds(self) -> bool:
         """Every state at the same place: the plan of a vehicle its autopilot holds where it is
         (a runner broadcasts its measured pose so while the vehicle is out of its agent's hands).
-        A planned stop still moves with the learned drift; a held vehicle does not."""
+        A planned stop still moves with the learned drift; a held vehicle does not. (Computed
+        once per plan: every agent that hears it asks.)"""
         xy = self.states[:, :2]
         return bool(np.all(xy == xy[0]))
 

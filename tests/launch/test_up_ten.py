@@ -89,9 +89,9 @@ def fleet(tmp_path, processes):
 X4_CORES = 4
 """Cores the ten-vehicle fleet needs at x4: it takes about 0.8 of a core at x1 and 35-40 CPU
 seconds per 50 s of flight, about 3 cores at x4. On 2 cores the agents fall whole periods
-behind, the autopilots leave OFFBOARD for want of setpoints, and separation is not kept
-(docs/design.md, "What is not guaranteed"): an overload the fleet does not yet degrade
-safely."""
+behind, the autopilots leave OFFBOARD for want of setpoints, the formation is lost, and
+separation, though kept in most runs, is not guaranteed (docs/design.md, "What is not
+guaranteed")."""
 
 
 @pytest.mark.slow
@@ -102,8 +102,8 @@ safely."""
             4.0,
             marks=pytest.mark.xfail(
                 (os.cpu_count() or 1) < X4_CORES,
-                reason=f"ten vehicles at x4 need about 3 cores (on fewer, separation breaks); this"
-                f" host has {os.cpu_count()}",
+                reason=f"ten vehicles at x4 need about 3 cores (on fewer, the formation is lost);"
+                f" this host has {os.cpu_count()}",
                 strict=False,
             ),
         ),
