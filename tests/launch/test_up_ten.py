@@ -90,7 +90,7 @@ X4_CORES = 4
 """Cores the ten-vehicle fleet needs at x4: it takes about 0.8 of a core at x1 and 35-40 CPU
 seconds per 50 s of flight, about 3 cores at x4. On 2 cores the agents fall whole periods
 behind, the autopilots leave OFFBOARD for want of setpoints, the formation is lost, and
-separation, though kept in most runs, is not guaranteed (docs/design.md, "What is not
+separation, kept in some runs, is not guaranteed (docs/design.md, "What is not
 guaranteed")."""
 
 
