@@ -34,9 +34,9 @@ class Plan:
     @cached_property
     def holds(self) -> bool:
         """Every state at the same place: the plan of a vehicle its autopilot holds where it is
-        (a runner broadcasts its measured pose so while the vehicle is out of its agent's hands).
-        A planned stop still moves with the learned drift; a held vehicle does not. (Computed
-        once per plan: every agent that hears it asks.)"""
+        (what a runner broadcasts while its vehicle is out of its agent's hands: the measured
+        pose over the horizon). A planned stop still moves with the learned drift; a held
+        vehicle does not. (Computed once per plan: every agent that hears it asks.)"""
         xy = self.states[:, :2]
         return bool(np.all(xy == xy[0]))
 

@@ -76,7 +76,7 @@ def fleet_access_control(
         "gcs": [everything],
     }
     members = [
-        (f"agent-{v}", "agent", [plan_key(fleet, v).removesuffix("/plan") + "/**"]) for v in ids
+        (zenoh_user(v), "agent", [plan_key(fleet, v).removesuffix("/plan") + "/**"]) for v in ids
     ]
     members += [
         (TARGET_USER, "target", [target_observation_key(fleet)]),

@@ -107,7 +107,7 @@ class ZenohSecurity:
     @property
     def users(self) -> tuple[str, ...]:
         """Every user: the agents in `vehicle_ids` order, then ``target`` and ``gcs``."""
-        return (*(f"agent-{v}" for v in self.vehicle_ids), TARGET_USER, GROUND_STATION_USER)
+        return (*map(zenoh_user, self.vehicle_ids), TARGET_USER, GROUND_STATION_USER)
 
     @property
     def router_endpoint(self) -> str:

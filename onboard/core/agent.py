@@ -324,9 +324,9 @@ class Agent:
         neighbours = neighbourhood.nearest(
             start_ns, plans, here, inflations, ages, centres[0], offsets[0]
         )
-        still = neighbourhood.unmoved_by_wind(neighbours, plans, ages)
+        held = neighbourhood.held(neighbours, plans)
         planes, lines = neighbourhood.planes(
-            start_ns, neighbours, self._last_plan, here, drift, ages, inflations, still=still
+            start_ns, neighbours, self._last_plan, here, drift, ages, inflations, held=held
         )
         goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
         goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])

@@ -186,14 +186,11 @@ class Neighbourhood:
             n_terms += 1
         return pull, n_terms
 
-    def unmoved_by_wind(
-        self, neighbours: Mapping[int, object], plans: Mapping[int, Plan], ages: Mapping[int, float]
-    ) -> set[int]:
-        """The neighbours the wind does not carry: a silent one (it flies its slot, or its
-        autopilot holds it) and one whose plan `holds` (its autopilot holds it now). The lines
-        against them stay where they are instead of drifting with this vehicle's learned drift
-        (docs/design.md, "Safety": held neighbours)."""
-        return {nid for nid in neighbours if self.silent(ages[nid]) or plans[nid].holds}
+    @staticmethod
+    def held(neighbours: Mapping[int, object], plans: Mapping[int, Plan]) -> set[int]:
+        """The neighbours whose plan `holds`: their autopilots hold them where they are, so the
+        wind does not carry them (`planes`; docs/design.md, "Held neighbours do not drift")."""
+        return {nid for nid in neighbours if plans[nid].holds}
 
     def planes(
         self,
@@ -205,7 +202,7 @@ class Neighbourhood:
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
         *,
-        still: Collection[int] = (),
+        held: Collection[int] = (),
     ) -> tuple[list[list[Plane]], list[list[Plane]]]:
         """Separation half-planes against each of `neighbours` at j = 1..M (`separation_lines`,
         `held_inside`), between where this vehicle's previous plan `last_plan` (or, without one,
@@ -214,8 +211,9 @@ class Neighbourhood:
         farther from. The distance is shared while the neighbour's plan is at most two periods
         old. Padded to K neighbours with no planes. With them, the margins' own lines (the same
         where the vehicle is not inside its margin), which `draw_out` keeps the goal behind.
-        The lines drift with `drift`, as the wind carries both vehicles, except against the
-        neighbours in `still` (`unmoved_by_wind`)."""
+        The lines drift with `drift`, as the wind carries both vehicles, except against a
+        neighbour the wind does not carry: a silent one (it flies its slot, or its autopilot
+        holds it) and one in `held` (`Neighbourhood.held`)."""
         s, M = self.settings, self.settings.horizon
         own = here if last_plan is None else last_plan.position_at(stamp_ns)
         drift_steps = [
@@ -226,9 +224,10 @@ class Neighbourhood:
         for nid in sorted(neighbours, key=self._fleet_index.__getitem__):  # (in fleet order)
             shared = ages[nid] <= 2.0 * s.period_s + 1e-9
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
-            if self.silent(ages[nid]):
+            silent = self.silent(ages[nid])
+            if silent:
                 margin += s.silent_allowance_m
-            theirs, steps = neighbours[nid], no_drift if nid in still else drift_steps
+            theirs, steps = neighbours[nid], no_drift if silent or nid in held else drift_steps
             lines.append(separation_lines(own, theirs, margin, here, steps, shared=shared))
             planes.append(held_inside(lines[-1], here, steps))
         planes.extend([self._no_planes] * (self.size - len(planes)))

@@ -197,9 +197,10 @@ def test_the_lines_drift_with_the_wind_except_against_a_held_or_silent_neighbour
     ages = {2: 0.2, 3: 0.2, 4: 5.0}
     inflations = hood.inflations(ages, 0.0)
     near = {nid: plans[nid].position_at(NOW) for nid in plans}
-    still = hood.unmoved_by_wind(near, plans, ages)
-    assert still == {3, 4}
-    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), drift, ages, inflations, still=still)
+    held = hood.held(near, plans)
+    assert held == {3}
+    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), drift, ages, inflations, held=held)
+    still = {3, 4}  # held, and silent
     by_id = dict(zip(sorted(near), planes, strict=True))
     for nid, lines in by_id.items():
         offsets = [b - lines[0][2] for _, _, b in lines]  # each step's bound less the first's
