@@ -163,26 +163,30 @@ def _viewer(text: str) -> tuple[bool, str | None]:
     )
 
 
-GCS_STREAMS_US = {33: 200_000, 245: 1_000_000}
-"""SET_MESSAGE_INTERVAL asked of a silent vehicle [us]: GLOBAL_POSITION_INT at 5 Hz (its place
-on the map) and EXTENDED_SYS_STATE at 1 Hz (is it in the air); HEARTBEAT and STATUSTEXT come
-unasked."""
+GCS_STREAMS_US = {33: 200_000, 245: 1_000_000, 30: -1, 32: -1, 74: -1, 1: -1, 242: -1}
+"""SET_MESSAGE_INTERVAL asked of every vehicle when first heard, and of a silent one [us]:
+GLOBAL_POSITION_INT at 5 Hz (its place on the map) and EXTENDED_SYS_STATE at 1 Hz (is it in the
+air); stopped (-1): ATTITUDE, LOCAL_POSITION_NED, VFR_HUD, SYS_STATUS and HOME_POSITION, which
+the ground station does not read (a PX4 ground-station link streams them at 21 messages a second,
+each one a send for the autopilot and a parse for the ground station). HEARTBEAT and STATUSTEXT
+come unasked."""
 GCS_DATA_STREAMS_HZ = {6: 5, 2: 1}
 """REQUEST_DATA_STREAM for autopilots that know only that (MAV_DATA_STREAM POSITION at 5 Hz,
-EXTENDED_STATUS at 1 Hz)."""
+EXTENDED_STATUS at 1 Hz). Sent before the message intervals, which override it per message
+where the autopilot knows both."""
 
 
 def _ask_for_streams(mav, system_id: int, keys: KeyRing) -> None:
     """Ask the autopilot of MAVLink system `system_id` for the messages the ground station
-    reads, on this link (a real ArduPilot streams nothing to a ground station until asked). A
-    UDP server link writes to every vehicle it hears; the commands' target system picks the
-    one."""
+    reads, and no others, on this link (a real ArduPilot streams nothing to a ground station
+    until asked, a PX4 more than it reads). A UDP server link writes to every vehicle it hears;
+    the commands' target system picks the one."""
     messages = [
-        mav.mav.command_long_encode(system_id, 1, 511, 0, msg_id, interval, 0, 0, 0, 0, 0)
-        for msg_id, interval in GCS_STREAMS_US.items()
-    ] + [
         mav.mav.request_data_stream_encode(system_id, 1, stream, rate, 1)
         for stream, rate in GCS_DATA_STREAMS_HZ.items()
+    ] + [
+        mav.mav.command_long_encode(system_id, 1, 511, 0, msg_id, interval, 0, 0, 0, 0, 0)
+        for msg_id, interval in GCS_STREAMS_US.items()
     ]
     for message in messages:
         with contextlib.suppress(OSError):

@@ -159,10 +159,10 @@ class GroundStation:
         self._events.append((max(0, round((t or 0.0) * 1e9)), level, text))
 
     def links_to_ask(self, now_wall_s: float) -> list[int]:
-        """The ids of every vehicle heard but sending no position for
-        `STREAMS_SILENT_WALL_S` (or, an ArduPilot, no landed state), each at most once per that
-        time: a real ArduPilot streams nothing to a ground station until asked (its SRn_ rates
-        are 0)."""
+        """The ids of every vehicle heard for the first time, or heard but sending no position
+        for `STREAMS_SILENT_WALL_S` (or, an ArduPilot, no landed state), each at most once per
+        that time: a real ArduPilot streams nothing to a ground station until asked (its SRn_
+        rates are 0), a PX4 streams more than the ground station reads until told not to."""
         out = []
         for vid, link in self.links.items():
             heard = link.last_wall_s is not None
@@ -174,7 +174,8 @@ class GroundStation:
             )
             # (an ArduPilot that reports no landed state cannot be counted as engaged)
             blind = link.autopilot == Autopilot.ARDUPILOTMEGA and link.landed_state is None
-            if heard and (blind or not fresh) and not asked:
+            first = link.streams_asked_wall_s is None
+            if heard and (first or blind or not fresh) and not asked:
                 link.streams_asked_wall_s = now_wall_s
                 out.append(vid)
         return out

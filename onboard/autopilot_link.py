@@ -79,6 +79,22 @@ class LinkState:
         return math.isfinite(self.north_m) and math.isfinite(self.yaw_rad)
 
 
+_TELEMETRY_FIELDS = frozenset(
+    {
+        "time_boot_ns",
+        "received_ns",
+        "position_boot_ns",
+        "north_m",
+        "east_m",
+        "down_m",
+        "yaw_rad",
+        "heartbeats",
+        "rejected",
+    }
+)
+"""LinkState fields that change with every message: no event of their own."""
+
+
 class AutopilotLink(ABC):
     """Connect, read telemetry, send velocity + yaw-rate setpoints, arm/mode, close."""
 
@@ -86,15 +102,29 @@ class AutopilotLink(ABC):
         self._cond = threading.Condition()
         self._state = LinkState()
         self.setpoints_sent = 0
+        self._events = 0
+        """Changes of the state other than telemetry (`_TELEMETRY_FIELDS`) so far."""
+        self._waits: list[int] = []
+        """The boot times [ns] the threads in `wait_state` wait to see passed."""
 
     # -- state shared between the reader and the runner -----------------------------------------
     def _update(self, **changes: object) -> None:
+        """Take a new state. Waiters wake on an event (a change of anything but telemetry) or
+        on telemetry past the boot time one of them waits for, not on every message: at 60
+        messages a second a wake-up each would cost an agent more than its steps."""
         with self._cond:
-            state = replace(self._state, **changes)
+            old = self._state
+            state = replace(old, **changes)
             if state.engaged and state.mode is not None and state.mode != FlightMode.OFFBOARD:
                 state = replace(state, mode_lost=True)
             self._state = state
-            self._cond.notify_all()
+            if state.mode_lost != old.mode_lost or any(
+                getattr(state, k) != getattr(old, k) for k in changes if k not in _TELEMETRY_FIELDS
+            ):
+                self._events += 1
+                self._cond.notify_all()
+            elif self._waits and state.time_boot_ns > min(self._waits):
+                self._cond.notify_all()
 
     def state(self) -> LinkState:
         """The latest validated snapshot."""
@@ -102,13 +132,19 @@ class AutopilotLink(ABC):
             return self._state
 
     def wait_state(self, *, newer_than_ns: int, timeout_s: float) -> LinkState:
-        """Block until telemetry newer than `newer_than_ns` (boot time) or the timeout."""
+        """Block until telemetry newer than `newer_than_ns` (boot time), an event (a change of
+        the mode, arming, engagement, landed state, autopilot or text) or the timeout."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while self._state.time_boot_ns <= newer_than_ns:
-                left = deadline - time.monotonic()
-                if left <= 0 or not self._cond.wait(left):
-                    break
+            events = self._events
+            self._waits.append(newer_than_ns)
+            try:
+                while self._state.time_boot_ns <= newer_than_ns and self._events == events:
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not self._cond.wait(left):
+                        break
+            finally:
+                self._waits.remove(newer_than_ns)
             return self._state
 
     # -- what an implementation provides --------------------------------------------------------

@@ -52,6 +52,7 @@ STREAM_INTERVALS_US = {
     33: -1,  # GLOBAL_POSITION_INT: 5 Hz (GLOBAL_FIX_INTERVAL_US) given a home, else not read
     74: -1,  # VFR_HUD: not read here
     245: 200_000,  # EXTENDED_SYS_STATE: the landed state (a takeoff's end), at 5 Hz
+    1: -1,  # SYS_STATUS: not read here
 }
 """SET_MESSAGE_INTERVAL requests [us] a link makes when it connects (-1: stop the stream). A
 PX4 "onboard" link streams about 150 messages per second of autopilot time by default, half of

@@ -406,7 +406,9 @@ class FleetRunner:
             streamer.hold_position(north_m=state.north_m, east_m=state.east_m)
         first_boot_ns = state.time_boot_ns
         while not stop.is_set():
-            state = self.link.wait_state(newer_than_ns=state.time_boot_ns, timeout_s=0.2)
+            state = self.link.wait_state(
+                newer_than_ns=self._sleep_until_boot_ns(state, first_boot_ns), timeout_s=0.2
+            )
             if not self.sync.clock.ready:
                 self.poll_epoch()  # also without telemetry: a mismatch must stop the run
             if stop.is_set() or self.failure is not None:
@@ -435,6 +437,22 @@ class FleetRunner:
             fleet_now = self.sync.fleet_ns(state.time_boot_ns)
             if None not in (s.stop_at_fleet_ns, fleet_now) and fleet_now >= s.stop_at_fleet_ns:
                 break
+
+    def _sleep_until_boot_ns(self, state: LinkState, first_boot_ns: int) -> int:
+        """The autopilot boot time [ns] whose telemetry the loop has nothing to do before:
+        the next step's period boundary, or the end of the warm-up before engaging. Until
+        fleet time is known, every new message (each one is a clock sample). Sleeping from one
+        step to the next, not waking at each of the autopilot's 60 messages a second, keeps an
+        agent's cost apart from its telemetry rate (docs/design.md, "MAVLink": waking)."""
+        if not state.has_pose:
+            return state.time_boot_ns
+        offset_ns = self.sync.offset_ns
+        if offset_ns is None:
+            return state.time_boot_ns
+        until_ns = self.next_step_ns - offset_ns - 1
+        if self.settings.engage and not self.engage_attempted:
+            until_ns = min(until_ns, first_boot_ns + self.settings.warmup_ns - 1)
+        return max(state.time_boot_ns, until_ns)
 
     def summary(self, streamer: SetpointStreamer | None = None) -> dict:
         """Counters and timing of the run, as plain JSON-able values."""

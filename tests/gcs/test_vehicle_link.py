@@ -50,3 +50,32 @@ def test_a_vehicle_heard_without_positions_is_asked_for_its_streams():
     gs.on_mavlink(fix, received_ns=3 * 10**9)
     assert gs.links_to_ask(3.5) == []  # positions and a landed state come: nothing to ask
     assert gs.links_to_ask(3.0 + STREAMS_SILENT_WALL_S + 0.1) == [2]  # they stopped
+
+
+def test_a_px4_heard_for_the_first_time_is_told_what_to_stream_once():
+    """A PX4 ground-station link streams ATTITUDE, VFR_HUD and more that the ground station
+    does not read: each vehicle is asked, once, for what it reads and to stop the rest."""
+    from pathlib import Path
+
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from fleetmpc.gcs.ground_station import GCS_STREAMS_US
+    from fleetmpc.gcs.station import GroundStation
+    from fleetmpc.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[2]
+    gs = GroundStation(load_scenario(root / "scenarios" / "paper.toml"), speed=1.0, duration_s=5.0)
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    beat = mav.heartbeat_encode(2, int(Autopilot.PX4), 0, 0, 4)
+    beat.pack(mav)
+    fix = mav.global_position_int_encode(300, 473977420, 85455940, 0, 0, 0, 0, 0, 0)
+    fix.pack(mav)
+    gs.on_mavlink(beat, received_ns=0)
+    gs.on_mavlink(fix, received_ns=0)
+    assert gs.links_to_ask(0.5) == [1]  # heard, streaming: asked all the same
+    assert gs.links_to_ask(1.0) == []
+    gs.on_mavlink(fix, received_ns=29 * 10**9)
+    assert gs.links_to_ask(30.0) == []  # and, while its positions come, never again
+    read = {33, 245}  # GLOBAL_POSITION_INT, EXTENDED_SYS_STATE
+    assert {m for m, us in GCS_STREAMS_US.items() if us > 0} == read
+    assert {30, 74, 1, 32} <= {m for m, us in GCS_STREAMS_US.items() if us == -1}

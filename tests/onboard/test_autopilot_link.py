@@ -473,3 +473,39 @@ def test_a_signed_link_flies_a_signed_vehicle_and_ignores_forged_telemetry() -> 
             streamer.join(timeout=2.0)
         link.close()
         server.close()
+
+
+def test_a_waiter_sleeps_through_telemetry_before_its_time_and_wakes_on_an_event() -> None:
+    """The runner sleeps from one step to the next: telemetry short of the boot time it waits
+    for wakes nobody (no notify at all), telemetry past it does, and so does a change of mode."""
+    link = FakeAutopilotLink()
+    notified = []
+    real_notify = link._cond.notify_all
+    link._cond.notify_all = lambda: (notified.append(link.state().time_boot_ns), real_notify())
+    link._update(time_boot_ns=0)
+    notified.clear()
+
+    def wait(newer_than_ns: int) -> tuple[list, threading.Thread]:
+        seen: list = []
+        t = threading.Thread(
+            target=lambda: seen.append(link.wait_state(newer_than_ns=newer_than_ns, timeout_s=5.0))
+        )
+        t.start()
+        deadline = time.monotonic() + 2.0
+        while not link._waits and time.monotonic() < deadline:
+            time.sleep(0.001)
+        return seen, t
+
+    seen, t = wait(1_000)
+    for boot_ns in (200, 400, 600, 800, 1_000):
+        link._update(time_boot_ns=boot_ns, north_m=1.0, yaw_rad=0.5)
+    assert notified == [] and seen == []  # (five messages, none past 1000: no wake-up)
+    link._update(time_boot_ns=1_200)
+    t.join(timeout=2.0)
+    assert notified == [1_200] and seen[0].time_boot_ns == 1_200
+
+    seen, t = wait(10_000)
+    link._update(time_boot_ns=1_400, mode=FlightMode.HOLD)  # an event: the mode changed
+    t.join(timeout=2.0)
+    assert seen and seen[0].mode == FlightMode.HOLD and seen[0].time_boot_ns == 1_400
+    assert link._waits == []
