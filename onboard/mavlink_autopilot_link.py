@@ -24,6 +24,17 @@ from collections.abc import Callable
 from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, LinkState
 from fleetmpc.onboard.faults import LinkFaults
 from fleetmpc.onboard.local_origin import OriginShift
+from fleetmpc.onboard.telemetry_streams import (
+    GLOBAL_FIX_INTERVAL_US,
+    MAX_BOOT_MS,
+    MAX_POSITION_M,
+    ODOMETRY_ID,
+    ODOMETRY_INTERVAL_US,
+    ODOMETRY_WAIT_S,
+    STREAM_INTERVALS_US,
+    finite,
+    odometry_pose,
+)
 from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
@@ -46,34 +57,14 @@ from fleetmpc.protocol.mavlink_signing import SigningGuard, sign_outgoing
 
 __all__ = ["MavlinkAutopilotLink"]
 
-STREAM_INTERVALS_US = {
-    32: 33_333,  # LOCAL_POSITION_NED: the pose, at 30 Hz (PX4's onboard-link rate)
-    30: 33_333,  # ATTITUDE: the yaw, with it
-    33: -1,  # GLOBAL_POSITION_INT: 5 Hz (GLOBAL_FIX_INTERVAL_US) given a home, else not read
-    74: -1,  # VFR_HUD: not read here
-    245: 200_000,  # EXTENDED_SYS_STATE: the landed state (a takeoff's end), at 5 Hz
-    1: -1,  # SYS_STATUS: not read here
-}
-"""SET_MESSAGE_INTERVAL requests [us] a link makes when it connects (-1: stop the stream). A
-PX4 "onboard" link streams about 150 messages per second of autopilot time by default, half of
-them ones the agent does not read; every one costs the agent a parse and the autopilot a send,
-four times as many per wall second at x4."""
-
-GLOBAL_FIX_INTERVAL_US = 200_000
-"""GLOBAL_POSITION_INT's interval on a link given the scenario's home (5 Hz): it places the
-autopilot's local origin."""
-
-_MAX_POSITION_M = 1e6
-_MAX_BOOT_MS = 2**32 - 1
-
+_READ_TIMEOUT_S = 0.5
+"""How long the reader waits for a message before it looks at its stop flag [s]. pymavlink
+sleeps in select for half of it between messages: a short one wakes the reader many times a
+second for nothing (0.05 s: 40 times), which costs an agent as much as its telemetry does."""
 
 AGENT_LINK_ID = 1
 """The agent's signing link id: with its system and component ids it names the agent's stream on
 the vehicle, apart from a ground station's (often 255/190 on link 0 as well)."""
-
-
-def _finite(*values: float, bound: float) -> bool:
-    return all(isinstance(v, float | int) and math.isfinite(v) and abs(v) <= bound for v in values)
 
 
 class MavlinkAutopilotLink(AutopilotLink):
@@ -128,6 +119,8 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._acks: dict[int, int] = {}
+        self._odometry_seen = threading.Event()
+        """Set by the first valid ODOMETRY: the autopilot streams the pose in one message."""
         self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
         self._reader.start()
 
@@ -135,7 +128,7 @@ class MavlinkAutopilotLink(AutopilotLink):
     def _read_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                msg = self._conn.recv_match(blocking=True, timeout=0.05)
+                msg = self._conn.recv_match(blocking=True, timeout=_READ_TIMEOUT_S)
             except Exception:  # a closed socket or a decoder error: keep reading until stopped
                 if self._stop.wait(0.01):
                     return
@@ -162,31 +155,25 @@ class MavlinkAutopilotLink(AutopilotLink):
             return
         if st.system_id == 0 or src != st.system_id or msg.get_srcComponent() != 1:
             return
-        if kind == "LOCAL_POSITION_NED":
+        if kind == "ODOMETRY":
+            pose = odometry_pose(msg)
+            if pose is None:
+                self._update(rejected=st.rejected + 1)
+                return
+            self._odometry_seen.set()
+            self._pose(st, *pose)
+        elif kind == "LOCAL_POSITION_NED":
             if not (
-                _finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, bound=_MAX_POSITION_M)
-                and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
+                finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, bound=MAX_POSITION_M)
+                and 0 <= msg.time_boot_ms <= MAX_BOOT_MS
             ):
                 self._update(rejected=st.rejected + 1)
                 return
             t_ns = int(msg.time_boot_ms) * 1_000_000
-            shift = (0.0, 0.0)
-            if self._origin is not None:
-                self._origin.local(t_ns, msg.x, msg.y, msg.vx, msg.vy)
-                shift = self._origin.value
-                if shift is None:
-                    return  # (no pose until the origin is known)
-            self._update(
-                north_m=float(msg.x) + shift[0],
-                east_m=float(msg.y) + shift[1],
-                down_m=float(msg.z),
-                position_boot_ns=t_ns,
-                time_boot_ns=max(t_ns, st.time_boot_ns),
-                received_ns=self._now_ns(),
-            )
+            self._pose(st, t_ns, msg.x, msg.y, msg.z, msg.vx, msg.vy)
         elif kind == "ATTITUDE":
             if not (
-                _finite(msg.yaw, bound=2 * math.pi + 1e-3) and 0 <= msg.time_boot_ms <= _MAX_BOOT_MS
+                finite(msg.yaw, bound=2 * math.pi + 1e-3) and 0 <= msg.time_boot_ms <= MAX_BOOT_MS
             ):
                 self._update(rejected=st.rejected + 1)
                 return
@@ -219,6 +206,35 @@ class MavlinkAutopilotLink(AutopilotLink):
             text = str(getattr(msg, "text", ""))[:50]
             self._update(last_text=text)
             self._log(f"autopilot: {text}")
+
+    def _pose(
+        self,
+        st: LinkState,
+        t_ns: int,
+        x: float,
+        y: float,
+        z: float,
+        vx: float,
+        vy: float,
+        yaw: float | None = None,
+    ) -> None:
+        """Take a validated local position (and heading) at boot time `t_ns`."""
+        shift = (0.0, 0.0)
+        if self._origin is not None:
+            self._origin.local(t_ns, x, y, vx, vy)
+            shift = self._origin.value
+            if shift is None:
+                return  # (no pose until the origin is known)
+        heading = {} if yaw is None else {"yaw_rad": float(yaw)}
+        self._update(
+            north_m=float(x) + shift[0],
+            east_m=float(y) + shift[1],
+            down_m=float(z),
+            position_boot_ns=t_ns,
+            time_boot_ns=max(t_ns, st.time_boot_ns),
+            received_ns=self._now_ns(),
+            **heading,
+        )
 
     def _on_heartbeat(self, msg, src: int) -> None:
         st = self.state()
@@ -281,7 +297,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         )
 
     def send_position_setpoint(self, *, north_m: float, east_m: float, down_m: float) -> None:
-        if not _finite(north_m, east_m, down_m, bound=_MAX_POSITION_M):
+        if not finite(north_m, east_m, down_m, bound=MAX_POSITION_M):
             self.send_setpoint(speed_m_s=0.0, yaw_rate_rad_s=0.0)
             return
         shift = (0.0, 0.0) if self._origin is None else self._origin.value or (0.0, 0.0)
@@ -291,7 +307,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         if self._setpoints_paused:
             return  # (an ArduPilot takeoff is under way)
         target = self._target()
-        boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & _MAX_BOOT_MS
+        boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & MAX_BOOT_MS
         mav = self._conn.mav
         sent = self._send(
             lambda: mav.set_position_target_local_ned_send(
@@ -364,10 +380,17 @@ class MavlinkAutopilotLink(AutopilotLink):
 
     def _request_streams(self, autopilot: Autopilot) -> None:
         """Ask the autopilot for the streams this link reads (`STREAM_INTERVALS_US`):
-        ArduPilot streams nothing until asked, PX4 streams more than the agent reads."""
+        ArduPilot streams nothing until asked, PX4 streams more than the agent reads. The pose
+        comes from ODOMETRY where the autopilot streams it (PX4), one message where
+        LOCAL_POSITION_NED and ATTITUDE are two: once a valid one has come, those two stop."""
+        odometry = self._command(
+            511, (float(ODOMETRY_ID), ODOMETRY_INTERVAL_US), timeout_s=1.0
+        ) == MavResult.ACCEPTED and self._odometry_seen.wait(ODOMETRY_WAIT_S)
         for msg_id, interval_us in STREAM_INTERVALS_US.items():
             if msg_id == 33 and self._home_deg is not None:
                 interval_us = GLOBAL_FIX_INTERVAL_US
+            if odometry and msg_id in (32, 30):
+                interval_us = -1  # (ODOMETRY carries both)
             if interval_us < 0 and autopilot == Autopilot.ARDUPILOTMEGA:
                 continue  # (nothing to stop: it streams only what it is asked for)
             self._command(511, (float(msg_id), float(interval_us)), timeout_s=1.0)

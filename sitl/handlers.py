@@ -25,6 +25,7 @@ from fleetmpc.sitl.mavlink_io import Incoming, mavlink
 from fleetmpc.sitl.telemetry import (
     ARDUPILOT_DATA_STREAMS,
     ON_REQUEST,
+    PX4_ONLY,
     STREAMABLE,
     Identity,
     Snapshot,
@@ -221,6 +222,8 @@ class MessageHandler:
         msg_id = _integer(p[0], 0, 0xFFFFFF)
         interval_us = p[1]
         if msg_id is None or msg_id not in STREAMABLE or not math.isfinite(interval_us):
+            return MavResult.DENIED
+        if msg_id in PX4_ONLY and not self._px4:
             return MavResult.DENIED
         schedule = self._schedule_of(inc)
         if interval_us == -1.0:

@@ -27,6 +27,7 @@ __all__ = [
     "ARDUPILOT_DATA_STREAMS",
     "HEARTBEAT_ID",
     "ON_REQUEST",
+    "PX4_ONLY",
     "PX4_GCS_RATES_HZ",
     "PX4_ONBOARD_RATES_HZ",
     "STREAMABLE",
@@ -49,9 +50,15 @@ STREAMABLE = frozenset(
         M.MAVLINK_MSG_ID_VFR_HUD,
         M.MAVLINK_MSG_ID_HOME_POSITION,
         M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+        M.MAVLINK_MSG_ID_ODOMETRY,
     }
 )
-"""Message ids a client may stream with SET_MESSAGE_INTERVAL."""
+"""Message ids a client may stream with SET_MESSAGE_INTERVAL (`PX4_ONLY`: on PX4 alone)."""
+
+PX4_ONLY = frozenset({M.MAVLINK_MSG_ID_ODOMETRY})
+"""Message ids only the PX4 profile sends (an ArduPilot SET_MESSAGE_INTERVAL for them is
+denied): ODOMETRY, the pose and attitude in one message, which PX4 streams at 30 Hz on an
+onboard link (`src/modules/mavlink/mavlink_main.cpp`, MAVLINK_MODE_ONBOARD)."""
 
 ON_REQUEST = STREAMABLE | {M.MAVLINK_MSG_ID_HEARTBEAT, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION}
 """Message ids a client may ask for once with REQUEST_MESSAGE."""
@@ -62,6 +69,7 @@ PX4_ONBOARD_RATES_HZ: Mapping[int, float] = MappingProxyType(
         M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
         M.MAVLINK_MSG_ID_ATTITUDE: 50.0,
         M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
+        M.MAVLINK_MSG_ID_ODOMETRY: 30.0,
         M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 50.0,
         M.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
         M.MAVLINK_MSG_ID_VFR_HUD: 10.0,
@@ -268,6 +276,29 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
             snap.vel_north_m_s,
             snap.vel_east_m_s,
             -snap.climb_rate_m_s,
+        )
+    if msg_id == M.MAVLINK_MSG_ID_ODOMETRY and ident.autopilot == Autopilot.PX4:
+        # As PX4's EKF2 publishes it: position and velocity in the local NED frame, the
+        # attitude as a quaternion (w, x, y, z), time in microseconds since boot.
+        half = 0.5 * snap.yaw_rad
+        return mav.odometry_encode(
+            snap.time_ns // 1000,
+            M.MAV_FRAME_LOCAL_NED,
+            M.MAV_FRAME_LOCAL_NED,
+            snap.north_m - ident.local_origin_m[0],
+            snap.east_m - ident.local_origin_m[1],
+            -snap.altitude_m,
+            [math.cos(half), 0.0, 0.0, math.sin(half)],
+            snap.vel_north_m_s,
+            snap.vel_east_m_s,
+            -snap.climb_rate_m_s,
+            0.0,
+            0.0,
+            snap.yaw_rate_rad_s,
+            [math.nan] * 21,
+            [math.nan] * 21,
+            0,
+            M.MAV_ESTIMATOR_TYPE_AUTOPILOT,
         )
     if msg_id == M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
         lat, lon = _latlon_e7(ident, snap.north_m, snap.east_m)
