@@ -23,6 +23,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import PurePath
 
+from fleetmpc.errors import ConfigError
 from fleetmpc.network import vehicle_host
 from fleetmpc.protocol.mavlink_signing import key_file_name
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
@@ -30,7 +31,7 @@ from fleetmpc.protocol.zenoh_access import zenoh_user
 from fleetmpc.protocol.zenoh_security import ZenohSecurity
 from fleetmpc.scenario import Scenario
 
-__all__ = ["FleetOptions", "ProcessSpec", "fleet_processes"]
+__all__ = ["FleetOptions", "ProcessSpec", "auto_vehicles_per_sitl", "fleet_processes"]
 
 
 @dataclass(frozen=True)
@@ -38,7 +39,8 @@ class ProcessSpec:
     """One OS process (or container) of a fleet."""
 
     name: str
-    """Unique name: ``zenoh-router``, ``target``, ``sitl-<id>``, ``agent-<id>`` or ``gcs``."""
+    """Unique name: ``zenoh-router``, ``target``, ``sitl-<id>`` (``sitl-<first id>..<last id>``
+    for a process that serves several vehicles), ``agent-<id>`` or ``gcs``."""
     argv: tuple[str, ...]
     """Arguments after ``fleetmpc``."""
     role: str
@@ -77,6 +79,30 @@ class FleetOptions:
     secrets_dir: str | None = None
     """The folder of the run's secrets (`fleetmpc.launch.keys`) as the processes see it; None:
     an insecure fleet (unsigned MAVLink)."""
+    vehicles_per_sitl: int = 1
+    """Simulated vehicles one SITL process serves at most (vehicles next to each other in the
+    scenario, on one host): fewer processes wake the host less often
+    (`fleetmpc.sitl.vehicle_group`), but a stalled process stalls all of its vehicles."""
+
+    def __post_init__(self) -> None:
+        if self.vehicles_per_sitl < 1:
+            raise ConfigError(
+                "vehicles_per_sitl", f"must be at least 1, got {self.vehicles_per_sitl}"
+            )
+
+
+SMALL_FLEET = 10
+"""Vehicles a launch still gives a SITL process each by default (`auto_vehicles_per_sitl`)."""
+SITL_GROUP = 25
+"""Vehicles one SITL process serves by default in a larger fleet: about a quarter of a core."""
+
+
+def auto_vehicles_per_sitl(vehicles: int) -> int:
+    """`FleetOptions.vehicles_per_sitl` for a launch that does not choose: a process per vehicle
+    in a fleet of up to `SMALL_FLEET` (a fault can then stop one vehicle's SITL alone), else
+    `SITL_GROUP` vehicles a process (on a few cores, waking fewer processes is what lets the
+    fleet keep up: docs/design.md, "Waking")."""
+    return 1 if vehicles <= SMALL_FLEET else SITL_GROUP
 
 
 def _num(x: float) -> str:
@@ -123,11 +149,24 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
         path = key_path(vid)
         return () if path is None else ("--mavlink-key", str(path))
 
+    groups: list[tuple[str, list[int]]] = []  # (host, vehicle ids): one SITL process each
     for v in scenario.vehicles:
         if v.id in external:
             continue
-        argv = ("sitl", *common, "--vehicle", str(v.id), *speed, *key(v.id))
-        procs.append(ProcessSpec(f"sitl-{v.id}", argv, "sitl", vehicle_host(net, v)))
+        host = vehicle_host(net, v)
+        if groups and groups[-1][0] == host and len(groups[-1][1]) < options.vehicles_per_sitl:
+            groups[-1][1].append(v.id)
+        else:
+            groups.append((host, [v.id]))
+    for host, ids in groups:
+        argv = ["sitl", *common]
+        for vid in ids:
+            argv += ["--vehicle", str(vid)]
+        argv += speed
+        for vid in ids:  # (paired with the vehicles in order)
+            argv += key(vid)
+        name = f"sitl-{ids[0]}" if len(ids) == 1 else f"sitl-{ids[0]}..{ids[-1]}"
+        procs.append(ProcessSpec(name, tuple(argv), "sitl", host))
     for v in scenario.vehicles:
         argv = ["agent", *common, "--vehicle", str(v.id), *bus_of(v.id), *speed, "--wait-epoch"]
         argv += key(v.id)

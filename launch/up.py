@@ -44,7 +44,14 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.telemetry import FLUSH_S
-from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
+from fleetmpc.launch.fleet import (
+    SITL_GROUP,
+    SMALL_FLEET,
+    FleetOptions,
+    ProcessSpec,
+    auto_vehicles_per_sitl,
+    fleet_processes,
+)
 from fleetmpc.launch.keys import check_keys, make_keys
 from fleetmpc.launch.process_faults import ProcessFaults
 from fleetmpc.launch.status_view import StatusView
@@ -120,6 +127,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ID=URL",
         help="fly vehicle ID on the autopilot at URL (a real PX4 or ArduPilot, or their SITL:"
         " docs/real-autopilots.md) instead of starting its simulated vehicle; repeatable",
+    )
+    parser.add_argument(
+        "--vehicles-per-sitl",
+        type=int,
+        metavar="K",
+        help="simulated vehicles one SITL process serves (default: 1 in a fleet of up to"
+        f" {SMALL_FLEET}, else {SITL_GROUP}; a large fleet on few cores spends less waking one"
+        ' process than many: docs/design.md, "Waking")',
     )
     parser.add_argument(
         "--agent-records",
@@ -342,6 +357,10 @@ def run(args: argparse.Namespace) -> int:
     secrets = None
     if not args.insecure:
         secrets = args.keys or _fresh_secrets(scenario, run_dir / "secrets")
+    external = _external_autopilots(args.mavlink, scenario)
+    per_sitl = args.vehicles_per_sitl
+    if per_sitl is None:
+        per_sitl = auto_vehicles_per_sitl(len(scenario.vehicles) - len(external))
     specs = fleet_processes(
         scenario,
         FleetOptions(
@@ -353,8 +372,9 @@ def run(args: argparse.Namespace) -> int:
             status_file=str(status_file),
             viewer=viewer,
             agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
-            external_autopilots=_external_autopilots(args.mavlink, scenario),
+            external_autopilots=external,
             secrets_dir=None if secrets is None else str(secrets),
+            vehicles_per_sitl=per_sitl,
         ),
     )
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]

@@ -333,8 +333,15 @@ class PlanBus(ABC):
         for k, p in self.faults.arrive(key, payload):
             self._inbox.receive(k, p)
 
+    def _pull(self) -> None:
+        """Hand what the transport queued for the reader to `_deliver` (a transport that does not
+        queue delivers as payloads arrive, and has nothing to do here)."""
+        return
+
     def _release_held(self) -> None:
-        """Hand the payloads the injected faults held back and are now due to the receive rules."""
+        """Before a read: take what the transport queued, then hand the payloads the injected
+        faults held back and are now due to the receive rules."""
+        self._pull()
         if self.faults is not None:
             for k, p in self.faults.release():
                 self._inbox.receive(k, p)
@@ -474,7 +481,8 @@ class PlanBus(ABC):
         return max(fresh.values(), key=lambda m: (m.stamp_ns, -m.sender_id), default=None)
 
     def counters(self) -> BusCounters:
-        """A snapshot of the counters."""
+        """A snapshot of the counters (of what has reached the bus until now)."""
+        self._release_held()
         with self._send_lock:
             published, errors = self._published, self._publish_errors
         return self._inbox.snapshot(published=published, publish_errors=errors)

@@ -1,4 +1,7 @@
-"""`fleetmpc sitl`: one simulated vehicle behind a PX4 (default) or ArduPilot MAVLink interface.
+"""`fleetmpc sitl`: simulated vehicles behind PX4 (default) or ArduPilot MAVLink interfaces.
+
+One vehicle per ``--vehicle``; several in one process serve each its own endpoints, system id and
+ports, as a multi-instance SITL does (`fleetmpc.sitl.vehicle_group`).
 
 PX4 ports (as PX4 SITL, vehicle I): binds 14580 + I - 1 and streams to the offboard-API port
 14540 + I - 1; binds 18570 + I - 1 and streams to the ground-station port 14550. ArduPilot: TCP
@@ -9,7 +12,7 @@ scenario's [network] table (the agent's default URL uses the same arithmetic,
 `fleetmpc.network.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
 to, so a [network] table that moves the offboard or ground-station port moves them too and two
 fleets with different tables share no port. --port-offset shifts all of them, and each can be
-set explicitly. SIGINT/SIGTERM stop the vehicle (exit code 0).
+set explicitly (with one --vehicle only). SIGINT/SIGTERM stop the vehicles (exit code 0).
 """
 
 import argparse
@@ -26,9 +29,10 @@ from fleetmpc.protocol.mavlink_signing import read_key_file
 from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
+from fleetmpc.sitl.vehicle_group import serve_vehicles
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 
-__all__ = ["add_arguments", "build_config", "run"]
+__all__ = ["add_arguments", "build_configs", "run"]
 
 EXIT_WITHOUT_TEARDOWN = True
 """A fleet process: `fleetmpc.cli.entry` skips the interpreter's teardown once `run` returns."""
@@ -36,7 +40,13 @@ EXIT_WITHOUT_TEARDOWN = True
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, type=Path, help="scenario TOML file")
-    parser.add_argument("--vehicle", required=True, type=int, help="vehicle id (MAVLink system id)")
+    parser.add_argument(
+        "--vehicle",
+        required=True,
+        type=int,
+        action="append",
+        help="vehicle id (MAVLink system id); repeat it to serve several vehicles in one process",
+    )
     parser.add_argument(
         "--autopilot",
         choices=[p.value for p in Profile],
@@ -57,9 +67,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--mavlink-key",
         type=Path,
+        action="append",
         metavar="FILE",
         help="MAVLink 2 signing key file (a passphrase, mode 0600; see `fleetmpc keys`): sign"
-        " every frame and act only on frames signed with it (default: signing off)",
+        " every frame and act only on frames signed with it (default: signing off); with several"
+        " --vehicle, one each, in the same order",
     )
     parser.add_argument(
         "--boot-origin",
@@ -143,10 +155,40 @@ def _default_ports(scenario: Scenario, vehicle_id: int, offset: int) -> _Default
     )
 
 
-def build_config(args: argparse.Namespace) -> ServerConfig:
-    """Validate the command line against the scenario; errors name the option."""
+_ONE_VEHICLE_OPTIONS = (
+    "boot_origin",
+    "offboard_port",
+    "offboard_local_port",
+    "gcs_local_port",
+    "tcp_port",
+)
+"""Options that set one vehicle's value: refused with several --vehicle."""
+
+
+def build_configs(args: argparse.Namespace) -> list[ServerConfig]:
+    """Validate the command line against the scenario, one config per --vehicle; errors name the
+    option."""
     scenario = load_scenario(args.scenario)
-    spec = scenario.vehicle(args.vehicle)
+    ids = list(args.vehicle)
+    if len(set(ids)) != len(ids):
+        raise ConfigError("--vehicle", f"each vehicle once, got {ids}")
+    if len(ids) > 1:
+        for name in _ONE_VEHICLE_OPTIONS:
+            if getattr(args, name) is not None:
+                option = "--" + name.replace("_", "-")
+                raise ConfigError(option, "sets one vehicle's value: give it with one --vehicle")
+    keys = args.mavlink_key or []
+    if keys and len(keys) != len(ids):
+        raise ConfigError("--mavlink-key", f"one per --vehicle ({len(ids)}), got {len(keys)}")
+    return [
+        _build_config(args, scenario, scenario.vehicle(vid), keys[i] if keys else None)
+        for i, vid in enumerate(ids)
+    ]
+
+
+def _build_config(
+    args: argparse.Namespace, scenario: Scenario, spec: VehicleSpec, key_file: Path | None
+) -> ServerConfig:
     profile = Profile(args.autopilot or spec.autopilot)
     d = _default_ports(scenario, spec.id, args.port_offset)
 
@@ -170,7 +212,7 @@ def build_config(args: argparse.Namespace) -> ServerConfig:
         autopilot=autopilot,
         seed=scenario.seed,
         host=args.host or vehicle_host(scenario.network, spec),
-        signing_key=None if args.mavlink_key is None else read_key_file(args.mavlink_key),
+        signing_key=None if key_file is None else read_key_file(key_file),
     )
     gcs_port = pick("--gcs-port", args.gcs_port, d.gcs_port, allow_zero=True)
     gcs_link = ()
@@ -216,23 +258,29 @@ class _StopFlag:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = build_config(args)
+    configs = build_configs(args)
     clock = RealTimeClock(speed=args.speed)
     stop = _StopFlag()
     previous = {s: signal.signal(s, stop.request) for s in (signal.SIGINT, signal.SIGTERM)}
-    server = VehicleServer(config, clock=clock)
+    servers: list[VehicleServer] = []
     try:
-        endpoints = ", ".join(f"{k} {v}" for k, v in server.addresses.items())
-        signed = ", signed" if config.signing_key is not None else ""
-        who = (
-            f"vehicle {config.vehicle.id} ({config.autopilot.profile.value}, x{clock.speed:g}"
-            f"{signed})"
-        )
-        print(f"fleetmpc sitl: {who} ready: {endpoints}", flush=True)
-        server.run(stop)
+        for config in configs:
+            servers.append(VehicleServer(config, clock=clock))
+        for server in servers:
+            config = server.config
+            endpoints = ", ".join(f"{k} {v}" for k, v in server.addresses.items())
+            signed = ", signed" if config.signing_key is not None else ""
+            who = (
+                f"vehicle {config.vehicle.id} ({config.autopilot.profile.value}, x{clock.speed:g}"
+                f"{signed})"
+            )
+            print(f"fleetmpc sitl: {who} ready: {endpoints}", flush=True)
+        serve_vehicles(servers, clock, stop)
     finally:
-        server.close()
+        for server in servers:
+            server.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
-        print(f"fleetmpc sitl: stopped {server.summary()}", file=sys.stderr, flush=True)
+        for server in servers:
+            print(f"fleetmpc sitl: stopped {server.summary()}", file=sys.stderr, flush=True)
     return 0

@@ -1,10 +1,11 @@
 """One simulated vehicle on the network: truth plant + autopilot logic behind MAVLink links.
 
-Each loop iteration: wait until the next plant tick or until a socket is readable; advance the
-plant tick by tick up to the clock's time (the autopilot picks each tick's command, telemetry due
-at that tick is sent, stamped with its simulated time); then read and handle every pending
-message. A loop that finds the clock `LATE_TICKS` ticks or more ahead of the plant (the host
-kept the process from running) reads what arrived meanwhile first, so the catch-up flies the
+Each loop iteration (`fleetmpc.sitl.vehicle_group` runs the loop, for one vehicle or several):
+wait until the next plant tick or until a socket is readable; advance the plant tick by tick up
+to the clock's time (the autopilot picks each tick's command, telemetry due at that tick is
+sent, stamped with its simulated time); then read and handle every pending message. A loop
+that finds the clock `LATE_TICKS` ticks or more ahead of the plant (the host kept the process
+from running) reads what arrived meanwhile first, so the catch-up flies the
 newest command: the autopilot's setpoint timeout then measures the gaps in what the agent sent,
 not this process's own stall (a SITL starved for 250 ms of wall time at x4 would otherwise leave
 OFFBOARD with setpoints waiting in its socket). Mode and arming changes are announced at once
@@ -59,7 +60,6 @@ from fleetmpc.sitl.telemetry import Identity, Snapshot, StreamSchedule, build, h
 __all__ = ["ServerConfig", "UdpEndpoint", "VehicleServer"]
 
 _HEARTBEAT_ONLY = ((mavlink.MAVLINK_MSG_ID_HEARTBEAT, 1.0),)
-_MAX_WAIT_S = 0.05  # wall-clock bound on one wait, so a stop request is seen promptly
 LATE_TICKS = 2
 """A loop iteration that finds the plant this many ticks behind the clock, or more, reads its input
 before catching up (module docstring)."""
@@ -259,27 +259,36 @@ class VehicleServer:
         )
 
     # ----------------------------------------------------------------------------- loop
-    def run(self, should_stop) -> None:
-        """Serve until `should_stop()` is true."""
-        while not should_stop():
-            wait_ns = self.plant.time_ns + self.config.tick_ns - self.clock.now_ns()
-            self.step(min(self.clock.wall_seconds(wait_ns), _MAX_WAIT_S))
-
     def step(self, timeout_s: float = 0.0) -> None:
         """One loop iteration: wait up to `timeout_s`, advance the plant, handle input."""
+        if timeout_s > 0:
+            self._selector.select(timeout_s)
+        self.serve(self.clock.now_ns())
+
+    def serve(self, now_ns: int, *, read: bool = True) -> None:
+        """Advance the plant to `now_ns` and, if `read`, handle what arrived (a loop that knows
+        no socket of this vehicle is readable passes False and saves the reads)."""
         try:
-            if timeout_s > 0:
-                self._selector.select(timeout_s)
-            now_ns = self.clock.now_ns()
-            if now_ns - self.plant.time_ns >= LATE_TICKS * self.config.tick_ns:
+            if read and now_ns - self.plant.time_ns >= LATE_TICKS * self.config.tick_ns:
                 self._serve_input(now_ns)
             self._advance_to(now_ns)
-            self._serve_input(now_ns)
+            if read:
+                self._serve_input(now_ns)
             self._announce()
             self._housekeeping(now_ns)
         except Exception as e:  # never let one bad event end the vehicle
             self.counters.loop_errors += 1
             self.counters.last_error = f"{type(e).__name__}: {e}"
+
+    @property
+    def next_tick_ns(self) -> int:
+        """Simulated time of the plant's next tick [ns]."""
+        return self.plant.time_ns + self.config.tick_ns
+
+    def fileno(self) -> int:
+        """A descriptor that is readable while any socket of this vehicle is (its selector's),
+        so one loop can wait on many vehicles (`fleetmpc.sitl.vehicle_group`)."""
+        return self._selector.fileno()
 
     @property
     def parked(self) -> bool:

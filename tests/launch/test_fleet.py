@@ -126,6 +126,25 @@ def test_secrets_reach_each_process_by_path_and_an_external_autopilot_stays_unsi
     assert not any("--zenoh-connect" in p.argv for p in procs.values() if p.role != "router")
 
 
+def test_vehicles_share_sitl_processes_of_at_most_k_each_with_its_own_key():
+    sc = load_scenario(ROOT / "scenarios" / "wedge-circle.toml")  # five vehicles, one host
+    opts = FleetOptions(scenario_path="s.toml", secrets_dir="/s", vehicles_per_sitl=2)
+    sitls = [p for p in fleet_processes(sc, opts) if p.role == "sitl"]
+    ids = sc.vehicle_ids
+    assert [p.name for p in sitls] == [
+        f"sitl-{ids[0]}..{ids[1]}",
+        f"sitl-{ids[2]}..{ids[3]}",
+        f"sitl-{ids[4]}",
+    ]
+    argv = sitls[0].argv
+    vehicles = [argv[i + 1] for i, a in enumerate(argv) if a == "--vehicle"]
+    keys = [argv[i + 1] for i, a in enumerate(argv) if a == "--mavlink-key"]
+    assert vehicles == [str(ids[0]), str(ids[1])]
+    assert keys == [f"/s/mavlink-{ids[0]}.key", f"/s/mavlink-{ids[1]}.key"]
+    with pytest.raises(ConfigError, match="vehicles_per_sitl"):
+        FleetOptions(scenario_path="s.toml", vehicles_per_sitl=0)
+
+
 def test_up_refuses_another_fleets_secrets_naming_the_option(tmp_path):
     from fleetmpc.launch.keys import check_keys, make_keys
 

@@ -390,6 +390,29 @@ def test_zenoh_peers_exchange_plans_and_target_observations(zenoh_mesh) -> None:
     assert (target.sender_id, target.north_m, target.east_m) == (3, 5.0, -5.0)
 
 
+def test_an_agents_zenoh_bus_leaves_samples_queued_in_zenoh_until_it_reads(zenoh_mesh) -> None:
+    _, (one, two, _) = zenoh_mesh
+    step = [0]
+
+    def publish() -> None:
+        step[0] += 1
+        two.publish_plan(make_plan(2, step[0] * PERIOD_NS))
+
+    assert wait_until(lambda: 2 in one.latest_plans(step[0] * PERIOD_NS, 10 * S), tick=publish)
+    before = one.counters()
+    for _ in range(100):
+        publish()
+    time.sleep(0.5)
+    untouched = one._inbox.snapshot(published=0, publish_errors=0)  # (no read: no pull)
+    assert untouched.received == before.received, "no thread handles a sample before a read"
+    last = step[0] * PERIOD_NS
+    assert wait_until(lambda: one.latest_plans(last, S)[2].stamp_ns == last)
+    after = one.counters()  # (plans of the first wait may still have been on their way)
+    assert after.received - before.received >= 100, "every queued sample is handled"
+    assert after.accepted - before.accepted == after.received - before.received
+    assert after.rejected_total == 0
+
+
 def test_zenoh_garbage_is_counted_while_valid_plans_keep_flowing(zenoh_mesh) -> None:
     base, (one, two, _) = zenoh_mesh
     intruder = zenoh.open(ZenohOptions(connect=(f"tcp/127.0.0.1:{base}",)).to_config())

@@ -9,7 +9,7 @@ import pytest
 from sim_client import IDEAL_SCENARIO, M, SimClient, free_port
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.sitl.cli import add_arguments, build_config
+from fleetmpc.sitl.cli import add_arguments, build_configs
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -112,16 +112,16 @@ def test_bound_ports_move_with_the_scenario_network(tmp_path):
         + "\n[network]\noffboard_base_port = 24540\ngcs_port = 34550\n"
         + "ardupilot_tcp_base_port = 25760\n"
     )
-    px4 = build_config(parse("--vehicle", "2", scenario=moved))
+    px4 = build_configs(parse("--vehicle", "2", scenario=moved))[0]
     assert [(ep.name, ep.local_port, ep.remote_port) for ep in px4.udp] == [
         ("offboard", 24581, 24541),
         ("gcs", 38571, 34550),
     ]
-    apm = build_config(parse("--vehicle", "2", "--autopilot", "ardupilot", scenario=moved))
+    apm = build_configs(parse("--vehicle", "2", "--autopilot", "ardupilot", scenario=moved))[0]
     assert apm.tcp_port == 25770
     assert [(ep.name, ep.local_port, ep.remote_port) for ep in apm.udp] == [("gcs", 38571, 34550)]
     # PX4's own numbers on the default network.
-    default = build_config(parse("--vehicle", "2"))
+    default = build_configs(parse("--vehicle", "2"))[0]
     assert [(ep.local_port, ep.remote_port) for ep in default.udp] == [
         (14581, 14541),
         (18571, 14550),
@@ -138,16 +138,29 @@ def test_bound_ports_move_with_the_scenario_network(tmp_path):
         (["--vehicle", "1", "--gcs-local-port", "70000"], "--gcs-local-port"),
         (["--vehicle", "1", "--autopilot", "ardupilot", "--tcp-port", "-1"], "--tcp-port"),
         (["--vehicle", "1", "--position-ready", "-1"], "--position-ready"),
+        (["--vehicle", "1", "--vehicle", "1"], "--vehicle"),
+        (["--vehicle", "1", "--vehicle", "2", "--offboard-port", "15000"], "--offboard-port"),
+        (["--vehicle", "1", "--vehicle", "2", "--boot-origin", "0,0"], "--boot-origin"),
+        (["--vehicle", "1", "--vehicle", "2", "--mavlink-key", "k"], "--mavlink-key"),
     ],
 )
 def test_bad_options_are_refused_naming_the_option(argv, field):
     with pytest.raises(ConfigError) as error:
-        build_config(parse(*argv))
+        build_configs(parse(*argv))
     assert error.value.field == field
 
 
+def test_several_vehicles_get_each_their_own_ports_and_identity():
+    configs = build_configs(parse("--vehicle", "1", "--vehicle", "2", "--gcs-port", "0"))
+    assert [c.vehicle.id for c in configs] == [1, 2]
+    assert [[(ep.local_port, ep.remote_port) for ep in c.udp] for c in configs] == [
+        [(14580, 14540)],
+        [(14581, 14541)],
+    ]
+
+
 def test_config_carries_the_scenario_limits_and_options():
-    config = build_config(parse("--vehicle", "2", "--com-of-loss-t", "0.5", "--gcs-port", "0"))
+    config = build_configs(parse("--vehicle", "2", "--com-of-loss-t", "0.5", "--gcs-port", "0"))[0]
     assert config.vehicle.id == 2 and config.tick_ns == 20_000_000
     assert config.autopilot.offboard_loss_timeout_ns == 500_000_000
     assert config.autopilot.takeoff_altitude_m == 5.0

@@ -27,6 +27,7 @@ from fleetmpc.scenario import load_scenario
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.mavlink_io import DecodeStats, FrameDecoder, MavlinkEncoder, mavlink
 from fleetmpc.sitl.telemetry import PX4_ONBOARD_RATES_HZ
+from fleetmpc.sitl.vehicle_group import serve_vehicles
 from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 
 M = mavlink
@@ -67,7 +68,14 @@ class Client:
 class Rig:
     """A server on a manual clock and one client that it streams to."""
 
-    def __init__(self, *, scenario: Path = DATA / "ideal.toml", vehicle: int = 1, **server) -> None:
+    def __init__(
+        self,
+        *,
+        scenario: Path = DATA / "ideal.toml",
+        vehicle: int = 1,
+        clock: ManualClock | None = None,
+        **server,
+    ) -> None:
         scen = load_scenario(scenario)
         spec = scen.vehicle(vehicle)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -91,7 +99,7 @@ class Rig:
             **server,
         )
         self.tick_ns = scen.tick_ns
-        self.clock = ManualClock()
+        self.clock = clock or ManualClock()
         self.server = VehicleServer(config, clock=self.clock)
         address = self.server.local_address("offboard") if udp else None
         self.client = Client(self.sock, address)
@@ -383,3 +391,34 @@ def test_ardupilot_over_tcp_streams_only_what_is_asked():
     finally:
         conn.close()
         rig.close()
+
+
+def test_one_loop_serves_two_vehicles_each_on_its_own_endpoint():
+    clock = ManualClock()
+    one, two = Rig(vehicle=1, clock=clock), Rig(vehicle=2, clock=clock)
+    ticks = iter(range(5 * S // one.tick_ns))
+    got: dict[int, list] = {1: [], 2: []}
+
+    def should_stop() -> bool:  # (the loop's clock moves one tick per iteration)
+        got[1] += one.client.receive()
+        got[2] += two.client.receive()
+        if next(ticks, None) is None:
+            return True
+        clock.advance(one.tick_ns)
+        return False
+
+    try:
+        arm = (M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        two.client.send(lambda mav: mav.command_long_encode(2, 1, *arm))
+        one.client.send(lambda mav: mav.command_long_encode(2, 1, *arm))  # not vehicle 1's id
+        serve_vehicles([one.server, two.server], clock, should_stop)
+        for vid, messages in got.items():
+            assert {m.get_srcSystem() for m in messages} == {vid}
+            assert 5 <= len(of_type(messages, "HEARTBEAT")) <= 7
+        assert [a.result for a in of_type(got[2], "COMMAND_ACK")] == [MavResult.ACCEPTED]
+        assert of_type(got[1], "COMMAND_ACK") == []
+        assert two.server.autopilot.armed and not one.server.autopilot.armed
+        assert one.server.plant.time_ns == two.server.plant.time_ns == 5 * S
+    finally:
+        one.close()
+        two.close()
