@@ -327,10 +327,8 @@ class PlanBus(ABC):
     def _deliver(self, key: str, payload: bytes) -> None:
         """Hand a payload that arrived on `key` to the receive rules (any thread), through the
         injected faults if there are any."""
-        if self.faults is None:
-            self._inbox.receive(key, payload)
-            return
-        for k, p in self.faults.arrive(key, payload):
+        arrived = [(key, payload)] if self.faults is None else self.faults.arrive(key, payload)
+        for k, p in arrived:
             self._inbox.receive(k, p)
 
     def _pull(self) -> None:

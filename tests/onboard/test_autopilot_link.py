@@ -408,6 +408,7 @@ def test_a_signed_link_flies_a_signed_vehicle_and_ignores_forged_telemetry() -> 
     from fleetmpc.scenario import load_scenario
     from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
     from fleetmpc.sitl.mavlink_io import MavlinkEncoder
+    from fleetmpc.sitl.vehicle_group import serve_vehicles
     from fleetmpc.sitl.vehicle_server import ServerConfig, UdpEndpoint, VehicleServer
 
     key = key_from_passphrase("vehicle 1")
@@ -429,9 +430,12 @@ def test_a_signed_link_flies_a_signed_vehicle_and_ignores_forged_telemetry() -> 
         udp=(UdpEndpoint("offboard", 0, port, ((0, 2.0), (32, 20.0), (30, 20.0))),),
         signing_key=key,
     )
-    server = VehicleServer(config, clock=RealTimeClock(speed=1.0))
+    clock = RealTimeClock(speed=1.0)
+    server = VehicleServer(config, clock=clock)
     stop = threading.Event()
-    thread = threading.Thread(target=server.run, args=(stop.is_set,), daemon=True)
+    thread = threading.Thread(
+        target=serve_vehicles, args=([server], clock, stop.is_set), daemon=True
+    )
     thread.start()
     forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 
