@@ -64,22 +64,30 @@ class MemoryHub:
             if not self.deliver_immediately:
                 self._queue.append((key, bytes(payload), origin))
                 return
-        self._dispatch(key, bytes(payload), origin)
+        self.dispatch(key, bytes(payload), origin=origin)
 
     def flush(self) -> int:
         """Deliver every queued payload in publication order; return how many."""
+        queue = self.take()
+        for key, payload, origin in queue:
+            self.dispatch(key, payload, origin=origin)
+        return len(queue)
+
+    def take(self) -> list[tuple[str, bytes, object]]:
+        """Take the queued payloads (key, payload, origin) in publication order, undelivered:
+        for a simulation that carries them to buses on other hubs (`dispatch` there)."""
         with self._lock:
             queue, self._queue = self._queue, []
-        for key, payload, origin in queue:
-            self._dispatch(key, payload, origin)
-        return len(queue)
+        return queue
 
     @property
     def pending(self) -> int:
         with self._lock:
             return len(self._queue)
 
-    def _dispatch(self, key: str, payload: bytes, origin: object) -> None:
+    def dispatch(self, key: str, payload: bytes, *, origin: object = None) -> None:
+        """Deliver `payload` now to every attached bus whose subscriptions match `key`, except
+        `origin` (None: a sender not on this hub)."""
         with self._lock:
             targets = self._routes.get((key, id(origin)))
             if targets is None:

@@ -19,16 +19,14 @@ import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord, RunConstants
 from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
-from fleetmpc.onboard.agent_feed import TargetFeed
-from fleetmpc.onboard.core.agent import AgentInput, reference_course_limit
+from fleetmpc.onboard.core.agent import reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
-from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
+from fleetmpc.onboard.faults import FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
-from fleetmpc.onboard.runner import RunnerSettings
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
-from fleetmpc.sim.agent_pool import AgentPool, build_agents
+from fleetmpc.sim.agent_pool import COUNTED, AgentPool, build_agents
 from fleetmpc.sitl.plant import TruthPlant
 
 __all__ = ["build_agents", "run_lockstep"]
@@ -49,7 +47,8 @@ def run_lockstep(
     """Fly the scenario in lockstep and return its record; the sinks (opened with `run_info`,
     closed at the end) get every period's sample; `faults` are injected into the plan bus; the
     agents step in `jobs` processes (`fleetmpc.sim.agent_pool`: the same figures for any)."""
-    with AgentPool(scenario, learning=learning, jobs=jobs) as pool:
+    seed = scenario.seed if seed is None else seed
+    with AgentPool(scenario, learning=learning, jobs=jobs, faults=faults, seed=seed) as pool:
         return _fly(scenario, pool, duration_s, seed, progress, sinks, run_info, faults)
 
 
@@ -57,14 +56,13 @@ def _fly(
     sc: Scenario,
     pool: AgentPool,
     duration_s: float | None,
-    seed: int | None,
+    seed: int,
     progress: Callable[[float, float], None] | None,
     sinks: Sequence[TelemetrySink],
     run_info: dict | None,
     faults: FaultSchedule | None,
 ) -> FlightRecord:
     duration_s = sc.duration_s if duration_s is None else duration_s
-    seed = sc.seed if seed is None else seed
     period_ns, tick_ns, ticks = sc.controller.period_ns, sc.tick_ns, sc.plant_steps_per_period
     periods = int(round(duration_s * 1e9 / period_ns)) + 1
     root = np.random.default_rng(seed)
@@ -101,30 +99,16 @@ def _fly(
     if sinks:
         ground_target = TargetEstimator(observation_std_m=sc.target.observation_noise_m)
     others = [[j for j in range(n) if j != i] for i in range(n)]
-    now_ns = 0
     hub = MemoryHub(sc.name, deliver_immediately=False)
-    buses = [
-        InMemoryPlanBus(
-            hub,
-            fleet=sc.name,
-            vehicle_id=vid,
-            faults=None
-            if faults is None
-            else FaultLayer(faults, vehicle_id=vid, clock=lambda: now_ns, seed=seed),
-        )
-        for vid in ids
-    ]
-    runner = RunnerSettings(period_ns=period_ns)  # (the plan and target ages a runner accepts)
     target_bus = InMemoryPlanBus(hub, fleet=sc.name, vehicle_id=TARGET_ID)
     """The target's observations reach the agents on the plan bus too, as in a live fleet."""
-    targets = [TargetFeed(bus, max_age_ns=runner.target_max_age_ns) for bus in buses]
     setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
     samples: list[PeriodSample] = []
     predictions: list[np.ndarray] = []
     min_sep = np.inf
     upper = np.triu_indices(n, 1)
     for k in range(periods):
-        t_ns = now_ns = k * period_ns
+        t_ns = k * period_ns
         t_s = t_ns * 1e-9
         tgt_pos, tgt_vel = sc.target.state_at(t_s)
         obs = None
@@ -139,24 +123,9 @@ def _fly(
                 east_m=float(obs[1]),
                 noise_std_m=float(sc.target.observation_noise_m),
             )
-            hub.flush()
-        inputs = []
-        for i, plant in enumerate(plants):
-            observation, observed_ns = targets[i].take(t_ns)
-            inputs.append(
-                AgentInput(
-                    stamp_ns=t_ns,
-                    measurement=plant.measure(rngs[i]),
-                    target_observation=observation,
-                    target_stamp_ns=observed_ns,
-                    neighbour_plans=buses[i].latest_plans(t_ns, runner.plan_max_age_ns),
-                )
-            )
-        outs = []
-        for bus, (out, step_ms, interest) in zip(buses, pool.step(inputs), strict=True):
-            outs.append((out, step_ms))
-            if interest is not None:
-                bus.listen_near(*interest)
+            pool.deliver(t_ns, [(key, payload, None) for key, payload, _ in hub.take()])
+        measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants)]
+        outs, published = pool.step(t_ns, measurements)
         centre, course = truth_reference.follow(
             tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
         )
@@ -201,9 +170,7 @@ def _fly(
             sink.log([sample])
             if (k + 1) % flush_every == 0:
                 sink.flush()
-        for bus, (out, _) in zip(buses, outs, strict=True):
-            bus.publish_plan(out.plan)
-        hub.flush()
+        pool.deliver(t_ns, published)  # (each plan reaches the others as the period ends)
         if k == periods - 1:
             break
         for (out, _), plant in zip(outs, plants, strict=True):
@@ -221,9 +188,8 @@ def _fly(
             progress((k + 1) * period_ns * 1e-9, duration_s)
     for sink in sinks:
         sink.close()
-    network = _network_report(buses, faults, periods)
-    for bus in (*buses, target_bus):
-        bus.close()
+    network = _network_report(pool.report(), faults, periods)
+    target_bus.close()
     return record_of(
         constants,
         samples,
@@ -235,16 +201,15 @@ def _fly(
 
 
 def _network_report(
-    buses: list[InMemoryPlanBus], faults: FaultSchedule | None, periods: int
+    buses: list[tuple[dict[str, int], dict[str, int] | None]],
+    faults: FaultSchedule | None,
+    periods: int,
 ) -> dict:
     """What the plan bus did: the faults injected and what the receivers counted (and, per agent
-    and period, what each kept and what it dropped as beyond its neighbourhood)."""
-    counters = [bus.counters() for bus in buses]
+    and period, what each kept and what it dropped as beyond its neighbourhood); `buses` holds
+    each vehicle's counters and fault counts (`fleetmpc.sim.agent_pool.Share.report`)."""
     agent_periods = max(1, len(buses) * periods)
-    received = {
-        name: sum(getattr(c, name) for c in counters)
-        for name in ("published", "accepted", "duplicates", "out_of_order", "filtered")
-    }
+    received = {name: sum(counters[name] for counters, _ in buses) for name in COUNTED}
     report = {
         "faults": [] if faults is None else [f.describe() for f in faults.faults],
         "received": received,
@@ -254,8 +219,8 @@ def _network_report(
     }
     if faults is not None:
         injected: dict[str, int] = {}
-        for bus in buses:
-            for name, count in bus.faults.counts.items():
+        for _, counts in buses:
+            for name, count in (counts or {}).items():
                 injected[name] = injected.get(name, 0) + count
         report["injected"] = injected
     return report
