@@ -91,18 +91,22 @@ class FleetOptions:
             )
 
 
-SMALL_FLEET = 10
-"""Vehicles a launch still gives a SITL process each by default (`auto_vehicles_per_sitl`)."""
+SEPARATE_SITL_LOAD = 12.0
+"""Simulated vehicle-seconds per wall-clock second (vehicles x speed) up to which a launch gives
+each vehicle a SITL process of its own by default: ten vehicles at x1, the paper's three at x4.
+A one-vehicle SITL process takes about 2.6 % of a core per unit of speed (twenty-five of them
+took 64 % at x1), so up to here they take about a third of a core (`auto_vehicles_per_sitl`)."""
 SITL_GROUP = 25
-"""Vehicles one SITL process serves by default in a larger fleet: about a quarter of a core."""
+"""Vehicles one SITL process serves by default beyond that: about a quarter of a core at x1."""
 
 
-def auto_vehicles_per_sitl(vehicles: int) -> int:
+def auto_vehicles_per_sitl(vehicles: int, speed: float = 1.0) -> int:
     """`FleetOptions.vehicles_per_sitl` for a launch that does not choose: a process per vehicle
-    in a fleet of up to `SMALL_FLEET` (a fault can then stop one vehicle's SITL alone), else
+    up to `SEPARATE_SITL_LOAD` (a fault can then stop one vehicle's SITL alone), else
     `SITL_GROUP` vehicles a process (on a few cores, waking fewer processes is what lets the
-    fleet keep up: docs/design.md, "Waking")."""
-    return 1 if vehicles <= SMALL_FLEET else SITL_GROUP
+    fleet keep up: ten vehicles at x4 on two cores held their formation in one SITL process and
+    lost it in ten; docs/design.md, "Waking")."""
+    return 1 if vehicles * speed <= SEPARATE_SITL_LOAD else SITL_GROUP
 
 
 def _num(x: float) -> str:

@@ -45,8 +45,8 @@ from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch.fleet import (
+    SEPARATE_SITL_LOAD,
     SITL_GROUP,
-    SMALL_FLEET,
     FleetOptions,
     ProcessSpec,
     auto_vehicles_per_sitl,
@@ -132,9 +132,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--vehicles-per-sitl",
         type=int,
         metavar="K",
-        help="simulated vehicles one SITL process serves (default: 1 in a fleet of up to"
-        f" {SMALL_FLEET}, else {SITL_GROUP}; a large fleet on few cores spends less waking one"
-        ' process than many: docs/design.md, "Waking")',
+        help="simulated vehicles one SITL process serves (default: 1 while vehicles x speed is"
+        f" at most {SEPARATE_SITL_LOAD:g}, else {SITL_GROUP}; a large or fast fleet on few cores"
+        ' spends less waking one process than many: docs/design.md, "Waking")',
     )
     parser.add_argument(
         "--agent-records",
@@ -360,7 +360,7 @@ def run(args: argparse.Namespace) -> int:
     external = _external_autopilots(args.mavlink, scenario)
     per_sitl = args.vehicles_per_sitl
     if per_sitl is None:
-        per_sitl = auto_vehicles_per_sitl(len(scenario.vehicles) - len(external))
+        per_sitl = auto_vehicles_per_sitl(len(scenario.vehicles) - len(external), args.speed)
     specs = fleet_processes(
         scenario,
         FleetOptions(

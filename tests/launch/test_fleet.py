@@ -10,7 +10,7 @@ from fleetmpc.gcs import ground_station
 from fleetmpc.gcs.ground_station import SERIES_FLUSH_S, series_every
 from fleetmpc.gcs.telemetry import FLUSH_S
 from fleetmpc.launch import up
-from fleetmpc.launch.fleet import FleetOptions, fleet_processes
+from fleetmpc.launch.fleet import FleetOptions, auto_vehicles_per_sitl, fleet_processes
 from fleetmpc.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -143,6 +143,14 @@ def test_vehicles_share_sitl_processes_of_at_most_k_each_with_its_own_key():
     assert keys == [f"/s/mavlink-{ids[0]}.key", f"/s/mavlink-{ids[1]}.key"]
     with pytest.raises(ConfigError, match="vehicles_per_sitl"):
         FleetOptions(scenario_path="s.toml", vehicles_per_sitl=0)
+
+
+@pytest.mark.parametrize(
+    ("vehicles", "speed", "per_sitl"),
+    [(3, 1.0, 1), (12, 1.0, 1), (3, 4.0, 1), (13, 1.0, 25), (10, 4.0, 25), (4, 4.0, 25)],
+)
+def test_a_launch_groups_sitls_once_vehicles_times_speed_exceeds_twelve(vehicles, speed, per_sitl):
+    assert auto_vehicles_per_sitl(vehicles, speed) == per_sitl
 
 
 def test_up_refuses_another_fleets_secrets_naming_the_option(tmp_path):
