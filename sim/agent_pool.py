@@ -142,16 +142,22 @@ class Share:
             bus.close()
 
 
+def _run(share: Share, calls: list[tuple]) -> object:
+    """Make a batch of calls (method name, arguments...) on `share` in order; return what the
+    last one returned."""
+    result = None
+    for name, *args in calls:
+        result = getattr(share, name)(*args)
+    return result
+
+
 def _worker(conn: Connection, scenario: Scenario, indices: list[int], options: dict) -> None:
-    """A worker's life: build its share, then run each batch of calls it is sent, in order,
-    answering with what the batch's last call returned."""
+    """A worker's life: build its share, then run each batch of calls it is sent, answering
+    with what the batch's last call returned."""
     share = Share(scenario, indices, **options)
     try:
         while (calls := conn.recv()) is not None:
-            result = None
-            for name, *args in calls:
-                result = getattr(share, name)(*args)
-            conn.send(result)
+            conn.send(_run(share, calls))
     except (EOFError, KeyboardInterrupt, BrokenPipeError):
         return
     finally:
@@ -214,11 +220,7 @@ class AgentPool:
         batches = [[*self._pending, (name, *a)] for a in args]
         self._pending = []
         if self._here is not None:
-            (batch,) = batches
-            result = None
-            for call_name, *a in batch:
-                result = getattr(self._here, call_name)(*a)
-            return [result]
+            return [_run(self._here, batch) for batch in batches]
         for (_, conn), batch in zip(self._workers, batches, strict=True):
             conn.send(batch)
         answers = []
