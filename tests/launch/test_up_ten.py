@@ -91,10 +91,10 @@ def fleet(tmp_path, processes):
 X4_CORES = 4
 """Cores the ten-vehicle fleet needs at x4 to pass the formation gates every time. On two, with
 its vehicles in one SITL process (the default at x4), it recorded every period and kept
-separation in five runs of five, and passed the formation gates in four: the agents' steps come
-more than a quarter period late in most periods, and the fifth run's worst separation error was
-0.12 m against the 0.1 m gate. With a SITL process per vehicle the agents skipped whole periods
-and the formation was lost (docs/design.md, "Waking")."""
+separation in twelve runs of twelve, and passed the formation gates in ten: the agents' steps
+come more than a quarter period late in most periods, and the other two runs' worst separation
+errors were 0.101 and 0.119 m against the 0.1 m gate. With a SITL process per vehicle the
+agents skipped whole periods and the formation was lost (docs/design.md, "Waking")."""
 
 
 def _quality(failures: list[str], cores_needed: int) -> None:
@@ -130,7 +130,7 @@ def test_up_records_every_period_of_ten_vehicles_within_the_gates(fleet, tmp_pat
 LIVE_25_CORES = 4
 """Cores twenty-five live vehicles need to pass the formation gates every time. On two, their
 steps come late in a third of the periods and the worst setpoint gap p99 reached 95 ms of the
-100 ms allowed, though every run of the last seven passed; before the fleet woke less
+100 ms allowed, though every run of the last eight passed; before the fleet woke less
 (docs/design.md, "Waking"), an agent's setpoints stalled now and then and its autopilot left
 offboard."""
 
