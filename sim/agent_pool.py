@@ -82,6 +82,9 @@ class Share:
             for i in self.indices
         ]
         self._origin = {i: bus for i, bus in zip(self.indices, self._buses, strict=True)}
+        """Each vehicle's bus by the vehicle's index: the origin of its payloads on the hub."""
+        self._sender = {id(bus): i for i, bus in self._origin.items()}
+        """The vehicle index of each bus (by its id), to name the sender of what it published."""
         self._settings = RunnerSettings(period_ns=scenario.controller.period_ns)
         """The plan and target ages a live runner accepts, which the agents here accept too."""
         self._targets = [
@@ -122,8 +125,7 @@ class Share:
             listen_for(agent, bus)
         for bus, (out, _) in zip(self._buses, stepped, strict=True):
             bus.publish_plan(out.plan)
-        sender = {id(bus): i for i, bus in self._origin.items()}
-        published = [(k, p, sender[id(origin)]) for k, p, origin in self._hub.take()]
+        published = [(k, p, self._sender[id(origin)]) for k, p, origin in self._hub.take()]
         return stepped, published
 
     def report(self) -> list[tuple[dict[str, int], dict[str, int] | None]]:

@@ -11,7 +11,8 @@ processes would, which is what a large fleet on few cores spends most on
 
 A vehicle's handler failing is counted in that vehicle's summary and the loop goes on, as in a
 process of its own; a vehicle whose process is frozen or killed takes the others with it, which
-is why `fleetmpc up` groups vehicles only when asked (`--vehicles-per-sitl`).
+is why `fleetmpc up` groups vehicles only where separate processes would cost too much
+(`fleetmpc.launch.fleet.auto_vehicles_per_sitl`) or when asked (`--vehicles-per-sitl`).
 """
 
 import selectors
