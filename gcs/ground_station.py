@@ -163,13 +163,23 @@ def _viewer(text: str) -> tuple[bool, str | None]:
     )
 
 
-GCS_STREAMS_US = {33: 200_000, 245: 1_000_000, 30: -1, 32: -1, 74: -1, 1: -1, 242: -1}
+GCS_STREAMS_US = {
+    33: 200_000,
+    115: 200_000,
+    245: 1_000_000,
+    30: -1,
+    32: -1,
+    74: -1,
+    1: -1,
+    242: -1,
+}
 """SET_MESSAGE_INTERVAL asked of every vehicle when first heard, and of a silent one [us]:
-GLOBAL_POSITION_INT at 5 Hz (its place on the map) and EXTENDED_SYS_STATE at 1 Hz (is it in the
-air); stopped (-1): ATTITUDE, LOCAL_POSITION_NED, VFR_HUD, SYS_STATUS and HOME_POSITION, which
-the ground station does not read (a PX4 ground-station link streams them at 21 messages a second,
-each one a send for the autopilot and a parse for the ground station). HEARTBEAT and STATUSTEXT
-come unasked."""
+GLOBAL_POSITION_INT at 5 Hz (its place on the map), a simulator's ground truth
+(HIL_STATE_QUATERNION) at 5 Hz where there is one (docs/design.md, "Ground truth") and
+EXTENDED_SYS_STATE at 1 Hz (is it in the air); stopped (-1): ATTITUDE, LOCAL_POSITION_NED,
+VFR_HUD, SYS_STATUS and HOME_POSITION, which the ground station does not read (a PX4
+ground-station link streams them at 21 messages a second, each one a send for the autopilot and
+a parse for the ground station). HEARTBEAT and STATUSTEXT come unasked."""
 GCS_DATA_STREAMS_HZ = {6: 5, 2: 1}
 """REQUEST_DATA_STREAM for autopilots that know only that (MAV_DATA_STREAM POSITION at 5 Hz,
 EXTENDED_STATUS at 1 Hz). Sent before the message intervals, which override it per message

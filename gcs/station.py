@@ -55,6 +55,9 @@ class VehicleLink:
     """When its last GLOBAL_POSITION_INT came [wall s]."""
     streams_asked_wall_s: float | None = None
     """When it was last asked for its streams [wall s]."""
+    ground_truth: bool = False
+    """It sends the simulator's ground truth (a timed HIL_STATE_QUATERNION): the record's
+    positions come from that, not from its estimate (docs/design.md, "Ground truth")."""
 
     @property
     def engaged(self) -> bool:
@@ -139,20 +142,28 @@ class GroundStation:
             self._event(level, f"UAV {vid}: {msg.text}")
         elif kind == "GLOBAL_POSITION_INT":
             link.last_position_wall_s = received_ns * 1e-9
-            if link.clock is None:
-                return  # (before the epoch: no fleet time to put it at)
-            link.clock.update(
-                time_boot_ns=msg.time_boot_ms * 1_000_000, received_wall_ns=received_ns
-            )
-            t_ns = link.clock.fleet_ns(msg.time_boot_ms * 1_000_000)
-            north, east = ned_from_geodetic(
-                msg.lat * 1e-7,
-                msg.lon * 1e-7,
-                home_lat_deg=self.scenario.site.home_lat_deg,
-                home_lon_deg=self.scenario.site.home_lon_deg,
-            )
-            yaw = math.radians(msg.hdg * 0.01) if msg.hdg != 65535 else math.nan
-            self.live.add_pose(vid, t_ns * 1e-9, north, east, yaw)
+            if not link.ground_truth:
+                yaw = math.radians(msg.hdg * 0.01) if msg.hdg != 65535 else math.nan
+                self._pose(vid, link, msg.time_boot_ms * 1_000_000, received_ns, msg, yaw)
+        elif kind == "HIL_STATE_QUATERNION" and msg.time_usec > 0:
+            link.ground_truth = True
+            w, x, y, z = msg.attitude_quaternion
+            yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+            self._pose(vid, link, msg.time_usec * 1000, received_ns, msg, yaw)
+
+    def _pose(self, vid: int, link: VehicleLink, boot_ns: int, received_ns: int, msg, yaw: float):
+        """A position of vehicle `vid` (`msg.lat`, `msg.lon` in degE7) at its boot time
+        `boot_ns`, into the live record."""
+        if link.clock is None:
+            return  # (before the epoch: no fleet time to put it at)
+        link.clock.update(time_boot_ns=boot_ns, received_wall_ns=received_ns)
+        north, east = ned_from_geodetic(
+            msg.lat * 1e-7,
+            msg.lon * 1e-7,
+            home_lat_deg=self.scenario.site.home_lat_deg,
+            home_lon_deg=self.scenario.site.home_lon_deg,
+        )
+        self.live.add_pose(vid, link.clock.fleet_ns(boot_ns) * 1e-9, north, east, yaw)
 
     def _event(self, level: str, text: str) -> None:
         t = self.fleet_s()
@@ -280,6 +291,7 @@ class GroundStation:
             **compute_metrics(rec),
             "periods_recorded": periods,
             "periods_expected": self.periods,
+            "ground_truth": sorted(v for v, link in self.links.items() if link.ground_truth),
         }
 
 

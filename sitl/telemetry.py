@@ -51,9 +51,14 @@ STREAMABLE = frozenset(
         M.MAVLINK_MSG_ID_HOME_POSITION,
         M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
         M.MAVLINK_MSG_ID_ODOMETRY,
+        M.MAVLINK_MSG_ID_HIL_STATE_QUATERNION,
     }
 )
-"""Message ids a client may stream with SET_MESSAGE_INTERVAL (`PX4_ONLY`: on PX4 alone)."""
+"""Message ids a client may stream with SET_MESSAGE_INTERVAL (`PX4_ONLY`: on PX4 alone).
+HIL_STATE_QUATERNION is the simulator's ground truth, as PX4's SITL streams it (its
+GROUND_TRUTH stream, `src/modules/mavlink/streams/GROUND_TRUTH.hpp`), here with its time set
+(`build`); both profiles send it, for a ground station to judge a flight by where the vehicles
+were rather than by what their noisy estimates said (docs/design.md, "Ground truth")."""
 
 PX4_ONLY = frozenset({M.MAVLINK_MSG_ID_ODOMETRY})
 """Message ids only the PX4 profile sends (an ArduPilot SET_MESSAGE_INTERVAL for them is
@@ -187,6 +192,12 @@ class Snapshot:
     landed_state: LandedState
     system_status: MavState
     position_ready: bool
+    true_north_m: float = math.nan
+    """True position North of home [m] (the simulator's ground truth)."""
+    true_east_m: float = math.nan
+    """True position East of home [m]."""
+    true_yaw_rad: float = math.nan
+    """True heading [rad]."""
 
 
 _SENSORS = (
@@ -312,6 +323,29 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
             _int16(snap.vel_east_m_s * 100.0),
             _int16(-snap.climb_rate_m_s * 100.0),
             _heading_cdeg(snap.yaw_rad),
+        )
+    if msg_id == M.MAVLINK_MSG_ID_HIL_STATE_QUATERNION:
+        # Ground truth, as PX4's SITL sends it, but with time_usec (since boot) set: PX4 leaves
+        # it 0, and a sample without a time cannot be placed on the fleet's clock.
+        lat, lon = _latlon_e7(ident, snap.true_north_m, snap.true_east_m)
+        half = 0.5 * snap.true_yaw_rad
+        return mav.hil_state_quaternion_encode(
+            snap.time_ns // 1000,
+            [math.cos(half), 0.0, 0.0, math.sin(half)],
+            0.0,
+            0.0,
+            snap.yaw_rate_rad_s,
+            lat,
+            lon,
+            round((site.home_alt_m + snap.altitude_m) * 1000.0),
+            _int16(snap.vel_north_m_s * 100.0),
+            _int16(snap.vel_east_m_s * 100.0),
+            _int16(-snap.climb_rate_m_s * 100.0),
+            0,
+            0,
+            0,
+            0,
+            0,
         )
     if msg_id == M.MAVLINK_MSG_ID_VFR_HUD:
         ground_speed = math.hypot(snap.vel_north_m_s, snap.vel_east_m_s)

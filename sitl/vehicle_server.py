@@ -241,6 +241,7 @@ class VehicleServer:
         parked = self.parked
         vn, ve = (0.0, 0.0) if parked else self.plant.ground_velocity_m_s
         ap = self.autopilot
+        x, y, yaw = self.plant.pose
         return Snapshot(
             time_ns=self.plant.time_ns,
             north_m=float(z[0]),
@@ -256,6 +257,9 @@ class VehicleServer:
             landed_state=ap.landed_state,
             system_status=ap.system_status,
             position_ready=ap.position_ready(self.plant.time_ns),
+            true_north_m=x,
+            true_east_m=y,
+            true_yaw_rad=yaw,
         )
 
     # ----------------------------------------------------------------------------- loop

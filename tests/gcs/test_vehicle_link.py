@@ -76,6 +76,61 @@ def test_a_px4_heard_for_the_first_time_is_told_what_to_stream_once():
     assert gs.links_to_ask(1.0) == []
     gs.on_mavlink(fix, received_ns=29 * 10**9)
     assert gs.links_to_ask(30.0) == []  # and, while its positions come, never again
-    read = {33, 245}  # GLOBAL_POSITION_INT, EXTENDED_SYS_STATE
+    read = {33, 115, 245}  # GLOBAL_POSITION_INT, HIL_STATE_QUATERNION, EXTENDED_SYS_STATE
     assert {m for m, us in GCS_STREAMS_US.items() if us > 0} == read
     assert {30, 74, 1, 32} <= {m for m, us in GCS_STREAMS_US.items() if us == -1}
+
+
+def test_a_vehicle_that_sends_ground_truth_is_recorded_from_it_alone():
+    """Once a vehicle sends a timed HIL_STATE_QUATERNION (a simulator's ground truth), its
+    GLOBAL_POSITION_INT (its noisy estimate) no longer reaches the record; one that sends none
+    is recorded from GLOBAL_POSITION_INT; an untimed one (PX4's own) is not ground truth."""
+    import math
+    from pathlib import Path
+
+    import numpy as np
+    import pytest
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from fleetmpc.gcs.station import GroundStation
+    from fleetmpc.protocol.local_frame import geodetic_from_ned
+    from fleetmpc.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[2]
+    scenario = load_scenario(root / "scenarios" / "paper.toml")
+    site = scenario.site
+    gs = GroundStation(scenario, speed=1.0, duration_s=5.0)
+    gs.set_epoch(0)
+
+    def e7(north: float, east: float) -> tuple[int, int]:
+        lat, lon = geodetic_from_ned(
+            north, east, home_lat_deg=site.home_lat_deg, home_lon_deg=site.home_lon_deg
+        )
+        return round(lat * 1e7), round(lon * 1e7)
+
+    yaw = 0.5
+    quaternion = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+    for k in range(3):
+        t_ns = (k + 1) * 200_000_000  # (a time_usec of 0 is no time: PX4's)
+        for vid in scenario.vehicle_ids:
+            mav = mavlink.MAVLink(None, srcSystem=vid, srcComponent=1)
+            truth_e7 = e7(10.0 * vid + k, 0.0)
+            fix_e7 = e7(10.0 * vid + k + 0.05, 0.04)  # (the estimate: off by its noise)
+            messages = [mav.global_position_int_encode(t_ns // 10**6, *fix_e7, 0, 0, 0, 0, 0, 0)]
+            if vid != 3:  # vehicle 3 sends no ground truth; vehicle 2 an untimed one
+                timed = t_ns // 1000 if vid == 1 else 0
+                truth = mav.hil_state_quaternion_encode(
+                    timed, quaternion, 0, 0, 0, *truth_e7, 0, 0, 0, 0, 0, 0, 0, 0, 0
+                )
+                messages.insert(0, truth)
+            for message in messages:
+                message.pack(mav)
+                gs.on_mavlink(message, received_ns=t_ns)
+    rec = gs.live.record(4, first=1)
+    assert rec.truth[:, 0, 0] == pytest.approx([10.0, 11.0, 12.0], abs=0.01)
+    assert rec.truth[:, 0, 1] == pytest.approx([0.0, 0.0, 0.0], abs=0.01)
+    assert rec.truth[:, 0, 2] == pytest.approx([yaw] * 3, abs=1e-6)
+    for i in (1, 2):  # from GLOBAL_POSITION_INT
+        assert rec.truth[:, i, 0] == pytest.approx(10.0 * (i + 1) + np.arange(3) + 0.05, abs=0.01)
+        assert rec.truth[:, i, 1] == pytest.approx([0.04] * 3, abs=0.01)
+    assert gs.metrics()["ground_truth"] == [1]

@@ -280,6 +280,39 @@ def test_measurement_noise_and_a_parked_vehicle_that_does_not_drift():
         rig.close()
 
 
+def test_ground_truth_on_request_timed_and_without_the_measurement_noise():
+    """HIL_STATE_QUATERNION, asked for, carries where the vehicle is (not its noisy estimate)
+    and its time since boot: what a ground station judges a flight by."""
+    rig = Rig(scenario=PAPER, vehicle=2)  # noise 0.05 m and 0.01 rad; parked at (0, 12), yaw 0
+    try:
+        (ack,) = of_type(
+            rig.command(
+                M.MAV_CMD_SET_MESSAGE_INTERVAL,
+                M.MAVLINK_MSG_ID_HIL_STATE_QUATERNION,
+                200_000,
+                target=2,
+            ),
+            "COMMAND_ACK",
+        )
+        assert ack.result == MavResult.ACCEPTED
+        msgs = rig.run(4 * S)
+        truth = of_type(msgs, "HIL_STATE_QUATERNION")
+        assert len(truth) == 20
+        steps = np.diff([m.time_usec for m in truth])
+        assert set(steps.tolist()) == {200_000}
+        assert all(m.time_usec * 1000 % rig.tick_ns == 0 for m in truth)
+        for m in truth:
+            north, east = ned_from_geodetic(
+                m.lat * 1e-7, m.lon * 1e-7, home_lat_deg=47.397742, home_lon_deg=8.545594
+            )
+            assert (north, east) == (pytest.approx(0.0, abs=0.006), pytest.approx(12.0, abs=0.006))
+            assert list(m.attitude_quaternion) == [1.0, 0.0, 0.0, 0.0]
+        measured = [m.y for m in of_type(msgs, "LOCAL_POSITION_NED")]
+        assert np.std(measured) == pytest.approx(0.05, rel=0.2)  # (the estimate stays noisy)
+    finally:
+        rig.close()
+
+
 def _fly(rig: Rig, sp: SetpointFields, duration_ns: int) -> list:
     """Send `sp` every 0.1 s of simulated time for `duration_ns`; what the client received."""
     out = []
