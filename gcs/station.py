@@ -16,7 +16,8 @@ from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.telemetry import TelemetrySink, samples_of
-from fleetmpc.protocol.local_frame import ned_from_geodetic
+from fleetmpc.onboard.telemetry_streams import MAX_BOOT_MS
+from fleetmpc.protocol.local_frame import ned_from_geodetic, quaternion_yaw
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
@@ -145,10 +146,10 @@ class GroundStation:
             if not link.ground_truth:
                 yaw = math.radians(msg.hdg * 0.01) if msg.hdg != 65535 else math.nan
                 self._pose(vid, link, msg.time_boot_ms * 1_000_000, received_ns, msg, yaw)
-        elif kind == "HIL_STATE_QUATERNION" and msg.time_usec > 0:
+        elif kind == "HIL_STATE_QUATERNION" and 0 < msg.time_usec <= MAX_BOOT_MS * 1000:
+            # (A time of 0 is none, PX4's; one beyond a boot time is not one this can place.)
             link.ground_truth = True
-            w, x, y, z = msg.attitude_quaternion
-            yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+            yaw = quaternion_yaw(*msg.attitude_quaternion)
             self._pose(vid, link, msg.time_usec * 1000, received_ns, msg, yaw)
 
     def _pose(self, vid: int, link: VehicleLink, boot_ns: int, received_ns: int, msg, yaw: float):

@@ -9,6 +9,8 @@ the autopilot streams it (PX4), else from LOCAL_POSITION_NED and ATTITUDE (docs/
 
 import math
 
+from fleetmpc.protocol.local_frame import quaternion_yaw
+
 __all__ = [
     "GLOBAL_FIX_INTERVAL_US",
     "MAX_BOOT_MS",
@@ -61,7 +63,7 @@ def odometry_pose(msg) -> tuple[int, float, float, float, float, float, float] |
         or not 0 <= msg.time_usec <= MAX_BOOT_MS * 1000
     ):
         return None
-    yaw = math.atan2(2.0 * (w * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    yaw = quaternion_yaw(w, qx, qy, qz)
     vn, ve = float(msg.vx), float(msg.vy)
     if body_velocity:
         c, s = math.cos(yaw), math.sin(yaw)

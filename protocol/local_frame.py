@@ -10,13 +10,26 @@ __all__ = [
     "EARTH_RADIUS_M",
     "geodetic_from_ned",
     "ned_from_geodetic",
+    "quaternion_yaw",
     "wrap_pi",
+    "yaw_quaternion",
 ]
 
 
 def wrap_pi(angle_rad: float) -> float:
     """Angle wrapped to (-pi, pi]."""
     return math.atan2(math.sin(angle_rad), math.cos(angle_rad))
+
+
+def yaw_quaternion(yaw_rad: float) -> list[float]:
+    """The attitude quaternion (w, x, y, z) of a level vehicle heading `yaw_rad`."""
+    half = 0.5 * yaw_rad
+    return [math.cos(half), 0.0, 0.0, math.sin(half)]
+
+
+def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
+    """The heading (yaw, ZYX Euler angles) of the attitude quaternion (w, x, y, z)."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 EARTH_RADIUS_M = 6_371_000.0

@@ -248,19 +248,18 @@ class AgentPool:
         answers = self._call(
             "step", [(now_ns, [measurements[i] for i in share]) for share in self._shares]
         )
-        stepped: list[Stepped | None] = [None] * len(measurements)
-        published: list[tuple[int, tuple[str, bytes, int | None]]] = []
-        for share, (outs, payloads) in zip(self._shares, answers, strict=True):
-            for i, out in zip(share, outs, strict=True):
-                stepped[i] = out
-            published.extend((sender, (k, p, sender)) for k, p, sender in payloads)
-        published.sort(key=lambda item: item[0])  # (stable: a sender's order is kept)
-        return stepped, [payload for _, payload in published]  # type: ignore[return-value]
+        published = [payload for _, payloads in answers for payload in payloads]
+        published.sort(key=lambda payload: payload[2])  # (by sender; stable: its order is kept)
+        return self._in_vehicle_order([outs for outs, _ in answers]), published
 
     def report(self) -> list[tuple[dict[str, int], dict[str, int] | None]]:
         """`Share.report` of every vehicle, in vehicle order (after the deliveries pending)."""
+        return self._in_vehicle_order(self._call("report", [()] * self.jobs))
+
+    def _in_vehicle_order(self, answers: Sequence[Sequence]) -> list:
+        """The shares' per-vehicle answers (each in its share's order), in vehicle order."""
         rows: list = [None] * sum(len(share) for share in self._shares)
-        for share, answer in zip(self._shares, self._call("report", [()] * self.jobs), strict=True):
+        for share, answer in zip(self._shares, answers, strict=True):
             for i, row in zip(share, answer, strict=True):
                 rows[i] = row
         return rows

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
-from fleetmpc.protocol.local_frame import geodetic_from_ned
+from fleetmpc.protocol.local_frame import geodetic_from_ned, yaw_quaternion
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
@@ -291,7 +291,6 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
     if msg_id == M.MAVLINK_MSG_ID_ODOMETRY and ident.autopilot == Autopilot.PX4:
         # As PX4's EKF2 publishes it: position and velocity in the local NED frame, the
         # attitude as a quaternion (w, x, y, z), time in microseconds since boot.
-        half = 0.5 * snap.yaw_rad
         return mav.odometry_encode(
             snap.time_ns // 1000,
             M.MAV_FRAME_LOCAL_NED,
@@ -299,7 +298,7 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
             snap.north_m - ident.local_origin_m[0],
             snap.east_m - ident.local_origin_m[1],
             -snap.altitude_m,
-            [math.cos(half), 0.0, 0.0, math.sin(half)],
+            yaw_quaternion(snap.yaw_rad),
             snap.vel_north_m_s,
             snap.vel_east_m_s,
             -snap.climb_rate_m_s,
@@ -328,10 +327,9 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
         # Ground truth, as PX4's SITL sends it, but with time_usec (since boot) set: PX4 leaves
         # it 0, and a sample without a time cannot be placed on the fleet's clock.
         lat, lon = _latlon_e7(ident, snap.true_north_m, snap.true_east_m)
-        half = 0.5 * snap.true_yaw_rad
         return mav.hil_state_quaternion_encode(
             snap.time_ns // 1000,
-            [math.cos(half), 0.0, 0.0, math.sin(half)],
+            yaw_quaternion(snap.true_yaw_rad),
             0.0,
             0.0,
             snap.yaw_rate_rad_s,

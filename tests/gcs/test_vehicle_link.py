@@ -84,7 +84,8 @@ def test_a_px4_heard_for_the_first_time_is_told_what_to_stream_once():
 def test_a_vehicle_that_sends_ground_truth_is_recorded_from_it_alone():
     """Once a vehicle sends a timed HIL_STATE_QUATERNION (a simulator's ground truth), its
     GLOBAL_POSITION_INT (its noisy estimate) no longer reaches the record; one that sends none
-    is recorded from GLOBAL_POSITION_INT; an untimed one (PX4's own) is not ground truth."""
+    is recorded from GLOBAL_POSITION_INT; an untimed one (PX4's own), or one timed beyond any
+    boot time (a Unix time, which the message also allows), is not ground truth."""
     import math
     from pathlib import Path
 
@@ -117,8 +118,8 @@ def test_a_vehicle_that_sends_ground_truth_is_recorded_from_it_alone():
             truth_e7 = e7(10.0 * vid + k, 0.0)
             fix_e7 = e7(10.0 * vid + k + 0.05, 0.04)  # (the estimate: off by its noise)
             messages = [mav.global_position_int_encode(t_ns // 10**6, *fix_e7, 0, 0, 0, 0, 0, 0)]
-            if vid != 3:  # vehicle 3 sends no ground truth; vehicle 2 an untimed one
-                timed = t_ns // 1000 if vid == 1 else 0
+            if vid != 3:  # vehicle 3 sends no ground truth; vehicle 2 one without a boot time
+                timed = t_ns // 1000 if vid == 1 else (0, 1_764_800_000_000_000, 0)[k]
                 truth = mav.hil_state_quaternion_encode(
                     timed, quaternion, 0, 0, 0, *truth_e7, 0, 0, 0, 0, 0, 0, 0, 0, 0
                 )
