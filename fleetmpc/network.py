@@ -5,7 +5,7 @@ as PX4's and ArduPilot's multi-vehicle SITLs number theirs. `check_ports` refuse
 whose processes would share a port, naming the field the clash derives from.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from fleetmpc.errors import ConfigError
@@ -157,6 +157,8 @@ class Network:
         )
 
 
+SUGGEST_WITHIN = 1000
+"""How far above a clashing field's value `check_ports` looks for one that clears every clash."""
 PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
 """PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
 PX4_GCS_LOCAL_BASE_PORT = 18570
@@ -164,13 +166,36 @@ PX4_GCS_LOCAL_BASE_PORT = 18570
 
 
 def check_ports(network: Network, vehicles: "tuple[VehicleSpec, ...]") -> None:
-    """Refuse a fleet two of whose processes would use the same port (naming the field)."""
+    """Refuse a fleet two of whose processes would use the same port, naming the field and,
+    when there is one, the nearest value above it that clears every clash."""
+    clash = _first_clash(network, vehicles)
+    if clash is None:
+        return
+    field, message = clash
+    name = field.removeprefix("network.")
+    start = getattr(network, name)
+    if start is None:  # a local base that follows another field's: name the field only
+        raise ConfigError(field, message)
+    for value in range(start + 1, min(start + SUGGEST_WITHIN, 65535) + 1):
+        try:
+            moved = replace(network, **{name: value})
+            free = _first_clash(moved, vehicles) is None
+        except ConfigError:  # (a derived port past 65535)
+            break
+        if free:
+            raise ConfigError(field, f"{message} ({name} = {value} in [network] clears it)")
+    raise ConfigError(field, message)
+
+
+def _first_clash(network: Network, vehicles: "tuple[VehicleSpec, ...]") -> tuple[str, str] | None:
+    """The field and the message of the first port two processes of the fleet would share."""
     seen: dict[tuple[str, int], str] = {}
     for proto, port, whose, field in network.ports(vehicles):
         other = seen.get((proto, port))
         if other is not None:
-            raise ConfigError(field, f"{proto.upper()} port {port} of {whose} is already {other}'s")
+            return field, f"{proto.upper()} port {port} of {whose} is already {other}'s"
         seen[(proto, port)] = whose
+    return None
 
 
 def _derived_port(field: str, base: int, step: int) -> int:

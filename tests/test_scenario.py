@@ -176,6 +176,9 @@ def test_a_fleet_whose_ports_collide_is_refused_naming_the_field():
     assert "UDP port 14550 of vehicle 11's offboard link is already the ground station's" in str(
         e.value
     )
+    assert "(offboard_base_port = 14551 in [network] clears it)" in str(e.value)
+    hinted = {**doc, "network": {"offboard_base_port": 14551}}
+    assert len(parse_scenario(hinted).vehicles) == 11
     moved = {**doc, "network": {"gcs_port": 14650}}
     assert len(parse_scenario(moved).vehicles) == 11
     ardupilot = [{**v, "autopilot": "ardupilot"} for v in vehicles[:2]]
