@@ -166,6 +166,12 @@ def _worker(conn: Connection, scenario: Scenario, indices: list[int], options: d
         share.close()
 
 
+def _lost(process: mp.process.BaseProcess) -> RuntimeError:
+    """The error of a worker whose pipe broke, with its exit code once it is reaped."""
+    process.join(timeout=5)
+    return RuntimeError(f"simulation worker {process.pid} exited (code {process.exitcode})")
+
+
 class AgentPool:
     """The fleet's agents in `jobs` shares; a context manager that stops its workers on exit.
 
@@ -223,16 +229,17 @@ class AgentPool:
         self._pending = []
         if self._here is not None:
             return [_run(self._here, batch) for batch in batches]
-        for (_, conn), batch in zip(self._workers, batches, strict=True):
-            conn.send(batch)
+        for (process, conn), batch in zip(self._workers, batches, strict=True):
+            try:
+                conn.send(batch)
+            except OSError:  # (a broken pipe: the worker is gone)
+                raise _lost(process) from None
         answers = []
         for process, conn in self._workers:
             try:
                 answers.append(conn.recv())
             except (EOFError, OSError):
-                raise RuntimeError(
-                    f"simulation worker {process.pid} exited (code {process.exitcode})"
-                ) from None
+                raise _lost(process) from None
         return answers
 
     def deliver(self, now_ns: int, payloads: Published) -> None:

@@ -125,3 +125,19 @@ def test_check_refuses_a_formation_packing_more_than_k_slots_within_the_safety_r
     assert "other slots within the safety radius" in problem, problem
     doc["controller"]["neighbours_max"] = 24
     assert check_scenario(parse_scenario(doc)).feasible
+
+
+def test_a_worker_that_dies_is_named_with_its_exit_code_and_the_pool_still_closes():
+    import os
+    import signal
+
+    sc = load_scenario(Path("scenarios/paper.toml"))
+    with AgentPool(sc, learning=True, jobs=2) as pool:
+        processes = [p for p, _ in pool._workers]
+        process = processes[0]
+        os.kill(process.pid, signal.SIGKILL)
+        process.join(timeout=5)  # (dead before the step: its pipe is broken when sent to)
+        measurements = [np.array(v.initial) for v in sc.vehicles]
+        with pytest.raises(RuntimeError, match=rf"worker {process.pid} exited \(code -9\)"):
+            pool.step(0, measurements)
+    assert not any(p.is_alive() for p in processes)
