@@ -1,19 +1,10 @@
 """Shared fixtures: scenarios from the repository's scenarios/ folder, supervised processes.
 
-The suite runs numpy on one OpenBLAS kernel whatever the CPU (x86-64 with AVX2), set here before
-anything loads numpy: the golden figures (tests/sim/test_golden.py) are compared to 1e-9, and
-another kernel rounds the QP's linear algebra differently (a few 1e-3 after a sharp corner).
-Child processes inherit it.
+The suite runs on whatever BLAS kernel and CPU the machine has: no test depends on their last
+bits (docs/testing.md).
 """
 
-import os
-import sys
-
-if "numpy" in sys.modules:  # pragma: no cover - a plugin loaded numpy first
-    raise RuntimeError("numpy was loaded before tests/conftest.py could pick its BLAS kernel")
-os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
-
-from collections.abc import Iterator  # noqa: E402
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
