@@ -15,8 +15,9 @@ from typing import Any
 from fleetmpc.errors import ConfigError
 from fleetmpc.network import Network, check_ports
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
-from fleetmpc.sitl.plant import TruthParams, Wind
+from fleetmpc.sitl.plant import TruthParams
 from fleetmpc.sitl.target import TargetScript
+from fleetmpc.sitl.wind import Gust, Turbulence, Wind
 from fleetmpc.validate import finite, in_range, positive, vector
 
 __all__ = [
@@ -168,9 +169,34 @@ def _build(cls: type, table: Any, prefix: str, **extra: Any) -> Any:
         raise ConfigError(prefix, str(e)) from None
 
 
+def _wind(table: Any, prefix: str) -> Wind:
+    """A `Wind` from its TOML table, with its `turbulence` table and `gusts` list."""
+    if not isinstance(table, dict):
+        raise ConfigError(prefix, f"must be a table, got {table!r}")
+    table = dict(table)
+    turbulence = _build(Turbulence, table.pop("turbulence", {}), f"{prefix}.turbulence")
+    gusts = table.pop("gusts", [])
+    if not isinstance(gusts, list):
+        raise ConfigError(f"{prefix}.gusts", f"must be a list of tables, got {gusts!r}")
+    built = tuple(_build(Gust, g, f"{prefix}.gusts[{i}]") for i, g in enumerate(gusts))
+    return _build(Wind, table, prefix, turbulence=turbulence, gusts=built)
+
+
+def _refuse_own_turbulence(truth: Any, prefix: str) -> None:
+    """A vehicle's truth may change its mean wind, not the fleet's turbulence or gusts: those
+    are one field that every vehicle flies through (sitl/wind.py)."""
+    wind = truth.get("wind", {}) if isinstance(truth, dict) else {}
+    for key in ("turbulence", "gusts"):
+        if isinstance(wind, dict) and key in wind:
+            raise ConfigError(
+                f"{prefix}.wind.{key}",
+                "the wind's turbulence and gusts are the fleet's: set them in [truth.wind]",
+            )
+
+
 def _truth(table: dict[str, Any], prefix: str, controller: ControllerSettings) -> TruthParams:
     table = dict(table)
-    wind = _build(Wind, table.pop("wind", {}), f"{prefix}.wind")
+    wind = _wind(table.pop("wind", {}), f"{prefix}.wind")
     table.setdefault("speed_limit_m_s", controller.speed_max_m_s)
     table.setdefault("yaw_rate_limit_rad_s", controller.yaw_rate_max_rad_s)
     return _build(TruthParams, table, prefix, wind=wind)
@@ -337,6 +363,7 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
         initial = vector(f"{prefix}.initial", raw.get("initial", [0.0, 0.0, 0.0]), 3)
         slot = vector(f"{prefix}.slot_m", raw.get("slot_m", [0.0, 0.0]), 2)
         truth_table = {**truth_default, **raw.get("truth", {})}
+        _refuse_own_turbulence(raw.get("truth", {}), f"{prefix}.truth")
         if "wind" in truth_default and "wind" in raw.get("truth", {}):
             truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
         truth = _truth(truth_table, f"{prefix}.truth", controller)

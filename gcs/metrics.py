@@ -215,6 +215,7 @@ def format_summary(metrics: dict) -> str:
     rows += [
         ("centre distance error", f"{metrics['centre_distance_error_m']:.4f} m"),
         ("formation RMS", f"{metrics['formation_rms_m']:.4f} m"),
+        *_known_model_rows(metrics),
         ("||c|| final", f"{metrics['c_norm_final']:.4f}"),
         ("min separation", f"{metrics['min_separation_m']:.3f} m"),
         ("inputs within U", _fraction(metrics["inputs_within_bounds"])),
@@ -239,6 +240,16 @@ def format_summary(metrics: dict) -> str:
         )
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def _known_model_rows(metrics: dict) -> list[tuple[str, str]]:
+    """The known-model run's formation RMS and the ratio, where `sim --known-model` added them."""
+    if "known_model_formation_rms_m" not in metrics:
+        return []
+    return [
+        ("formation RMS, known model", f"{metrics['known_model_formation_rms_m']:.4f} m"),
+        ("learned over known", f"{metrics['learned_over_known']:.2f}"),
+    ]
 
 
 def _network_rows(metrics: dict) -> list[tuple[str, str]]:

@@ -101,15 +101,20 @@ class Share:
             self._hub.dispatch(key, payload, origin=self._origin.get(sender))
 
     def step(
-        self, now_ns: int, measurements: Sequence[np.ndarray]
+        self,
+        now_ns: int,
+        measurements: Sequence[np.ndarray],
+        known: Sequence[np.ndarray | None] | None = None,
     ) -> tuple[list[Stepped], Published]:
-        """Step the agents on their vehicles' measurements (in the share's order); publish
-        their plans; return what each decided and what was published."""
+        """Step the agents on their vehicles' measurements (in the share's order), and in a
+        known-model run on their truths (`known`); publish their plans; return what each
+        decided and what was published."""
         self._now_ns = now_ns
         max_age_ns = self._settings.plan_max_age_ns
         stepped: list[Stepped] = []
-        for agent, bus, feed, y in zip(
-            self._agents, self._buses, self._targets, measurements, strict=True
+        known = [None] * len(measurements) if known is None else known
+        for agent, bus, feed, y, truth in zip(
+            self._agents, self._buses, self._targets, measurements, known, strict=True
         ):
             observation, observed_ns = feed.take(now_ns)
             inp = AgentInput(
@@ -118,6 +123,7 @@ class Share:
                 target_observation=observation,
                 target_stamp_ns=observed_ns,
                 neighbour_plans=bus.latest_plans(now_ns, max_age_ns),
+                known_beta=truth,
             )
             t0 = time.perf_counter_ns()
             out = agent.step(inp)
@@ -164,6 +170,10 @@ def _worker(conn: Connection, scenario: Scenario, indices: list[int], options: d
         return
     finally:
         share.close()
+
+
+def _pick(values: Sequence | None, indices: Sequence[int]) -> list | None:
+    return None if values is None else [values[i] for i in indices]
 
 
 def _lost(process: mp.process.BaseProcess) -> RuntimeError:
@@ -248,12 +258,19 @@ class AgentPool:
             self._pending.append(("deliver", now_ns, payloads))
 
     def step(
-        self, now_ns: int, measurements: Sequence[np.ndarray]
+        self,
+        now_ns: int,
+        measurements: Sequence[np.ndarray],
+        known: Sequence[np.ndarray] | None = None,
     ) -> tuple[list[Stepped], Published]:
-        """Step every agent (in vehicle order) on its measurement; return what each decided,
-        and the plans published, in vehicle order."""
+        """Step every agent (in vehicle order) on its measurement, and its truth in a
+        known-model run; return what each decided, and the plans published, in vehicle order."""
         answers = self._call(
-            "step", [(now_ns, [measurements[i] for i in share]) for share in self._shares]
+            "step",
+            [
+                (now_ns, [measurements[i] for i in share], _pick(known, share))
+                for share in self._shares
+            ],
         )
         published = [payload for _, payloads in answers for payload in payloads]
         published.sort(key=lambda payload: payload[2])  # (by sender; stable: its order is kept)

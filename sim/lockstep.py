@@ -28,6 +28,7 @@ from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
 from fleetmpc.sim.agent_pool import COUNTED, AgentPool, build_agents
 from fleetmpc.sitl.plant import TruthPlant
+from fleetmpc.sitl.wind import WindField
 
 __all__ = ["build_agents", "run_lockstep"]
 
@@ -43,13 +44,25 @@ def run_lockstep(
     run_info: dict | None = None,
     faults: FaultSchedule | None = None,
     jobs: int = 1,
+    known_model: bool = False,
 ) -> FlightRecord:
     """Fly the scenario in lockstep and return its record; the sinks (opened with `run_info`,
     closed at the end) get every period's sample; `faults` are injected into the plan bus; the
-    agents step in `jobs` processes (`fleetmpc.sim.agent_pool`: the same figures for any)."""
+    agents step in `jobs` processes (`fleetmpc.sim.agent_pool`: the same figures for any).
+    `known_model`: every agent is told its vehicle's true effectiveness and the wind where it
+    is, each period, instead of learning them (docs/design.md, "The known-model run")."""
     seed = scenario.seed if seed is None else seed
+    learning = learning or known_model
     with AgentPool(scenario, learning=learning, jobs=jobs, faults=faults, seed=seed) as pool:
-        return _fly(scenario, pool, duration_s, seed, progress, sinks, run_info, faults)
+        return _fly(
+            scenario, pool, duration_s, seed, progress, sinks, run_info, faults, known_model
+        )
+
+
+def _truth(plant: TruthPlant) -> np.ndarray:
+    """What the vehicle's beta would be if learned perfectly: (a_V, a_w, wind N, wind E)."""
+    p = plant.params
+    return np.array([p.speed_effectiveness, p.yaw_rate_effectiveness, *plant.wind_m_s])
 
 
 def _fly(
@@ -61,6 +74,7 @@ def _fly(
     sinks: Sequence[TelemetrySink],
     run_info: dict | None,
     faults: FaultSchedule | None,
+    known_model: bool,
 ) -> FlightRecord:
     duration_s = sc.duration_s if duration_s is None else duration_s
     period_ns, tick_ns, ticks = sc.controller.period_ns, sc.tick_ns, sc.plant_steps_per_period
@@ -68,8 +82,15 @@ def _fly(
     root = np.random.default_rng(seed)
     rngs = root.spawn(len(sc.vehicles) + 1)
     target_rng = rngs[-1]
+    winds = {v.truth.wind: WindField(v.truth.wind, seed=seed) for v in sc.vehicles}
     plants = [
-        TruthPlant(v.truth, x_m=v.initial[0], y_m=v.initial[1], yaw_rad=v.initial[2])
+        TruthPlant(
+            v.truth,
+            x_m=v.initial[0],
+            y_m=v.initial[1],
+            yaw_rad=v.initial[2],
+            wind=winds[v.truth.wind],
+        )
         for v in sc.vehicles
     ]
     truth_formation = Formation(sc.formation)
@@ -125,7 +146,8 @@ def _fly(
             )
             pool.deliver(t_ns, [(key, payload, None) for key, payload, _ in hub.take()])
         measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants)]
-        outs, published = pool.step(t_ns, measurements)
+        truths = np.array([_truth(p) for p in plants])
+        outs, published = pool.step(t_ns, measurements, list(truths) if known_model else None)
         centre, course = truth_reference.follow(
             tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
         )
@@ -144,16 +166,7 @@ def _fly(
             command=np.array([o.command for o, _ in outs]),
             c=np.array([o.c[0] for o, _ in outs]),
             beta=np.array([o.beta for o, _ in outs]),
-            beta_truth=np.array(
-                [
-                    [
-                        p.params.speed_effectiveness,
-                        p.params.yaw_rate_effectiveness,
-                        *p.params.wind.at(t_s),
-                    ]
-                    for p in plants
-                ]
-            ),
+            beta_truth=truths,
             qp_ok=np.array([o.qp_ok for o, _ in outs]),
             step_time_ms=np.array([ms for _, ms in outs]),
             min_separation_m=float(min_sep),

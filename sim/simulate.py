@@ -51,6 +51,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="J",
         help="step the agents in J processes (default 1; the figures are the same for any J)",
     )
+    parser.add_argument(
+        "--known-model",
+        action="store_true",
+        help="also fly the run with every agent told its vehicle's true effectiveness and the"
+        " wind where it is (what a perfect learner knows), and report both formation RMS and"
+        " their ratio learned_over_known",
+    )
     add_telemetry_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -99,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         "duration_s": float(rec.t_s[-1]),
         **compute_metrics(rec),
     }
+    if args.known_model:
+        metrics.update(_known_model_metrics(sc, args, duration, faults, metrics))
     print(format_summary(metrics))
     if args.metrics:
         path = Path(args.metrics)
@@ -111,3 +120,22 @@ def run(args: argparse.Namespace) -> int:
     for url in urls:
         print(f"telemetry: {url}")
     return 0
+
+
+def _known_model_metrics(sc, args, duration, faults, learned: dict) -> dict:
+    """The known-model run's formation RMS beside the run's, and their ratio."""
+    known = compute_metrics(
+        run_lockstep(
+            sc,
+            duration_s=duration,
+            seed=args.seed,
+            jobs=args.jobs,
+            faults=faults,
+            known_model=True,
+        )
+    )
+    rms = known["formation_rms_m"]
+    return {
+        "known_model_formation_rms_m": rms,
+        "learned_over_known": learned["formation_rms_m"] / rms if rms > 0 else float("nan"),
+    }

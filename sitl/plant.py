@@ -2,9 +2,9 @@
 
 This is deliberately *not* the controller's model (onboard/core/unicycle.py). It carries what the
 controller does not know: per-vehicle effectiveness errors on speed and yaw rate, a first-order
-actuator lag, a wind drift (constant plus an optional slow sinusoidal variation) and bounded
-measurement noise. Time is an integer tick in nanoseconds; integration is RK4 per tick.
-Pure code: no clocks, no I/O.
+actuator lag, the wind (sitl/wind.py: a mean, turbulence and gusts, one field for the whole
+fleet) and bounded measurement noise. Time is an integer tick in nanoseconds; integration is RK4
+per tick. Pure code: no clocks, no I/O.
 """
 
 import math
@@ -12,42 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmpc.validate import finite, in_range, positive, vector
+from fleetmpc.sitl.wind import Wind, WindField
+from fleetmpc.validate import finite, in_range, positive
 
-__all__ = ["TruthParams", "TruthPlant", "Wind"]
-
-
-@dataclass(frozen=True)
-class Wind:
-    """Wind drift added to the vehicle's ground velocity, in the world (NED) frame."""
-
-    mean_m_s: tuple[float, float] = (0.0, 0.0)
-    """Constant part (North, East) [m/s]."""
-    gust_amplitude_m_s: float = 0.0
-    """Amplitude of the slow sinusoidal variation on each axis [m/s]; 0 disables it."""
-    gust_period_s: float = 60.0
-    """Period of the slow variation [s]."""
-    gust_phase_rad: tuple[float, float] = (0.0, 1.5707963267948966)
-    """Phase of the variation on North and East [rad]."""
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "mean_m_s", vector("wind.mean_m_s", self.mean_m_s, 2))
-        positive("wind.gust_amplitude_m_s", self.gust_amplitude_m_s, allow_zero=True)
-        positive("wind.gust_period_s", self.gust_period_s)
-        object.__setattr__(
-            self, "gust_phase_rad", vector("wind.gust_phase_rad", self.gust_phase_rad, 2)
-        )
-
-    def at(self, t_s: float) -> tuple[float, float]:
-        """Wind (North, East) [m/s] at time t_s."""
-        if self.gust_amplitude_m_s == 0.0:
-            return self.mean_m_s
-        w = 2.0 * math.pi / self.gust_period_s
-        a = self.gust_amplitude_m_s
-        return (
-            self.mean_m_s[0] + a * math.sin(w * t_s + self.gust_phase_rad[0]),
-            self.mean_m_s[1] + a * math.sin(w * t_s + self.gust_phase_rad[1]),
-        )
+__all__ = ["TruthParams", "TruthPlant"]
 
 
 @dataclass(frozen=True)
@@ -93,8 +61,19 @@ class TruthPlant:
     State: x North [m], y East [m], yaw [rad], achieved speed [m/s], achieved yaw rate [rad/s].
     """
 
-    def __init__(self, params: TruthParams, *, x_m: float, y_m: float, yaw_rad: float) -> None:
+    def __init__(
+        self,
+        params: TruthParams,
+        *,
+        x_m: float,
+        y_m: float,
+        yaw_rad: float,
+        wind: WindField | None = None,
+    ) -> None:
+        """`wind`: the fleet's wind field (one realization of `params.wind` shared by every
+        vehicle); None builds the realization of seed 0."""
         self.params = params
+        self.wind = WindField(params.wind, seed=0) if wind is None else wind
         self._s = [finite("x_m", x_m), finite("y_m", y_m), finite("yaw_rad", yaw_rad), 0.0, 0.0]
         self._cmd = (0.0, 0.0)
         self._held_velocity: tuple[float, float] | None = None  # set by fly_to, cleared by advance
@@ -126,9 +105,14 @@ class TruthPlant:
         """True ground velocity (North, East) [m/s], wind included."""
         if self._held_velocity is not None:
             return self._held_velocity
-        wx, wy = self.params.wind.at(self.time_ns * 1e-9)
+        wx, wy = self.wind_m_s
         v, th = self._s[3], self._s[2]
         return v * math.cos(th) + wx, v * math.sin(th) + wy
+
+    @property
+    def wind_m_s(self) -> tuple[float, float]:
+        """The wind (North, East) where the vehicle is now [m/s]."""
+        return self.wind.at(self.time_ns * 1e-9, self._s[0], self._s[1])
 
     def command(self, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         """Set the commanded input, held until the next command; clamped to the vehicle's limits.
@@ -152,13 +136,16 @@ class TruthPlant:
 
         State derivative: (v cos th + wind_x, v sin th + wind_y, w, (a_V V_cmd - v) / lag,
         (a_w w_cmd - w) / lag); without lag (v, w) jump to the commanded values at each tick.
-        Unrolled on plain floats (this runs ten times per control period per vehicle).
+        The wind's mean and sinusoid enter at each RK4 stage's time; its turbulence and gusts
+        are held over a tick at their value where the tick starts (their fastest changes take
+        tenths of a second; a tick is a few hundredths). Unrolled on plain floats (this runs
+        ten times per control period per vehicle).
         """
         p = self.params
         h = tick_ns * 1e-9
         h2, h6 = h / 2, h / 6
         wind = p.wind
-        steady_wind = wind.gust_amplitude_m_s == 0.0
+        steady_wind = wind.is_steady
         wx0, wy0 = wxm, wym = wx1, wy1 = wind.mean_m_s
         cos, sin = math.cos, math.sin
         v_cmd = p.speed_effectiveness * self._cmd[0]
@@ -169,8 +156,7 @@ class TruthPlant:
             if lag == 0:
                 v, w = v_cmd, w_cmd
             if not steady_wind:
-                t0 = self.time_ns * 1e-9
-                (wx0, wy0), (wxm, wym), (wx1, wy1) = wind.at(t0), wind.at(t0 + h2), wind.at(t0 + h)
+                (wx0, wy0), (wxm, wym), (wx1, wy1) = self._stage_winds(h, x, y)
             # k1 .. k4: derivatives at the start, twice at the midpoint, at the end.
             x1, y1, th1 = v * cos(th) + wx0, v * sin(th) + wy0, w
             v1, w1 = ((v_cmd - v) / lag, (w_cmd - w) / lag) if lag > 0 else (0.0, 0.0)
@@ -193,6 +179,17 @@ class TruthPlant:
                 track.append((x, y))
         self._s = [x, y, th, v, w]
         self._held_velocity = None
+
+    def _stage_winds(self, h: float, x: float, y: float) -> tuple[tuple[float, float], ...]:
+        """The wind at the start, middle and end of the tick of `h` seconds starting now at
+        (x, y): the mean and sinusoid at each time, turbulence and gusts held from the start."""
+        t0 = self.time_ns * 1e-9
+        wind = self.params.wind
+        stages = wind.at(t0), wind.at(t0 + h / 2), wind.at(t0 + h)
+        if not wind.varies_in_space:
+            return stages
+        n, e = self.wind.local(t0, x, y)
+        return tuple((wn + n, we + e) for wn, we in stages)
 
     def fly_to(
         self,

@@ -56,6 +56,7 @@ from fleetmpc.sitl.mavlink_io import (
 )
 from fleetmpc.sitl.plant import TruthPlant
 from fleetmpc.sitl.telemetry import Identity, Snapshot, StreamSchedule, build, heartbeat, statustext
+from fleetmpc.sitl.wind import WindField
 
 __all__ = ["ServerConfig", "UdpEndpoint", "VehicleServer"]
 
@@ -150,7 +151,13 @@ class VehicleServer:
         self.config = config
         self.clock = clock
         v = config.vehicle
-        self.plant = TruthPlant(v.truth, x_m=v.initial[0], y_m=v.initial[1], yaw_rad=v.initial[2])
+        self.plant = TruthPlant(
+            v.truth,
+            x_m=v.initial[0],
+            y_m=v.initial[1],
+            yaw_rad=v.initial[2],
+            wind=WindField(v.truth.wind, seed=config.seed),
+        )
         self.autopilot = Autopilot(config.autopilot)
         px4 = config.autopilot.profile == Profile.PX4
         self.ident = Identity(

@@ -89,6 +89,10 @@ class AgentInput:
     late_s: float = 0.0
     """How long after its period boundary this step runs [s] (a starved or stalled process):
     the vehicle flies its previous command that much longer than the plan assumes."""
+    known_beta: np.ndarray | None = None
+    """A known-model run's truth: the vehicle's (a_V, a_w) and the wind (North, East) where it
+    is now. The agent predicts and plans with it instead of learning (docs/design.md, "The
+    known-model run"); None: it learns, as always outside that run."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -276,7 +280,7 @@ class Agent:
                 self._last_plan = None
                 self.resumes += 1
             else:
-                self.dekf.step(y, applied)
+                self.dekf.step(y, applied, known_beta=inp.known_beta)
             self._resuming = False
         elif self.dekf.initialized:
             self.dekf.propagate(applied)

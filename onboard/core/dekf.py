@@ -288,14 +288,22 @@ class DualEkf:
         """Current parameter estimate (a_V, a_w, d_x, d_y)."""
         return self.param_filter.x
 
-    def step(self, y: np.ndarray, u: np.ndarray) -> None:
-        """Advance one period: input u was applied over the last tau; y is the new measurement."""
+    def step(self, y: np.ndarray, u: np.ndarray, *, known_beta: np.ndarray | None = None) -> None:
+        """Advance one period: input u was applied over the last tau; y is the new measurement.
+
+        `known_beta`: the true parameters (a known-model run): the state filter predicts with
+        them, and the parameter filter holds them instead of learning."""
         y = np.asarray(y, float)
-        if not self._initialized:
+        first = not self._initialized
+        if first:
             self.reset(y)
-            return
         sf, pf, n = self.state_filter, self.param_filter, self._noise
-        if n.learn:
+        if known_beta is not None:
+            pf.x = np.array(known_beta, dtype=float)
+        if first:
+            return
+        learn = n.learn and known_beta is None
+        if learn:
             pf.P = pf.P + n.Q_p  # predict: beta^- = beta, P_p^- = P_p + Q_p  (F = I)
         z_m, J_s, H_p = step_with_jacobians(sf.x, u, pf.x, self.tau)
         sf.x = z_m
@@ -303,7 +311,7 @@ class DualEkf:
         (y_x, y_y, y_th), th_m = y.tolist(), float(z_m[2])
         th = th_m + wrap(y_th - th_m)  # near th_m
         sf.update(np.array((y_x, y_y, th)), H=self._H_s)
-        if n.learn:
+        if learn:
             # Innovation y ⊖ z^- (sf.y) and covariance R_p = P_s^- + R (sf.S) as the state
             # filter formed them.
             beta_prior, P_p_prior, R_p = pf.x, pf.P, sf.S

@@ -185,7 +185,10 @@ def test_an_autopilot_that_responds_late_is_planned_for_from_when_it_will_fly():
     paper = load_scenario("scenarios/paper.toml")
     late = agent_for(paper, dataclasses.replace(paper.vehicles[0], response_delay_s=0.4))
     fed = []
-    late.dekf.step = lambda y, u, _step=late.dekf.step: (fed.append(u.copy()), _step(y, u))[1]
+    late.dekf.step = lambda y, u, _step=late.dekf.step, **kw: (
+        fed.append(u.copy()),
+        _step(y, u, **kw),
+    )[1]
     z = np.array(paper.vehicles[0].initial, float)
     sent = []
     for k in range(8):

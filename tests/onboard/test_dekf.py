@@ -5,7 +5,8 @@ import pytest
 
 from fleetmpc.onboard.core.config import LearningSettings
 from fleetmpc.onboard.core.dekf import DualEkf, dekf_step, initial_dekf_state
-from fleetmpc.sitl.plant import TruthParams, TruthPlant, Wind
+from fleetmpc.sitl.plant import TruthParams, TruthPlant
+from fleetmpc.sitl.wind import Wind
 
 TAU = 0.2
 TRUTH = TruthParams(

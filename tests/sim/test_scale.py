@@ -56,8 +56,8 @@ class _Recording(AgentPool):
 
     neighbourhoods: list[list[tuple[int, ...]]] = []
 
-    def step(self, now_ns, measurements):
-        stepped = super().step(now_ns, measurements)
+    def step(self, now_ns, measurements, known=None):
+        stepped = super().step(now_ns, measurements, known)
         _Recording.neighbourhoods.append([out.neighbours for out, _ in stepped[0]])
         return stepped
 

@@ -1,0 +1,141 @@
+"""The wind field: its statistics, its determinism, its gusts and its place in the plant."""
+
+import math
+
+import numpy as np
+import pytest
+
+from fleetmpc.errors import ConfigError
+from fleetmpc.scenario import parse_scenario
+from fleetmpc.sitl.plant import TruthParams, TruthPlant
+from fleetmpc.sitl.wind import Gust, Turbulence, Wind, WindField, von_karman_correlation
+
+TURBULENT = Wind(turbulence=Turbulence(sigma_m_s=0.15, length_scale_m=20.0, time_scale_s=5.0))
+SEEDS = range(300)
+"""Realizations over which the ensemble statistics are taken."""
+
+
+def ensemble(wind: Wind, t_s: float, points: list[tuple[float, float]]) -> np.ndarray:
+    """The turbulence at `points` and time t_s in every realization of SEEDS (seeds, points, 2)."""
+    xy = np.array(points, dtype=float)
+    return np.array([WindField(wind, seed=s).turbulence(t_s, xy) for s in SEEDS])
+
+
+def test_each_component_has_the_stated_intensity():
+    u = ensemble(TURBULENT, 7.0, [(0.0, 0.0), (100.0, -50.0)])
+    assert np.std(u) == pytest.approx(0.15, rel=0.1)
+    assert abs(float(np.mean(u))) < 0.03
+
+
+def test_nearby_vehicles_feel_winds_correlated_as_the_von_karman_spectrum_says():
+    L = TURBULENT.turbulence.length_scale_m
+    for r in (0.25 * L, L, 3 * L):
+        u = ensemble(TURBULENT, 3.0, [(0.0, 0.0), (r, 0.0)])
+        longitudinal = np.corrcoef(u[:, 0, 0], u[:, 1, 0])[0, 1]
+        assert longitudinal == pytest.approx(float(von_karman_correlation(r / L)), abs=0.12), r
+
+
+def test_a_point_in_the_moving_air_sees_the_wind_decorrelate_over_the_time_scale():
+    calm = Wind(turbulence=TURBULENT.turbulence)  # no mean: the air stands still
+    T = calm.turbulence.time_scale_s
+    u0 = ensemble(calm, 0.0, [(0.0, 0.0)])[:, 0, 0]
+    for dt in (1.0, 5.0):
+        u = ensemble(calm, dt, [(0.0, 0.0)])[:, 0, 0]
+        assert np.corrcoef(u0, u)[0, 1] == pytest.approx(math.exp(-dt / T), abs=0.12), dt
+
+
+def test_the_turbulence_is_carried_by_the_mean_wind():
+    frozen = Wind(mean_m_s=(2.0, -1.0), turbulence=Turbulence(sigma_m_s=0.2, time_scale_s=1e12))
+    field = WindField(frozen, seed=4)
+    here = np.array([[3.0, 4.0]])
+    later = field.turbulence(10.0, here + 10.0 * np.array([2.0, -1.0]))
+    np.testing.assert_allclose(later, field.turbulence(0.0, here), atol=1e-9)
+
+
+def test_one_seed_one_field_and_another_seed_another():
+    xy = np.array([[1.0, 2.0], [30.0, -4.0]])
+    a, b = WindField(TURBULENT, seed=11), WindField(TURBULENT, seed=11)
+    np.testing.assert_array_equal(a.turbulence(12.3, xy), b.turbulence(12.3, xy))
+    assert not np.allclose(
+        a.turbulence(12.3, xy), WindField(TURBULENT, seed=12).turbulence(12.3, xy)
+    )
+
+
+def test_a_one_minus_cosine_gust_rises_to_its_amplitude_and_passes():
+    gust = Gust(onset_s=10.0, amplitude_m_s=(0.0, 0.3), length_m=20.0, front_speed_m_s=4.0)
+    assert gust.at(9.9, 0.0, 0.0) == (0.0, 0.0)
+    assert gust.at(12.5, 0.0, 0.0) == pytest.approx((0.0, 0.3))  # half its length behind the front
+    assert gust.at(15.1, 0.0, 0.0) == (0.0, 0.0)  # length / speed = 5 s later it has passed
+    assert gust.at(12.5, 0.0, 10.0) == pytest.approx((0.0, 0.0))  # 10 m down its path: not yet
+    assert gust.at(15.0, 0.0, 10.0) == pytest.approx((0.0, 0.3))  # 2.5 s later it peaks there
+    assert gust.duration_s == 5.0
+
+
+def test_a_hovering_plant_is_carried_by_the_gust_by_its_integral():
+    gust = Gust(onset_s=1.0, amplitude_m_s=(0.2, 0.0), length_m=40.0, front_speed_m_s=20.0)
+    wind = Wind(gusts=(gust,))
+    plant = TruthPlant(TruthParams(wind=wind), x_m=0.0, y_m=0.0, yaw_rad=0.0)
+    plant.advance(10_000_000, 400)  # 4 s; the gust lasts 2 s, mean 0.1 m/s
+    # Carried along at up to 0.2 m/s, the plant stays in it a little longer than 2 s.
+    assert plant.position_m[0] == pytest.approx(0.2, rel=0.02)
+    assert plant.position_m[1] == 0.0
+
+
+def test_in_the_same_field_two_plants_at_one_place_drift_alike():
+    field = WindField(TURBULENT, seed=3)
+    plants = [
+        TruthPlant(TruthParams(wind=TURBULENT), x_m=5.0, y_m=5.0, yaw_rad=0.0, wind=field)
+        for _ in range(2)
+    ]
+    for p in plants:
+        p.advance(20_000_000, 250)
+    assert plants[0].position_m == plants[1].position_m
+    assert math.dist(plants[0].position_m, (5.0, 5.0)) > 0.1  # the turbulence moved them
+
+
+def _doc(**wind) -> dict:
+    return {
+        "name": "w",
+        "target": {"kind": "line", "start_m": [0.0, 0.0], "velocity_m_s": [1.0, 0.0]},
+        "truth": {"wind": wind},
+        "vehicles": [
+            {"initial": [0.0, 0.0, 0.0], "slot_m": [0.0, 0.0]},
+            {"initial": [0.0, 10.0, 0.0], "slot_m": [0.0, 10.0]},
+        ],
+    }
+
+
+def test_a_scenario_describes_turbulence_and_gusts_in_truth_wind():
+    sc = parse_scenario(
+        _doc(
+            mean_m_s=[0.2, 0.0],
+            turbulence={"sigma_m_s": 0.1, "length_scale_m": 15.0},
+            gusts=[{"onset_s": 20.0, "amplitude_m_s": [0.0, 0.2], "length_m": 30.0}],
+        )
+    )
+    wind = sc.vehicles[0].truth.wind
+    assert wind.turbulence.sigma_m_s == 0.1 and wind.turbulence.length_scale_m == 15.0
+    assert wind.gusts[0].amplitude_m_s == (0.0, 0.2)
+    assert sc.vehicles[1].truth.wind == wind  # one field for the fleet
+
+
+@pytest.mark.parametrize(
+    ("wind", "field"),
+    [
+        ({"turbulence": {"sigma": 0.1}}, "truth.wind.turbulence.sigma"),
+        ({"turbulence": {"sigma_m_s": -0.1}}, "truth.wind.turbulence.sigma_m_s"),
+        ({"gusts": [{"onset_s": 1.0, "amplitude_m_s": [0.0, 0.0]}]}, "truth.wind.gusts[0].amplitude_m_s"),
+        ({"gusts": {"onset_s": 1.0}}, "truth.wind.gusts"),
+    ],
+)
+def test_a_bad_wind_is_refused_naming_its_field(wind, field):
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(_doc(**wind))
+    assert field in str(err.value)
+
+
+def test_a_vehicle_cannot_have_turbulence_of_its_own():
+    doc = _doc()
+    doc["vehicles"][1]["truth"] = {"wind": {"turbulence": {"sigma_m_s": 0.1}}}
+    with pytest.raises(ConfigError, match=r"vehicles\[1\].truth.wind.turbulence"):
+        parse_scenario(doc)
