@@ -124,7 +124,10 @@ def test_a_scenario_describes_turbulence_and_gusts_in_truth_wind():
     [
         ({"turbulence": {"sigma": 0.1}}, "truth.wind.turbulence.sigma"),
         ({"turbulence": {"sigma_m_s": -0.1}}, "truth.wind.turbulence.sigma_m_s"),
-        ({"gusts": [{"onset_s": 1.0, "amplitude_m_s": [0.0, 0.0]}]}, "truth.wind.gusts[0].amplitude_m_s"),
+        (
+            {"gusts": [{"onset_s": 1.0, "amplitude_m_s": [0.0, 0.0]}]},
+            "truth.wind.gusts[0].amplitude_m_s",
+        ),
         ({"gusts": {"onset_s": 1.0}}, "truth.wind.gusts"),
     ],
 )
