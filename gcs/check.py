@@ -23,6 +23,7 @@ import numpy as np
 
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
+from fleetmpc.gcs.wind_report import wind_lines
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
 from fleetmpc.onboard.core.formation import CourseRateLimit, Formation, true_reference
 from fleetmpc.onboard.core.neighbourhood import safety_radius
@@ -259,6 +260,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         float(np.hypot(*sc.target.state_at(t)[1])) for t in np.linspace(0, sc.duration_s, 200)
     )
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
+    lines += wind_lines(sc)
     course_limit = reference_course_limit(sc.controller, sc.formation)
     needs = _slot_requirements(sc, course_limit)
     speeds, rates, lags = needs.speeds_m_s, needs.yaw_rates_rad_s, needs.turn_lags_m

@@ -9,7 +9,8 @@ and discrete gusts (docs/design.md, "Wind"):
   L, intensity sigma per horizontal axis) and its frequency from a Cauchy law of scale
   1/time_scale_s, so that a point fixed in the moving air sees a first-order Gauss-Markov
   decorrelation exp(-|dt| / time_scale_s). Two vehicles a distance r apart feel winds correlated
-  as the von Kármán spectrum says (about 0.8 at r = L/4, 0.3 at r = 2 L).
+  as the von Kármán spectrum says (0.70 at r = L/4, 0.35 at r = L, 0.15 at r = 2 L,
+  along their line).
 - **Discrete gusts** have the "1 - cosine" shape of MIL-F-8785C: a front moving at
   front_speed_m_s along the gust's direction, passing the local origin at onset_s; behind it the
   wind rises to the amplitude over half the gust's length and falls back over the other half.
@@ -219,7 +220,7 @@ class WindField:
 
 def von_karman_correlation(r_over_l: np.ndarray) -> np.ndarray:
     """Longitudinal correlation f(r) of von Kármán turbulence at separation r / L:
-    2^(2/3) / Gamma(1/3) * x^(1/3) K_(1/3)(x), x = r / (1.339 L) (for tests and `check`)."""
+    2^(2/3) / Gamma(1/3) * x^(1/3) K_(1/3)(x), x = r / (1.339 L) (what `check` reports)."""
     from scipy.special import gamma, kv
 
     x = np.maximum(np.asarray(r_over_l, dtype=float), 1e-12) / VON_KARMAN_SCALE

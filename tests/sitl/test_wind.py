@@ -1,5 +1,6 @@
 """The wind field: its statistics, its determinism, its gusts and its place in the plant."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -142,3 +143,22 @@ def test_a_vehicle_cannot_have_turbulence_of_its_own():
     doc["vehicles"][1]["truth"] = {"wind": {"turbulence": {"sigma_m_s": 0.1}}}
     with pytest.raises(ConfigError, match=r"vehicles\[1\].truth.wind.turbulence"):
         parse_scenario(doc)
+
+
+def test_check_says_what_the_wind_means_at_the_vehicle(paper):
+    from fleetmpc.gcs.check import check_scenario
+
+    gust = Gust(onset_s=20.0, amplitude_m_s=(0.0, 0.2), length_m=40.0)
+    wind = Wind(mean_m_s=(0.3, -0.2), turbulence=TURBULENT.turbulence, gusts=(gust,))
+    vehicles = tuple(
+        dataclasses.replace(v, truth=dataclasses.replace(v.truth, wind=wind))
+        for v in paper.vehicles
+    )
+    text = check_scenario(dataclasses.replace(paper, vehicles=vehicles)).render()
+    assert "wind: mean 0.36 m/s toward 326 deg" in text
+    # T_c = 1 / (1/5 + 1.4142/20) = 3.7 s; sigma sqrt(2 (1 - exp(-0.2 / 3.7))) = 0.049 m/s.
+    assert "a vehicle sees it change over 3.7 s, by 0.049 m/s RMS per control period" in text
+    assert "neighbours 10.0 m apart feel it correlated 0.54" in text
+    assert "feels it for 20.0 s" in text
+    calm = check_scenario(paper).render()
+    assert "turbulence" not in calm and "gust" not in calm

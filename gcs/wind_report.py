@@ -1,0 +1,83 @@
+"""What a scenario's wind means at the vehicle, in m/s, for `fleetmpc check` (docs/design.md,
+"Wind")."""
+
+import math
+
+import numpy as np
+
+from fleetmpc.scenario import Scenario
+from fleetmpc.sitl.wind import Gust, Wind, von_karman_correlation
+
+__all__ = ["wind_lines"]
+
+
+def wind_lines(sc: Scenario) -> list[str]:
+    """One line per part of the fleet's wind (none for a calm scenario)."""
+    winds = {v.truth.wind for v in sc.vehicles}
+    lines = []
+    for wind in sorted(winds, key=repr):
+        whose = "" if len(winds) == 1 else f" (vehicles {_ids_with(sc, wind)})"
+        lines += _lines_of(wind, sc, whose)
+    return lines
+
+
+def _ids_with(sc: Scenario, wind: Wind) -> str:
+    return ", ".join(str(v.id) for v in sc.vehicles if v.truth.wind == wind)
+
+
+def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
+    lines = []
+    n, e = wind.mean_m_s
+    if n or e:
+        toward = math.degrees(math.atan2(e, n)) % 360
+        lines.append(f"wind{whose}: mean {math.hypot(n, e):.2f} m/s toward {toward:.0f} deg")
+    if wind.gust_amplitude_m_s > 0:
+        a, period = wind.gust_amplitude_m_s, wind.gust_period_s
+        lines.append(
+            f"wind{whose}: slow variation of +-{a:.2f} m/s on each axis over {period:g} s "
+            f"(changes by up to {2 * math.pi * a / period:.3f} m/s per second)"
+        )
+    if wind.turbulence.sigma_m_s > 0:
+        lines.append(_turbulence_line(wind, sc, whose))
+    lines += [_gust_line(g, whose) for g in wind.gusts]
+    return lines
+
+
+def _turbulence_line(wind: Wind, sc: Scenario, whose: str) -> str:
+    turb, tau = wind.turbulence, sc.controller.period_s
+    airspeed = sc.controller.reference_speed_m_s
+    t_c = turb.correlation_time_s(airspeed)
+    per_period = turb.sigma_m_s * math.sqrt(2.0 * (1.0 - math.exp(-tau / t_c)))
+    spacing = _nearest_slot_spacing_m(sc)
+    together = ""
+    if spacing is not None:
+        corr = float(von_karman_correlation(np.array(spacing / turb.length_scale_m)))
+        together = f"; neighbours {spacing:.1f} m apart feel it correlated {corr:.2f}"
+    return (
+        f"wind{whose}: turbulence of {turb.sigma_m_s:.2f} m/s on each axis at the vehicle "
+        f"(1 in 100 samples beyond {2.58 * turb.sigma_m_s:.2f} m/s), von Karman L = "
+        f"{turb.length_scale_m:g} m, {turb.time_scale_s:g} s; at {airspeed:.2f} m/s through "
+        f"the air a vehicle sees it change over {t_c:.1f} s, by {per_period:.3f} m/s RMS "
+        f"per control period{together}"
+    )
+
+
+def _gust_line(gust: Gust, whose: str) -> str:
+    a_n, a_e = gust.amplitude_m_s
+    toward = math.degrees(math.atan2(a_e, a_n)) % 360
+    return (
+        f"wind{whose}: 1 - cosine gust of {math.hypot(a_n, a_e):.2f} m/s toward {toward:.0f} deg,"
+        f" {gust.length_m:g} m long, its front passing the origin at t = {gust.onset_s:g} s at "
+        f"{gust.front_speed_m_s:g} m/s: a vehicle standing in it feels it for "
+        f"{gust.duration_s:.1f} s, rising at up to "
+        f"{math.pi * math.hypot(a_n, a_e) / gust.duration_s:.3f} m/s per second"
+    )
+
+
+def _nearest_slot_spacing_m(sc: Scenario) -> float | None:
+    slots = np.array(sc.formation.slots_m)
+    if len(slots) < 2:
+        return None
+    d = np.linalg.norm(slots[:, None, :] - slots[None, :, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return float(d.min())
