@@ -307,8 +307,11 @@ def _pattern_vehicles(pattern: Any, formation: dict[str, Any], target: TargetScr
     return vehicles
 
 
-def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario:
-    """Validate a parsed TOML document and return the Scenario it describes."""
+def parse_scenario(
+    doc: dict[str, Any], *, source: str = "<memory>", live: bool = False
+) -> Scenario:
+    """Validate a parsed TOML document and return the Scenario it describes; `live`: also
+    refuse ports that would clash (`load_scenario`)."""
     unknown = sorted(set(doc) - _TOP_KEYS)
     if unknown:
         raise ConfigError(
@@ -416,7 +419,8 @@ def parse_scenario(doc: dict[str, Any], *, source: str = "<memory>") -> Scenario
     for v in vehicles:  # every vehicle's default ports exist (either profile can fly it)
         network.offboard_port(v.id)
         network.ardupilot_tcp_port(v.id)
-    check_ports(network, tuple(vehicles))
+    if live:
+        check_ports(network, tuple(vehicles))
     return Scenario(
         name=name,
         description=str(doc.get("description", "")),
@@ -445,8 +449,10 @@ def toml_files(folder: Path, *, field: str, what: str) -> list[Path]:
     return files
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario TOML file."""
+def load_scenario(path: str | Path, *, live: bool = False) -> Scenario:
+    """Read and validate a scenario TOML file; `live`: for processes that open its ports (`up`,
+    `compose`, the vehicle, agent and ground-station processes), which must not clash. A
+    lockstep run, `check` and `suite` open none and do not ask."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError("scenario", f"no such file: {p}")
@@ -454,7 +460,7 @@ def load_scenario(path: str | Path) -> Scenario:
         doc = tomllib.loads(p.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("scenario", f"{p} is not valid TOML: {e}") from None
-    return parse_scenario(doc, source=str(p))
+    return parse_scenario(doc, source=str(p), live=live)
 
 
 def flight_time(scenario: Scenario, *, speed: float, duration_s: float | None) -> float:

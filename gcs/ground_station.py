@@ -215,7 +215,7 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario, live=True)
     duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
     for name in ("engage_timeout", "lead", "flush_s", "series_flush_s"):
         if not getattr(args, name) > 0:

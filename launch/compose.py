@@ -339,7 +339,7 @@ def _invocation(scenario_path: str, options: ComposeOptions) -> str:
 def compose_yaml(scenario_path: str, options: ComposeOptions | None = None) -> str:
     """The compose file of the scenario at `scenario_path`, as text."""
     options = options or ComposeOptions()
-    scenario = load_scenario(scenario_path)
+    scenario = load_scenario(scenario_path, live=True)
     doc = compose_document(scenario, scenario_name=Path(scenario_path).name, options=options)
     duration = scenario.duration_s if options.duration_s is None else options.duration_s
     header = [

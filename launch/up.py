@@ -342,7 +342,7 @@ def _process_faults(schedule: FaultSchedule, fleet: Fleet, *, speed: float) -> P
 
 
 def run(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario, live=True)
     duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
     gcs_options = _gcs_options(args)
     run_dir = args.run_dir or Path("runs") / f"up-{datetime.now():%Y%m%d-%H%M%S}"

@@ -128,7 +128,7 @@ def _log(text: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario, live=True)
     spec = scenario.vehicle(args.vehicle)
     if not 10.0 <= args.setpoint_rate_hz <= 1000.0:
         raise ConfigError(

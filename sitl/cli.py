@@ -168,7 +168,7 @@ _ONE_VEHICLE_OPTIONS = (
 def build_configs(args: argparse.Namespace) -> list[ServerConfig]:
     """Validate the command line against the scenario, one config per --vehicle; errors name the
     option."""
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario, live=True)
     ids = list(args.vehicle)
     if len(set(ids)) != len(ids):
         raise ConfigError("--vehicle", f"each vehicle once, got {ids}")

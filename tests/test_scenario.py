@@ -8,6 +8,8 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.network import Network, mavlink_url
 from fleetmpc.scenario import load_scenario, parse_scenario
 
+ROOT = Path(__file__).resolve().parents[1]
+
 BASE = {
     "name": "t",
     "vehicles": [
@@ -163,29 +165,42 @@ def test_mixed_autopilots_is_the_paper_fleet_with_an_ardupilot_vehicle(paper):
         assert getattr(mixed, field) == getattr(paper, field), field
 
 
-def test_a_fleet_whose_ports_collide_is_refused_naming_the_field():
-    from fleetmpc.scenario import parse_scenario
-
+def test_a_live_fleet_whose_ports_collide_is_refused_naming_the_field():
     vehicles = [
         {"id": i, "initial": [0.0, 5.0 * i, 0.0], "slot_m": [0.0, 5.0 * i]} for i in range(1, 12)
     ]
     doc = {"name": "eleven", "vehicles": vehicles}
     with pytest.raises(ConfigError) as e:
-        parse_scenario(doc)  # vehicle 11's offboard port would be 14540 + 10 = 14550
+        parse_scenario(doc, live=True)  # vehicle 11's offboard port would be 14540 + 10 = 14550
     assert e.value.field == "network.offboard_base_port"
     assert "UDP port 14550 of vehicle 11's offboard link is already the ground station's" in str(
         e.value
     )
     assert "(offboard_base_port = 14551 in [network] clears it)" in str(e.value)
     hinted = {**doc, "network": {"offboard_base_port": 14551}}
-    assert len(parse_scenario(hinted).vehicles) == 11
+    assert len(parse_scenario(hinted, live=True).vehicles) == 11
     moved = {**doc, "network": {"gcs_port": 14650}}
-    assert len(parse_scenario(moved).vehicles) == 11
+    assert len(parse_scenario(moved, live=True).vehicles) == 11
     ardupilot = [{**v, "autopilot": "ardupilot"} for v in vehicles[:2]]
     clash = {"name": "clash", "vehicles": ardupilot, "network": {"zenoh_port": 5770}}
     with pytest.raises(ConfigError) as e:
-        parse_scenario(clash)
+        parse_scenario(clash, live=True)
     assert e.value.field == "network.ardupilot_tcp_base_port"
+
+
+def test_a_simulation_opens_no_port_and_is_not_refused_over_one(tmp_path, capsys):
+    """sim and check fly a fleet whose live ports would clash; up refuses it before starting
+    anything."""
+    from fleetmpc.cli import main
+
+    text = (ROOT / "scenarios" / "scale" / "grid50.toml").read_text()
+    text = text[: text.index("[network]")]  # the default ports: vehicle 11's is the GCS's 14550
+    path = tmp_path / "fifty.toml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 0
+    assert main(["sim", str(path), "--duration", "2", "--quiet"]) == 0
+    with pytest.raises(ConfigError, match="network.offboard_base_port"):
+        load_scenario(path, live=True)
 
 
 def test_pattern_slots_are_spaced_as_asked():
