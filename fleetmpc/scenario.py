@@ -182,6 +182,18 @@ def _wind(table: Any, prefix: str) -> Wind:
     return _build(Wind, table, prefix, turbulence=turbulence, gusts=built)
 
 
+def _drift_for_the_wind(
+    learning: LearningSettings, wind_table: Any, controller: ControllerSettings
+) -> LearningSettings:
+    """The learned drift's random walk as fast as the site's wind changes at the cruise
+    airspeed (`Wind.rate_m_s`), on top of the default's: what a forecast of the site's
+    turbulence tells the agents (docs/design.md, "Learning")."""
+    rate = _wind(wind_table, "truth.wind").rate_m_s(controller.reference_speed_m_s)
+    a_v, a_w, d, _ = learning.beta_random_walk
+    drift = math.hypot(d, rate)
+    return dataclasses.replace(learning, beta_random_walk=(a_v, a_w, drift, drift))
+
+
 def _refuse_own_turbulence(truth: Any, prefix: str) -> None:
     """A vehicle's truth may change its mean wind, not the fleet's turbulence or gusts: those
     are one field that every vehicle flies through (sitl/wind.py)."""
@@ -340,6 +352,8 @@ def parse_scenario(
     truth_default = doc.get("truth", {})
     if not isinstance(truth_default, dict):
         raise ConfigError("truth", "must be a table")
+    if "beta_random_walk" not in doc.get("learning", {}):
+        learning = _drift_for_the_wind(learning, truth_default.get("wind", {}), controller)
     formation_table = dict(doc.get("formation", {}))
     pattern = formation_table.pop("pattern", None)
     raw_vehicles = doc.get("vehicles")

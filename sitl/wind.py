@@ -145,6 +145,24 @@ class Wind:
         """True if the wind has turbulence or gusts (parts that depend on where one is)."""
         return self.turbulence.sigma_m_s > 0.0 or bool(self.gusts)
 
+    def rate_m_s(self, airspeed_m_s: float) -> float:
+        """How fast the wind a vehicle flying at `airspeed_m_s` through the air feels changes,
+        as the intensity of a random walk that would follow it [m/s per sqrt(s)]: the root sum
+        of squares of sigma sqrt(2 / T_c) for the turbulence (its Gauss-Markov increments),
+        A sqrt(2 pi / period) for the sinusoid and A sqrt(pi / (2 D)) for a gust of D seconds
+        (each part's slope squared over its angular frequency); 0 for a steady wind."""
+        parts = [0.0]
+        turb = self.turbulence
+        if turb.sigma_m_s > 0.0:
+            parts.append(turb.sigma_m_s * math.sqrt(2.0 / turb.correlation_time_s(airspeed_m_s)))
+        if self.gust_amplitude_m_s > 0.0:
+            parts.append(self.gust_amplitude_m_s * math.sqrt(2.0 * math.pi / self.gust_period_s))
+        for gust in self.gusts:
+            parts.append(
+                math.hypot(*gust.amplitude_m_s) * math.sqrt(math.pi / (2 * gust.duration_s))
+            )
+        return math.sqrt(sum(p * p for p in parts))
+
     def at(self, t_s: float) -> tuple[float, float]:
         """The mean and the sinusoid (North, East) at time t_s [m/s]: the wind everywhere,
         but for turbulence and gusts (`WindField.local`)."""

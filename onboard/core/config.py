@@ -168,6 +168,15 @@ class LearningSettings:
     the others): with |V| below 0.05 m/s a_V is not learned, with |omega| below 0.01 rad/s a_w."""
     innovation_gate: float = 50.0
     """Normalized innovation (in standard deviations) above which the filter resets."""
+    input_lag_s: float = 0.1
+    """Time constant of the autopilot's first-order response to a setpoint [s]: the DEKF
+    predicts with the input as the vehicle flew it over the period (docs/design.md,
+    "Learning"); 0: each setpoint is flown at once."""
+    speed_excitation_m_s: float = 0.2
+    """a_V is learned only while the commanded velocity's mean over the last second stands this
+    far from its mean over the last VELOCITY_SLOW_S seconds [m/s]: a wind moves the vehicle as
+    a_V would, and only a change of the command that the wind does not share tells them
+    apart."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -199,6 +208,8 @@ class LearningSettings:
             "innovation_gate",
         ):
             positive(f"learning.{name}", getattr(self, name))
+        for name in ("input_lag_s", "speed_excitation_m_s"):
+            positive(f"learning.{name}", getattr(self, name), allow_zero=True)
 
 
 _FRAMES = ("world", "course")

@@ -26,7 +26,7 @@ the tests check that the two agree.
 """
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -90,6 +90,8 @@ class _Noise:
     gate: float
     learn: bool
     excitation: np.ndarray
+    lag_s: float = 0.0
+    speed_excitation_m_s: float = 0.0
     beta_min_list: tuple[float, ...] = ()
     beta_max_list: tuple[float, ...] = ()
     P_p_cap_list: tuple[float, ...] = ()
@@ -117,6 +119,8 @@ class _Noise:
             gate=s.innovation_gate,
             learn=s.enabled,
             excitation=np.array(s.excitation_min) * tau,
+            lag_s=s.input_lag_s,
+            speed_excitation_m_s=s.speed_excitation_m_s,
         )
 
 
@@ -143,14 +147,48 @@ def _bound(beta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray
     return beta, sym
 
 
-def _unexcited(H_p: np.ndarray, noise: _Noise) -> list[int]:
-    """Parameters whose Jacobian column is too small to learn from."""
+def _unexcited(H_p: np.ndarray, noise: _Noise, velocity_means: np.ndarray) -> list[int]:
+    """Parameters whose Jacobian column is too small to learn from, and a_V while the
+    commanded velocity has not changed enough for a wind not to mimic it (`velocity_means`,
+    its recent and slow means (2, 2))."""
     hold = []
     columns = zip(H_p.T.tolist(), noise.excitation_list, strict=True)
     for i, ((a, b, c), floor) in enumerate(columns):
         if math.sqrt(a * a + b * b + c * c) < floor:
             hold.append(i)
+    (fx, fy), (sx, sy) = velocity_means.tolist()
+    if 0 not in hold and math.hypot(fx - sx, fy - sy) < noise.speed_excitation_m_s:
+        hold.insert(0, 0)
     return hold
+
+
+VELOCITY_FAST_S = 1.0
+"""The recent mean of the commanded velocity is over about this long [s]."""
+VELOCITY_SLOW_S = 5.0
+"""Its slow mean, against which a change of the command is measured, over about this long [s]:
+about how long the wind a vehicle feels in moderate turbulence takes to change (docs/design.md,
+"Wind")."""
+
+
+def flown_input(
+    u: np.ndarray, lag_end: np.ndarray, *, lag_s: float, tau: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The input a first-order lag of time constant `lag_s` flies over a period of `tau` from
+    `lag_end` (where it stood as the period began) toward the command u: its mean over the
+    period, and where it stands at the end."""
+    if lag_s <= 0.0:
+        return u, u
+    fade = math.exp(-tau / lag_s)
+    gap = lag_end - u
+    return u + gap * (lag_s / tau * (1.0 - fade)), u + gap * fade
+
+
+def velocity_means(means: np.ndarray, H_p: np.ndarray, tau: float) -> np.ndarray:
+    """The recent and slow means (2, 2) of the commanded velocity (a_V's column of H_p over tau),
+    moved on by one period."""
+    v = H_p[:2, 0] / tau
+    weights = np.array([[tau / VELOCITY_FAST_S], [tau / VELOCITY_SLOW_S]])
+    return means + weights * (v - means)
 
 
 def _consider_update(
@@ -178,6 +216,10 @@ class DekfState:
     beta: np.ndarray
     P_p: np.ndarray
     resets: int = 0
+    lag_end: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """Where the flown input stands (`flown_input`)."""
+    velocity_means: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    """The commanded velocity's recent and slow means (`velocity_means`)."""
 
 
 def initial_dekf_state(y: np.ndarray, settings: LearningSettings) -> DekfState:
@@ -198,11 +240,14 @@ def dekf_step(
 ) -> DekfState:
     """One DEKF period as a plain function: input u applied over the last tau, measurement y now."""
     n = _Noise.from_settings(settings, tau)
+    u, lag_end = flown_input(np.asarray(u, float), state.lag_end, lag_s=n.lag_s, tau=tau)
     beta_m = state.beta
     P_p_m = state.P_p + n.Q_p if n.learn else state.P_p
     J_s, _, H_p = step_jacobians(state.z, u, beta_m, tau)
     z_m = step(state.z, u, beta_m, tau)
-    P_s_m = J_s @ state.P_s @ J_s.T + n.Q_s
+    P_own = J_s @ state.P_s @ J_s.T + n.Q_s
+    P_s_m = P_own + H_p @ P_p_m @ H_p.T if n.learn else P_own
+    means = velocity_means(state.velocity_means, H_p, tau)
     innov = _residual(np.asarray(y, float), z_m)
     S = P_s_m + n.R_s
     K_s = P_s_m @ np.linalg.inv(S)
@@ -211,10 +256,11 @@ def dekf_step(
     P_s = I_K @ P_s_m @ I_K.T + K_s @ n.R_s @ K_s.T
     beta, P_p = beta_m, P_p_m
     if n.learn:
-        R_p = P_s_m + n.R_s
+        R_p = P_own + n.R_s
         S_p = H_p @ P_p_m @ H_p.T + R_p
         K_p = P_p_m @ H_p.T @ np.linalg.inv(S_p)
-        beta, P_p = _consider_update(beta_m, P_p_m, K_p, H_p, R_p, innov, _unexcited(H_p, n))
+        hold = _unexcited(H_p, n, means)
+        beta, P_p = _consider_update(beta_m, P_p_m, K_p, H_p, R_p, innov, hold)
         beta, P_p = _bound(beta, P_p, n)
     z[2] = wrap_angle(z[2])
     nis = float(innov @ np.linalg.solve(S, innov))
@@ -227,8 +273,10 @@ def dekf_step(
             beta if keep else fresh.beta,
             P_p if keep else fresh.P_p,
             state.resets + 1,
+            lag_end,
+            means,
         )
-    return DekfState(z, P_s, beta, P_p, state.resets)
+    return DekfState(z, P_s, beta, P_p, state.resets, lag_end, means)
 
 
 class DualEkf:
@@ -263,6 +311,10 @@ class DualEkf:
         self._H_s = np.eye(3)
         self._gate_sq = self._noise.gate**2
         self._initialized = False
+        self._lag_end = np.zeros(2)
+        """Where the flown input stands (`flown_input`)."""
+        self._velocity_means = np.zeros((2, 2))
+        """The commanded velocity's recent and slow means (`velocity_means`)."""
 
     @property
     def initialized(self) -> bool:
@@ -294,6 +346,7 @@ class DualEkf:
         `known_beta`: the true parameters (a known-model run): the state filter predicts with
         them, and the parameter filter holds them instead of learning."""
         y = np.asarray(y, float)
+        u = self._fly(u)
         first = not self._initialized
         if first:
             self.reset(y)
@@ -307,17 +360,19 @@ class DualEkf:
             pf.P = pf.P + n.Q_p  # predict: beta^- = beta, P_p^- = P_p + Q_p  (F = I)
         z_m, J_s, H_p = step_with_jacobians(sf.x, u, pf.x, self.tau)
         sf.x = z_m
-        sf.P = J_s.dot(sf.P).dot(J_s.T) + n.Q_s
+        P_own = J_s.dot(sf.P).dot(J_s.T) + n.Q_s  # the prediction's uncertainty but beta's
+        sf.P = P_own + H_p.dot(pf.P).dot(H_p.T) if learn else P_own
+        self._velocity_means = velocity_means(self._velocity_means, H_p, self.tau)
         (y_x, y_y, y_th), th_m = y.tolist(), float(z_m[2])
         th = th_m + wrap(y_th - th_m)  # near th_m
         sf.update(np.array((y_x, y_y, th)), H=self._H_s)
         if learn:
-            # Innovation y ⊖ z^- (sf.y) and covariance R_p = P_s^- + R (sf.S) as the state
-            # filter formed them.
-            beta_prior, P_p_prior, R_p = pf.x, pf.P, sf.S
+            # Innovation y ⊖ z^- (sf.y) as the state filter formed it; its covariance less
+            # beta's part, which the parameter filter adds itself: R_p = P_s^- + R.
+            beta_prior, P_p_prior, R_p = pf.x, pf.P, P_own + n.R_s
             pf.R = R_p  # (as an attribute: an R argument costs filterpy an isscalar check)
             pf.update(sf.y + H_p.dot(beta_prior), H=H_p)
-            hold = _unexcited(H_p, n)
+            hold = _unexcited(H_p, n, self._velocity_means)
             if hold:
                 pf.x, pf.P = _consider_update(beta_prior, P_p_prior, pf.K, H_p, R_p, pf.y, hold)
             pf.x, pf.P = _bound(pf.x, pf.P, n)
@@ -332,8 +387,16 @@ class DualEkf:
                 s = initial_dekf_state(y, self.settings)
                 pf.x, pf.P = s.beta, s.P_p
 
+    def _fly(self, u: np.ndarray) -> np.ndarray:
+        """The input flown over the last period for the command u (`flown_input`)."""
+        flown, self._lag_end = flown_input(
+            np.asarray(u, float), self._lag_end, lag_s=self._noise.lag_s, tau=self.tau
+        )
+        return flown
+
     def propagate(self, u: np.ndarray) -> None:
         """Predict one period without a measurement (telemetry missed this period)."""
+        u = self._fly(u)
         sf = self.state_filter
         sf.x, J_s, _ = step_with_jacobians(sf.x, u, self.beta, self.tau)
         sf.P = J_s.dot(sf.P).dot(J_s.T) + self._noise.Q_s

@@ -68,7 +68,9 @@ def test_beta_stays_put_and_bounded_without_excitation():
         return _exciting_input(t) if t < 20.0 else np.zeros(2)
 
     _, _, history, _ = _fly(LearningSettings(), 80.0, 4, excite_then_hover)
-    learned = next(b for t, b, _ in history if t >= 20.0)
+    # The stop itself excites a_V (a change of speed no wind mimics) while the autopilot's lag
+    # flies it out (a few tenths of a second); from then on, hovering, nothing does.
+    learned = next(b for t, b, _ in history if t >= 21.0)
     final = history[-1][1]
     # Nothing excites the effectiveness parameters while hovering: they must not wander.
     assert abs(final[0] - learned[0]) < 1e-9
