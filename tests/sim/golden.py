@@ -38,7 +38,7 @@ MARGIN = 1000.0
 """Tolerance over measured sensitivity. A nudge on the machine that writes the file perturbs
 some of the operations another machine rounds differently, not all of them, so the margin is
 wide; it stays narrow enough that a change of the control code by one part in 1e6 (a weight of
-the QP, say) moves the smooth cases' figures 10-100 times past their tolerance
+the QP, say) moves the smooth cases' figures 30-230 times past their tolerance
 (`test_golden.py` checks that it does)."""
 
 RELATIVE_FLOOR = 1e-13

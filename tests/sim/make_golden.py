@@ -8,7 +8,8 @@ Run from the repository:
 Only when a change is meant to change the figures: see docs/testing.md. It flies every case of
 `golden.CASES` once for its figures, then again under each nudge of its arithmetic, and stores
 per field `golden.MARGIN` times the largest difference a nudge made. The nudges: every vehicle's
-initial state one ulp up, and, on x86-64 with OpenBLAS, every other BLAS kernel of `KERNELS`
+initial state one ulp up and one down, the target's start one ulp up, and, on x86-64 with
+OpenBLAS, every other BLAS kernel of `KERNELS`
 (another rounding order in every product; a kernel the CPU cannot run is skipped). The archive is
 written byte for byte the same from the same figures (sorted keys, a fixed timestamp), so
 regenerating it after a change that moves no figure leaves it unchanged in git.
@@ -80,13 +81,26 @@ def unflat(arrays) -> Figures:
     return figures
 
 
-def one_ulp_up(scenario: Scenario) -> Scenario:
-    """`scenario` with every vehicle's initial position and heading one ulp larger."""
-    vehicles = tuple(
-        dataclasses.replace(v, initial=tuple(float(np.nextafter(x, np.inf)) for x in v.initial))
-        for v in scenario.vehicles
-    )
-    return dataclasses.replace(scenario, vehicles=vehicles)
+def _ulp(values, toward: float) -> tuple[float, ...]:
+    return tuple(float(np.nextafter(x, toward)) for x in values)
+
+
+def initial_states_one_ulp(toward: float):
+    """A nudge: every vehicle's initial position and heading one ulp toward `toward`."""
+
+    def nudge(scenario: Scenario) -> Scenario:
+        vehicles = tuple(
+            dataclasses.replace(v, initial=_ulp(v.initial, toward)) for v in scenario.vehicles
+        )
+        return dataclasses.replace(scenario, vehicles=vehicles)
+
+    return nudge
+
+
+def target_start_one_ulp_up(scenario: Scenario) -> Scenario:
+    """A nudge: the target's start one ulp up."""
+    target = dataclasses.replace(scenario.target, start_m=_ulp(scenario.target.start_m, np.inf))
+    return dataclasses.replace(scenario, target=target)
 
 
 def fly_all(nudge=None) -> Figures:
@@ -115,7 +129,11 @@ def fly_under_kernel(kernel: str) -> Figures | None:
 
 def nudged_runs() -> dict[str, Figures]:
     """Every case flown under each nudge, by the nudge's description."""
-    runs = {"every vehicle's initial state one ulp up": fly_all(one_ulp_up)}
+    runs = {
+        "every vehicle's initial state one ulp up": fly_all(initial_states_one_ulp(np.inf)),
+        "every vehicle's initial state one ulp down": fly_all(initial_states_one_ulp(-np.inf)),
+        "the target's start one ulp up": fly_all(target_start_one_ulp_up),
+    }
     if platform.machine() in ("x86_64", "AMD64"):
         here = os.environ.get("OPENBLAS_CORETYPE")
         for kernel in KERNELS:
