@@ -280,7 +280,7 @@ def _run_dask(
                 key=f"fleetmpc-run-{a.index}-{a.attempts}",
                 pure=False,
                 workers=workers,
-                allow_other_workers=True,
+                allow_other_workers=workers is not None,
             )
             inflight[future.key] = (future, a)
             running.add(future)
