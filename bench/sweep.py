@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from fleetmpc.bench.step import load_average
-from fleetmpc.sim.engine import dask_available
+from fleetmpc.sim.engine import dask_available, local_cluster
 from fleetmpc.sim.sweep import gated_rows, sweep
 from fleetmpc.sim.sweep_figures import write_sweep_figures
 from fleetmpc.sim.sweep_grid import Axis, plan_runs
@@ -61,18 +61,10 @@ def _timed_sweep(specs, axes, folder: Path, **engine) -> float:
 
 
 def _throughput(scenario: str, *, jobs: int, repeats: int, tmp: Path) -> dict:
-    from distributed import LocalCluster
-
     axes = [Axis("controller.horizon", (4, 5, 6))]
     specs = plan_runs([scenario], axes, seeds=THROUGHPUT_RUNS // 3)
     times: dict[str, list[float]] = {"local": [], "dask": [], "dask_running": []}
-    cluster = LocalCluster(
-        n_workers=jobs,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=":0",
-    )
+    cluster = local_cluster(jobs)  # as the sweep starts one
     try:
         for k in range(repeats):
             order = ["local", "dask", "dask_running"]

@@ -35,6 +35,7 @@ __all__ = [
     "EngineLost",
     "Finished",
     "dask_available",
+    "local_cluster",
     "run_tasks",
 ]
 
@@ -83,6 +84,29 @@ def dask_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+"""Dask settings of the workers a sweep starts: no statistical profiler (a thread that samples
+the running run's stack every 10 ms and keeps an hour of it: time and memory a lockstep run
+needs for itself). Workers started by hand take it from the environment:
+``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` (docs/sweeps.md)."""
+
+
+def local_cluster(jobs: int) -> Any:
+    """A Dask `LocalCluster` of `jobs` single-threaded worker processes on loopback."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set(WORKER_CONFIG):
+        return LocalCluster(
+            n_workers=jobs,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        )
 
 
 def _pool_attempt(fly: Callable[[Any], dict], task: Any) -> tuple[dict, str]:
@@ -225,7 +249,7 @@ def _run_dask(
     scheduler: str | None,
     on_start: Callable[[str], None] | None,
 ) -> None:
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, as_completed
     from distributed.client import FutureCancelledError
 
     try:
@@ -235,14 +259,7 @@ def _run_dask(
 
     cluster = None
     if scheduler is None:
-        cluster = LocalCluster(
-            n_workers=jobs,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=":0",
-            silence_logs=logging.ERROR,
-        )
+        cluster = local_cluster(jobs)
         client = Client(cluster)
         where = f"a local Dask cluster of {jobs} workers at {cluster.scheduler_address}"
     else:
