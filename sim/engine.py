@@ -15,9 +15,11 @@ worker where the engine lets us choose (Dask: yes; the pool: whichever is free);
 failed row is handed back with its error.
 """
 
+import argparse
 import logging
 import os
 import socket
+import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -34,9 +36,13 @@ __all__ = [
     "MAX_ATTEMPTS",
     "EngineLost",
     "Finished",
+    "TimeLimitError",
+    "add_engine_arguments",
     "dask_available",
+    "engine_of",
     "local_cluster",
     "run_tasks",
+    "time_limit",
 ]
 
 ENGINES = ("dask", "local")
@@ -75,6 +81,50 @@ class _Attempt:
     attempts: int = 0
     first_error: str | None = None
     avoid: str | None = None
+
+
+class TimeLimitError(FleetMpcError):
+    """A run still flying when its time limit passed."""
+
+
+def time_limit(limit_s: float | None) -> Callable[[float, float], None] | None:
+    """A lockstep progress callback that stops the run (TimeLimitError) once `limit_s` of wall
+    time have passed; None without a limit."""
+    if limit_s is None:
+        return None
+    t0 = time.monotonic()
+
+    def check(done_s: float, total_s: float) -> None:
+        if time.monotonic() - t0 > limit_s:
+            raise TimeLimitError(
+                f"still flying after {limit_s:g} s of wall time ({done_s:.1f} of {total_s:g} s "
+                "simulated)"
+            )
+
+    return check
+
+
+def add_engine_arguments(parser: argparse.ArgumentParser, *, default: str) -> None:
+    """--engine and --scheduler, as `fleetmpc suite` and `fleetmpc sweep` take them."""
+    parser.add_argument(
+        "--engine",
+        choices=ENGINES,
+        default=None,
+        help=f"where the runs fly: dask (a local Dask cluster, or --scheduler's) or local (a"
+        f" process pool) (default: {default})",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="fly on a running Dask cluster (tcp://HOST:8786); implies --engine dask",
+    )
+
+
+def engine_of(args: argparse.Namespace, *, default: str) -> str:
+    """The engine the arguments ask for."""
+    if args.engine is None:
+        return "dask" if args.scheduler is not None else default
+    return args.engine
 
 
 def dask_available() -> bool:

@@ -40,13 +40,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.onboard.faults import FaultSchedule
 from fleetmpc.scenario import Scenario, load_scenario, toml_files
-from fleetmpc.sim import fault_matrix
-from fleetmpc.sim.engine import ENGINES, Finished, run_tasks
+from fleetmpc.sim import engine, fault_matrix
+from fleetmpc.sim.engine import Finished, run_tasks, time_limit
 from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = [
@@ -60,11 +60,8 @@ __all__ = [
     "REVERSALS_MAX_PER_VEHICLE_MIN",
     "SLOT_RMS_MAX_M",
     "SuiteTask",
-    "TimeLimitError",
     "add_arguments",
-    "add_engine_arguments",
     "apply_gates",
-    "engine_of",
     "error_row",
     "fly",
     "flew",
@@ -186,27 +183,6 @@ def flew(row: dict) -> bool:
     return "formation_rms_m" in row
 
 
-class TimeLimitError(FleetMpcError):
-    """A run still flying when its time limit passed."""
-
-
-def _time_limit(limit_s: float | None) -> Callable[[float, float], None] | None:
-    """A lockstep progress callback that stops the run (TimeLimitError) once `limit_s` of wall
-    time have passed; None without a limit."""
-    if limit_s is None:
-        return None
-    t0 = time.monotonic()
-
-    def check(done_s: float, total_s: float) -> None:
-        if time.monotonic() - t0 > limit_s:
-            raise TimeLimitError(
-                f"still flying after {limit_s:g} s of wall time ({done_s:.1f} of {total_s:g} s "
-                "simulated)"
-            )
-
-    return check
-
-
 def fly(task: SuiteTask) -> dict:
     """Fly one run (in a worker process): its row of plain numbers, or its error."""
 
@@ -236,7 +212,7 @@ def fly_row(
         except Exception as e:  # feasibility unknown; the run still flies
             feasible, check_error = None, f"check: {_error_text(e)}"
         rec = run_lockstep(
-            sc, learning=learning, seed=seed, faults=faults, progress=_time_limit(time_limit_s)
+            sc, learning=learning, seed=seed, faults=faults, progress=time_limit(time_limit_s)
         )
         m = compute_metrics(rec)
     except Exception as e:  # a crash is reported as a row; the other runs go on
@@ -430,31 +406,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="a scenario for the fault matrix (repeatable)",
     )
-    add_engine_arguments(parser, default="local")
+    engine.add_engine_arguments(parser, default="local")
     parser.add_argument("--quiet", action="store_true", help="no line per finished run")
-
-
-def add_engine_arguments(parser: argparse.ArgumentParser, *, default: str) -> None:
-    """--engine and --scheduler, as `fleetmpc suite` and `fleetmpc sweep` take them."""
-    parser.add_argument(
-        "--engine",
-        choices=ENGINES,
-        default=None,
-        help=f"where the runs fly: dask (a local Dask cluster, or --scheduler's) or local (a"
-        f" process pool) (default: {default})",
-    )
-    parser.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="fly on a running Dask cluster (tcp://HOST:8786); implies --engine dask",
-    )
-
-
-def engine_of(args: argparse.Namespace, *, default: str) -> str:
-    """The engine the arguments ask for."""
-    if args.engine is None:
-        return "dask" if args.scheduler is not None else default
-    return args.engine
 
 
 def failed_error(row: dict) -> str | None:
@@ -510,7 +463,7 @@ def run(args: argparse.Namespace) -> int:
         failed=failed_error,
         error_row=_task_error_row,
         on_finished=finished,
-        engine=engine_of(args, default="local"),
+        engine=engine.engine_of(args, default="local"),
         jobs=jobs,
         scheduler=args.scheduler,
     )

@@ -35,7 +35,14 @@ from rich.progress import (
 from fleetmpc.errors import ConfigError
 from fleetmpc.scenario import toml_files
 from fleetmpc.sim import suite
-from fleetmpc.sim.engine import EngineLost, Finished, dask_available, run_tasks
+from fleetmpc.sim.engine import (
+    EngineLost,
+    Finished,
+    add_engine_arguments,
+    dask_available,
+    engine_of,
+    run_tasks,
+)
 from fleetmpc.sim.sweep_figures import write_sweep_figures
 from fleetmpc.sim.sweep_grid import Axis, RunSpec, parse_vary, plan_runs, split_values
 from fleetmpc.sim.sweep_run import code_version, fly_spec, spec_row
@@ -99,7 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--jobs", type=int, default=None, metavar="J", help="local workers (default: CPUs)"
     )
-    suite.add_engine_arguments(parser, default="dask, or local without the cluster extra")
+    add_engine_arguments(parser, default="dask, or local without the cluster extra")
     parser.add_argument("--no-figures", action="store_true", help="the table only")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -261,7 +268,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--time-limit", f"must be > 0, got {args.time_limit}")
     if args.retry_failed and not args.resume:
         raise ConfigError("--retry-failed", "goes with --resume")
-    engine = suite.engine_of(args, default="dask" if dask_available() else "local")
+    engine = engine_of(args, default="dask" if dask_available() else "local")
     specs = plan_runs(
         _scenario_files(args.scenarios),
         axes,

@@ -179,7 +179,7 @@ def test_a_run_past_its_time_limit_fails_and_is_flown_once_more(tmp_path, capsys
     assert "TimeLimitError: still flying after 1e-06 s of wall time" in row["error"]
     assert "TimeLimitError" in row["first_error"]
     assert row["formation_rms_m"] is None and row["gates_failed"] == ["error"]
-    assert "failed: fleetmpc.sim.suite.TimeLimitError: still flying" in text
+    assert "failed: fleetmpc.sim.engine.TimeLimitError: still flying" in text
     # --resume leaves it failed; --retry-failed flies it again
     assert _sweep(out, "--seeds", "1", "--duration", "3", "--resume", "--engine", "local") == 1
     assert "1 done already, 0 to fly" in capsys.readouterr().out
