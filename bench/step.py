@@ -225,7 +225,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=2,
         metavar="J",
-        help="with --scale: worker processes of the second run of each size (default 2)",
+        help="with --scale: worker processes of the second run of each size; with --sweep:"
+        " workers of each engine (default 2)",
+    )
+    parser.add_argument(
+        "--sweep",
+        action="store_true",
+        help="instead: fleetmpc sweep's engines side by side on 48 runs, and memory over"
+        " --sweep-runs short runs (fleetmpc.bench.sweep)",
+    )
+    parser.add_argument(
+        "--sweep-runs",
+        type=int,
+        default=1000,
+        metavar="N",
+        help="with --sweep: runs of 10 s for the memory check (default 1000)",
     )
     parser.add_argument(
         "--gcs-logging",
@@ -261,8 +275,12 @@ def load_average() -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if sum(map(bool, (args.baseline, args.gcs_logging, args.scale))) > 1:
-        raise FleetMpcError("--baseline, --gcs-logging and --scale: one at a time")
+    if sum(map(bool, (args.baseline, args.gcs_logging, args.scale, args.sweep))) > 1:
+        raise FleetMpcError("--baseline, --gcs-logging, --scale and --sweep: one at a time")
+    if args.sweep:
+        from fleetmpc.bench import sweep as bench_sweep
+
+        return bench_sweep.run(args)
     if args.scale:
         from fleetmpc.bench import scale
 

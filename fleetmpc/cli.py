@@ -27,6 +27,10 @@ _COMMANDS: dict[str, tuple[str, str]] = {
         "fleetmpc.sim.suite",
         "fly every scenario of a folder over seeds, learning on and off; gates",
     ),
+    "sweep": (
+        "fleetmpc.sim.sweep",
+        "fly scenarios x varied fields x seeds on a cluster engine; a table and figures",
+    ),
     "sitl": (
         "fleetmpc.sitl.cli",
         "one simulated vehicle behind a PX4 or ArduPilot MAVLink interface",

@@ -3,8 +3,11 @@ and hold each run to the gates.
 
 Every ``*.toml`` in DIR (sorted) is flown in lockstep for seeds s, s + 1, ..., s + K - 1 (s the
 scenario's own seed) with learning on and off (only off when the file itself disables learning),
-one run per task on a process pool. Each task returns a row of plain numbers (the metrics the
-gates read, not the flight record). Gates (the constants below) are then applied to the rows:
+one run per task on the engine of `fleetmpc sweep` (`fleetmpc.sim.engine`: a process pool, or
+Dask with --engine dask or --scheduler ADDRESS); the suite is a sweep of no varied field. Each
+task returns a row of plain numbers (the metrics the gates read, not the flight record), through
+`fly_row`, which flies every sweep's runs too. Gates (the constants below) are then applied to
+the rows:
 
 - slot RMS: learning-on runs with a feasible target (`check_scenario`) hold formation_rms_m
   within `SLOT_RMS_MAX_M` (`PAPER_SLOT_RMS_MAX_M` for the paper scenario);
@@ -17,7 +20,8 @@ gates read, not the flight record). Gates (the constants below) are then applied
 - corner recovery: where the target turns corners, learning-on runs with a feasible target
   settle within `CORNER_RECOVERY_MAX_S` of each.
 
-A run that raises is a row with its error and fails the gate "error"; when only the feasibility
+A run that raises (or flies past a time limit) is flown once more; if it fails again it is a row
+with its error and fails the gate "error"; when only the feasibility
 check raises, the run still flies and its row carries the numbers, the check's error (gate
 "error") and feasible = None, judged by the other gates as if its target were feasible.
 
@@ -32,15 +36,17 @@ import math
 import os
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.onboard.faults import FaultSchedule
 from fleetmpc.scenario import Scenario, load_scenario, toml_files
-from fleetmpc.sim import fault_matrix
+from fleetmpc.sim import engine, fault_matrix
+from fleetmpc.sim.engine import Finished, run_tasks, time_limit
 from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = [
@@ -56,7 +62,10 @@ __all__ = [
     "SuiteTask",
     "add_arguments",
     "apply_gates",
+    "error_row",
     "fly",
+    "flew",
+    "fly_row",
     "format_table",
     "has_unmodeled_dynamics",
     "run",
@@ -158,43 +167,68 @@ def _error_text(error: BaseException) -> str:
     return traceback.format_exception_only(error)[-1].strip()
 
 
-def _error_row(task: SuiteTask, error: BaseException, *, wall_s: float) -> dict:
+def error_row(*, file: str, seed: int, learning: bool, error: str, wall_s: float) -> dict:
     """The row of a run that did not fly: no numbers, its error."""
     return {
-        "scenario": Path(task.path).stem,
-        "file": task.path,
-        "seed": task.seed,
-        "learning": task.learning,
-        "error": _error_text(error),
+        "scenario": Path(file).stem,
+        "file": file,
+        "seed": seed,
+        "learning": learning,
+        "error": error,
         "wall_s": wall_s,
     }
 
 
-def _flew(row: dict) -> bool:
+def flew(row: dict) -> bool:
     return "formation_rms_m" in row
 
 
 def fly(task: SuiteTask) -> dict:
     """Fly one run (in a worker process): its row of plain numbers, or its error."""
+
+    def load() -> tuple[Scenario, None]:
+        return load_scenario(task.path).with_overrides(duration_s=task.duration_s), None
+
+    return fly_row(load, file=task.path, seed=task.seed, learning=task.learning)
+
+
+def fly_row(
+    load: Callable[[], tuple[Scenario, FaultSchedule | None]],
+    *,
+    file: str,
+    seed: int,
+    learning: bool,
+    time_limit_s: float | None = None,
+) -> dict:
+    """Fly the scenario (and faults) `load` gives: the run's row of plain numbers, or
+    the row of its error (no numbers); a run past `time_limit_s` of wall time is stopped and
+    is an error. `fleetmpc suite` and `fleetmpc sweep` fly every run through here."""
     t0 = time.monotonic()
     check_error = None
     try:
-        sc = load_scenario(task.path).with_overrides(duration_s=task.duration_s)
+        sc, faults = load()
         try:
             feasible = check_scenario(sc).feasible
         except Exception as e:  # feasibility unknown; the run still flies
             feasible, check_error = None, f"check: {_error_text(e)}"
-        rec = run_lockstep(sc, learning=task.learning, seed=task.seed)
+        rec = run_lockstep(
+            sc, learning=learning, seed=seed, faults=faults, progress=time_limit(time_limit_s)
+        )
         m = compute_metrics(rec)
     except Exception as e:  # a crash is reported as a row; the other runs go on
-        return _error_row(task, e, wall_s=time.monotonic() - t0)
+        wall_s = time.monotonic() - t0
+        return error_row(
+            file=file, seed=seed, learning=learning, error=_error_text(e), wall_s=wall_s
+        )
     periods = len(rec.t_s)
     steps = periods * len(sc.vehicles)
+    beta = m["beta_error"]
+    ages = m["plan_age_s"] or {}
     return {
         "scenario": sc.name,
-        "file": task.path,
-        "seed": task.seed,
-        "learning": task.learning,
+        "file": file,
+        "seed": seed,
+        "learning": learning,
         "error": check_error,
         "vehicles": len(sc.vehicles),
         "d_safe_m": sc.controller.d_safe_m,
@@ -204,20 +238,30 @@ def fly(task: SuiteTask) -> dict:
         "periods": periods,
         "formation_rms_m": m["formation_rms_m"],
         "slot_rms_max_vehicle_m": m["slot_rms_max_vehicle_m"],
+        "separation_error_max_m": max(m["separation_error_m"], default=None),
+        "centre_distance_error_m": m["centre_distance_error_m"],
+        "c_norm_final": m["c_norm_final"],
         "min_separation_m": m["min_separation_m"],
+        "inputs_within_bounds": m["inputs_within_bounds"],
         "yaw_rate_reversals_per_vehicle_min": m["yaw_rate_reversals_per_vehicle_min"],
         "qp_fallbacks": m["qp_fallbacks"],
         "qp_fallback_fraction": m["qp_fallbacks"] / steps,
         "target_prediction_rms_m": m["target_prediction_rms_m"],
         "corners": m["corners"],
         "corner_recovery_s": m["corner_recovery_s"],
+        "beta_error_speed_max": max(b["speed_effectiveness"] for b in beta),
+        "beta_error_yaw_rate_max": max(b["yaw_rate_effectiveness"] for b in beta),
+        "beta_error_drift_max_m_s": max(b["drift_m_s"] for b in beta),
+        "plan_age_p99_s": ages.get("p99"),
+        "plan_age_max_s": ages.get("max"),
+        "plan_missing_fraction": ages.get("missing_fraction"),
         "wall_s": time.monotonic() - t0,
     }
 
 
 def _failures(row: dict) -> list[str]:
     failed = [] if row.get("error") is None else ["error"]
-    if not _flew(row):
+    if not flew(row):
         return failed
     judged = row["learning"] and row["feasible"] is not False  # unknown: judged
     limit = PAPER_SLOT_RMS_MAX_M if row["scenario"] == PAPER_SCENARIO else SLOT_RMS_MAX_M
@@ -246,13 +290,13 @@ def apply_gates(rows: list[dict]) -> list[dict]:
     """The rows with `learning_ratio` (learning-on rows: formation RMS over the learning-off
     run's of the same file and seed; None without one) and `gates_failed` (names from GATES)."""
     off = {
-        (r["file"], r["seed"]): r["formation_rms_m"] for r in rows if not r["learning"] and _flew(r)
+        (r["file"], r["seed"]): r["formation_rms_m"] for r in rows if not r["learning"] and flew(r)
     }
     out = []
     for r in rows:
         ratio = None
         base = off.get((r["file"], r["seed"]))
-        if r["learning"] and _flew(r) and base is not None and base > 0.0:
+        if r["learning"] and flew(r) and base is not None and base > 0.0:
             ratio = r["formation_rms_m"] / base
         r = {**r, "learning_ratio": ratio}
         out.append({**r, "gates_failed": _failures(r)})
@@ -284,7 +328,7 @@ _COLUMNS = (
 def _cells(r: dict) -> tuple[str, ...]:
     head = (r["scenario"], str(r["seed"]), "on" if r["learning"] else "off")
     verdict = ", ".join(r["gates_failed"]) or "ok"
-    if not _flew(r):
+    if not flew(r):
         return (*head, *("-" for _ in range(8)), verdict)
     corners = "-" if not r["corners"] else _number(r["corner_recovery_s"], ".1f")
     return (
@@ -306,7 +350,7 @@ def format_table(rows: list[dict]) -> str:
     whose feasibility is unknown (the check failed) '?'; the errors follow the table."""
     marks = {False: " *", None: " ?"}
     cells = [
-        (c[0] + (marks.get(r["feasible"], "") if _flew(r) else ""), *c[1:])
+        (c[0] + (marks.get(r["feasible"], "") if flew(r) else ""), *c[1:])
         for r, c in ((r, _cells(r)) for r in rows)
     ]
     names = [name for name, _ in _COLUMNS]
@@ -315,7 +359,7 @@ def format_table(rows: list[dict]) -> str:
     for line in (names, *cells):
         parts = [f"{x:{align}{w}}" for x, (_, align), w in zip(line, _COLUMNS, widths, strict=True)]
         lines.append("  ".join(parts).rstrip())
-    feasibility = {r["feasible"] for r in rows if _flew(r)}
+    feasibility = {r["feasible"] for r in rows if flew(r)}
     if False in feasibility:
         lines.append("* infeasible target (fleetmpc check): slot RMS, ratio and corner gates off")
     if None in feasibility:
@@ -362,13 +406,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="a scenario for the fault matrix (repeatable)",
     )
+    engine.add_engine_arguments(parser, default="local")
     parser.add_argument("--quiet", action="store_true", help="no line per finished run")
+
+
+def failed_error(row: dict) -> str | None:
+    """The error of a run that did not fly (its row has no numbers); None when it flew."""
+    return None if flew(row) else (row.get("error") or "failed")
+
+
+def _task_error_row(task: SuiteTask, error: str) -> dict:
+    return error_row(
+        file=task.path, seed=task.seed, learning=task.learning, error=error, wall_s=0.0
+    )
 
 
 def _progress(done: int, total: int, row: dict) -> str:
     head = f"[{done}/{total}] {row['scenario']} seed {row['seed']} "
     head += f"learning {'on' if row['learning'] else 'off'}"
-    if not _flew(row):
+    if not flew(row):
         return f"{head}: ERROR {row['error']}"
     line = (
         f"{head}: formation RMS {row['formation_rms_m']:.3f} m, "
@@ -394,18 +450,23 @@ def run(args: argparse.Namespace) -> int:
     tasks = suite_tasks(paths, seeds=args.seeds, duration_s=args.duration)
     t0 = time.monotonic()
     results: dict[SuiteTask, dict] = {}
-    with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
+
+    def finished(done: Finished) -> None:
+        results[done.task] = done.row
+        if not args.quiet:
+            print(_progress(len(results), len(tasks), done.row), flush=True)
+
+    run_tasks(
+        fly,
         # the longest runs first, so that none starts late while the other workers stand idle
-        futures = {pool.submit(fly, t): t for t in sorted(tasks, key=lambda t: -t.duration_s)}
-        for future in as_completed(futures):
-            task = futures[future]
-            try:
-                row = future.result()
-            except Exception as e:  # the worker itself died (BrokenProcessPool)
-                row = _error_row(task, e, wall_s=time.monotonic() - t0)
-            results[task] = row
-            if not args.quiet:
-                print(_progress(len(results), len(tasks), row), flush=True)
+        sorted(tasks, key=lambda t: -t.duration_s),
+        failed=failed_error,
+        error_row=_task_error_row,
+        on_finished=finished,
+        engine=engine.engine_of(args, default="local"),
+        jobs=jobs,
+        scheduler=args.scheduler,
+    )
     wall_s = time.monotonic() - t0
     rows = apply_gates([results[t] for t in tasks])
     print(format_table(rows))
