@@ -227,10 +227,22 @@ class GroundStation:
             sink.open(self.live.constants(), self.run_info)
 
     def close_sinks(self) -> None:
-        """Close the sinks: everything given to them is written."""
+        """Close the sinks: everything given to them is written, and the facts of the run's
+        end (`run_end_facts`)."""
+        facts = self.run_end_facts()
         for sink in self.sinks:
+            sink.finish(facts)
             sink.close()
         self.sinks = []
+
+    def run_end_facts(self) -> dict:
+        """What the metrics say of the run beside its record: the periods recorded of those
+        expected, and the vehicles recorded from their simulator's ground truth."""
+        return {
+            "periods_recorded": min(self.live.complete_periods(), self.periods),
+            "periods_expected": self.periods,
+            "ground_truth": sorted(v for v, link in self.links.items() if link.ground_truth),
+        }
 
     def flush(self, *, final: bool = False) -> None:
         """Give the sinks what arrived since the last flush: the events, and the samples of the
@@ -290,9 +302,7 @@ class GroundStation:
             **self.run_info,
             "duration_s": float(rec.t_s[-1]),
             **compute_metrics(rec),
-            "periods_recorded": periods,
-            "periods_expected": self.periods,
-            "ground_truth": sorted(v for v, link in self.links.items() if link.ground_truth),
+            **self.run_end_facts(),
         }
 
 
