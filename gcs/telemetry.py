@@ -3,8 +3,9 @@
 The lockstep simulation and the live ground station both describe a run as `PeriodSample`s, one
 per control period (every vehicle's pose, command, first correction c_0, learned β, QP status,
 step time, plan, neighbour plan ages and setpoint rate; the target and the slots; the minimum
-separation known so far), and hand them to `TelemetrySink`s: opened with the run's constants,
-given samples and events, flushed, closed. A sink is chosen by URL, as the links are:
+separation known so far; the first agent's target prediction and the ground side's), and hand
+them to `TelemetrySink`s: opened with the run's constants, given samples and events, flushed,
+told the facts of the run's end, closed. A sink is chosen by URL, as the links are:
 
 - ``memory:`` keeps the samples; `MemorySink.record` stacks them into the `FlightRecord` the
   metrics and the figures read;
@@ -205,9 +206,10 @@ class MemorySink:
 
 class RerunSink:
     """A Rerun recording (a `.rrd` file, a viewer, or both): samples are kept until `flush`,
-    which logs the map of the new periods; the time series, the flight_record rows and the QP
-    events go out every `series_every` flushes that had new periods, and at `close`. A logging
-    call costs per entity, not per row, so bigger slices cost less per period."""
+    which logs the map of the new periods, each at its own time; the time series, the
+    flight_record rows and the QP events go out every `series_every` flushes that had new
+    periods, and at `close`. A logging call costs per entity, not per row, so bigger slices
+    cost less per period."""
 
     def __init__(
         self,
