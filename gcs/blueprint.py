@@ -2,7 +2,8 @@
 and line names logged once when a recording opens.
 
 Each vehicle keeps one colour everywhere (its point, heading, trail, slot and plan on the map,
-its line in every per-vehicle series); a series of pairs takes the colours after the vehicles'.
+its line in every per-vehicle series, and in the report's figures: `fleetmpc.gcs.palette`); a
+series of pairs takes the colours after the vehicles'.
 The map takes two fifths of the width above the event log; the time series sit in two columns
 beside it, the legends of the many-line panels hidden so they do not cover the plot (a line
 names itself on hover). `fleetmpc.gcs.recording` logs the data on these entities.
@@ -12,6 +13,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from fleetmpc.gcs.metrics import pair_indices
+from fleetmpc.gcs.palette import CENTRE_RGB, pair_colour, vehicle_colour
 
 __all__ = [
     "BETA_SERIES",
@@ -29,22 +31,6 @@ of every vehicle, then the second, learned; then the same of the truth."""
 _BETA_LINE_NAMES = ("speed", "yaw rate", "drift North", "drift East")
 TRAIL_WINDOW_S = 20.0
 """Default length of the trail the map shows behind each vehicle [s]."""
-
-
-_RGB = (
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (188, 189, 34),
-)
-
-
-def _colour(i: int) -> tuple[int, int, int]:
-    return _RGB[i % len(_RGB)]
 
 
 def fleet_blueprint(
@@ -99,19 +85,19 @@ def fleet_blueprint(
 def _series_names(ids: tuple[int, ...]) -> dict[str, tuple[list[str], list[tuple[int, ...]]]]:
     """Line names and colours of every multi-line series entity (logged once, static)."""
     uav = [f"UAV {v}" for v in ids]
-    rgb = [_colour(i) for i in range(len(ids))]
+    rgb = [vehicle_colour(i) for i in range(len(ids))]
     pairs = pair_indices(len(ids))
     out = {
-        "series/centre_distance": (["centre distance"], [(23, 190, 207)]),
+        "series/centre_distance": (["centre distance"], [CENTRE_RGB]),
         "series/separation": (
             [f"{ids[a]}-{ids[b]}" for a, b in pairs],
-            [_colour(len(ids) + p) for p in range(len(pairs))],
+            [pair_colour(p, vehicles=len(ids)) for p in range(len(pairs))],
         ),
     }
     out["series/setpoint_rate"] = (uav, rgb)
     out["series/plan_age"] = (
         [f"UAV {v} sees {o}" for v in ids for o in ids if o != v],
-        [_colour(i) for i, v in enumerate(ids) for o in ids if o != v],
+        [vehicle_colour(i) for i, v in enumerate(ids) for o in ids if o != v],
     )
     for name in _PER_VEHICLE_SERIES:
         out[f"series/{name}"] = (uav, rgb)
@@ -129,7 +115,7 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) -> Non
     flies, so that the first logging calls of a process, which are slow, are not paid in
     flight)."""
     ids = vehicle_ids
-    rgb = [_colour(i) for i in range(len(ids))]
+    rgb = [vehicle_colour(i) for i in range(len(ids))]
     stream.log(
         "map/vehicles",
         rr.Points2D.from_fields(colors=rgb, labels=[f"UAV {v}" for v in ids], radii=[-4.0]),

@@ -1,4 +1,7 @@
-"""The paper's Figs. 1-4 (and the learned parameters) from a FlightRecord, as PNG files."""
+"""The paper's Figs. 1-4 (and the learned parameters) from a FlightRecord, as PNG files.
+
+Each vehicle, and each pair, wears the colour it has in the viewer (`fleetmpc.gcs.palette`); a
+legend is drawn only where its colours do not repeat."""
 
 from pathlib import Path
 
@@ -9,6 +12,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fleetmpc.gcs.metrics import pair_indices  # noqa: E402
+from fleetmpc.gcs.palette import (  # noqa: E402
+    CENTRE_RGB,
+    PALETTE_RGB,
+    as_unit_rgb,
+    pair_colour,
+    vehicle_colour,
+)
 from fleetmpc.gcs.record import FlightRecord  # noqa: E402
 
 __all__ = ["FIGURE_FILES", "write_figures"]
@@ -20,20 +30,18 @@ FIGURE_FILES = (
     "fig4_centre_distance.png",
     "fig5_beta.png",
 )
-_COLOURS = (
-    "tab:red",
-    "tab:blue",
-    "tab:green",
-    "tab:orange",
-    "tab:purple",
-    "tab:brown",
-    "tab:pink",
-    "tab:olive",
-)
 
 
-def _colour(i: int) -> str:
-    return _COLOURS[i % len(_COLOURS)]
+def _colour(i: int) -> tuple[float, float, float]:
+    """Vehicle i's colour: the viewer's (`fleetmpc.gcs.palette`)."""
+    return as_unit_rgb(vehicle_colour(i))
+
+
+def _legend(ax, entries: int, **kwargs) -> None:
+    """A legend, unless its `entries` coloured lines would repeat a colour of the palette (a
+    large fleet: the lines are then told apart on the map, as the viewer hides such legends)."""
+    if entries <= len(PALETTE_RGB):
+        ax.legend(**kwargs)
 
 
 def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
@@ -51,12 +59,13 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
         ax.plot(pos[:, i, 1], pos[:, i, 0], color=_colour(i), label=f"UAV {vid}")
         ax.plot(pos[0, i, 1], pos[0, i, 0], "o", color=_colour(i))
     ax.plot(rec.target[:, 1], rec.target[:, 0], "k-", label="target")
-    ax.plot(centre[:, 1], centre[:, 0], "m--", label="formation centre")
+    centre_colour = as_unit_rgb(CENTRE_RGB)
+    ax.plot(centre[:, 1], centre[:, 0], "--", color=centre_colour, label="formation centre")
     ax.set_xlabel("East y [m]")
     ax.set_ylabel("North x [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_title(f"{rec.scenario}: paths")
-    ax.legend(loc="best", fontsize=8)
+    _legend(ax, len(ids), loc="best", fontsize=8)
     paths.append(_save(fig, out / FIGURE_FILES[0]))
 
     # Fig. 2: the MPC's decision variables c_i (first of the horizon).
@@ -67,26 +76,29 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
     axes[0].set_ylabel("c speed [m/s]")
     axes[1].set_ylabel("c yaw rate [rad/s]")
     axes[1].set_xlabel("t [s]")
-    axes[0].legend(fontsize=8)
+    _legend(axes[0], len(ids), fontsize=8)
     axes[0].set_title("MPC inputs c_i (converge to 0 at steady state)")
     paths.append(_save(fig, out / FIGURE_FILES[1]))
 
     # Fig. 3: neighbour separations against their desired values.
     fig, ax = plt.subplots(figsize=(7, 4))
-    for k, (a, b) in enumerate(pair_indices(len(ids))):
+    pairs = pair_indices(len(ids))
+    for k, (a, b) in enumerate(pairs):
         d = np.linalg.norm(pos[:, a] - pos[:, b], axis=1)
-        ax.plot(rec.t_s, d, color=_colour(k), label=f"UAV {ids[a]}-{ids[b]}")
-        ax.axhline(rec.desired_distance_m[a, b], color=_colour(k), ls=":", lw=0.8)
+        colour = as_unit_rgb(pair_colour(k, vehicles=len(ids)))
+        ax.plot(rec.t_s, d, color=colour, label=f"UAV {ids[a]}-{ids[b]}")
+        ax.axhline(rec.desired_distance_m[a, b], color=colour, ls=":", lw=0.8)
     ax.axhline(rec.d_safe_m, color="k", ls="--", lw=0.8, label="d_safe")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("separation [m]")
     ax.set_title("separation between vehicles (dotted: desired)")
-    ax.legend(fontsize=8)
+    _legend(ax, len(pairs), fontsize=8)
     paths.append(_save(fig, out / FIGURE_FILES[2]))
 
     # Fig. 4: target to formation-centre distance.
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(rec.t_s, np.linalg.norm(centre - rec.target, axis=1), "m", label="|centre - target|")
+    distance = np.linalg.norm(centre - rec.target, axis=1)
+    ax.plot(rec.t_s, distance, color=centre_colour, label="|centre - target|")
     ax.axhline(rec.trail_m, color="k", ls=":", label="d_s")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("distance [m]")
@@ -109,7 +121,7 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
         ax.set_title(names[p], fontsize=9)
     for ax in axes[1]:
         ax.set_xlabel("t [s]")
-    axes[0, 0].legend(fontsize=7)
+    _legend(axes[0, 0], len(ids), fontsize=7)
     fig.suptitle("learned parameters (solid) against truth (dotted)")
     paths.append(_save(fig, out / FIGURE_FILES[4]))
     return paths

@@ -16,7 +16,13 @@ What each FlightRecord field holds in a live run:
   input is the command the agent sent), held from the previous period if that plan is missing;
 - `c`: only the norm of c_0 travels on the wire; it is stored in the first component;
 - `beta`: the latest status at or before the period;
-- `min_separation_m`: over the telemetry interpolated on the plant tick of the scenario.
+- `min_separation_m`: over the telemetry interpolated on the plant tick of the scenario;
+- `plan_age_s`: the ages of the neighbours' plans in the latest status at or before the period;
+- `target_prediction`: NaN (the agents do not send theirs).
+
+Beside the record, `live_rows` gives each period's plans, setpoint rates and the ground
+station's own prediction of the target over the horizon, made at the period's time from every
+observation stamped at or before it.
 """
 
 import math
@@ -86,7 +92,7 @@ class _Track:
     """What the unwrapping adds to the newest sample's raw yaw [rad]."""
 
 
-_RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta")
+_RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta", "plan_age_s")
 """Per-period FlightRecord fields built from what was received."""
 _LIVE_FIELDS = ("plans", "setpoint_rate_hz", "plan_age_s")
 """Received per-period fields that are not in a FlightRecord (see `LiveRows`)."""
@@ -131,12 +137,16 @@ class LiveRecord:
         ]
         """Per vehicle, the column of each other vehicle in its plan ages."""
         self._scenario_rows = ScenarioRows(scenario)
+        horizon = scenario.controller.horizon
         self._target = TargetEstimator(
             observation_std_m=max(scenario.target.observation_noise_m, 1e-3)
         )
         self.target_observations = 0
-        self._target_pending: TargetObservation | None = None
-        horizon = scenario.controller.horizon
+        self._target_pending: list[tuple[int, TargetObservation]] = []
+        """Observations not fused yet, by stamp."""
+        self._target_paths = Growable((0, horizon + 1, 2), fill=math.nan)
+        """The ground station's target prediction at each period's time, for the periods
+        predicted so far (NaN before the first observation)."""
         self._no_plan = [math.nan] * 2 * (horizon + 1)
         self._plan_table = Growable((0, n, _PLAN_COLUMNS + 2 * (horizon + 1)), fill=math.nan)
         self._status_table = Growable((0, n, _STATUS_COLUMNS + max(n - 1, 0)), fill=math.nan)
@@ -218,12 +228,10 @@ class LiveRecord:
         return k
 
     def add_target(self, message: TargetObservation) -> None:
-        """A target observation. Only the newest one is kept until `target_prediction` fuses it:
-        the prediction is for display, once per flush, and the filter costs some 30 us per
-        observation."""
-        newest = self._target_pending
-        if newest is None or message.stamp_ns > newest.stamp_ns:
-            self._target_pending = message
+        """A target observation, kept until the prediction of the first period at or after its
+        stamp fuses it (one that comes after that period was predicted is fused with the next
+        one's, or dropped by the filter if it is older than one it has)."""
+        insort(self._target_pending, (message.stamp_ns, message), key=lambda p: p[0])
         self.target_observations += 1
 
     # -- queries ----------------------------------------------------------------------------------
@@ -250,18 +258,28 @@ class LiveRecord:
         track = self._tracks[vehicle_id]
         return track.plans[track.plan_periods[-1]] if track.plans else None
 
-    def target_prediction(self, stamp_ns: int) -> np.ndarray | None:
-        """The ground station's own prediction of the target over the horizon (the coordinated-turn
-        filter of the agents)."""
-        pending, self._target_pending = self._target_pending, None
-        if pending is not None:
-            self._target.observe(pending.stamp_ns, np.array([pending.north_m, pending.east_m]))
-        if not self._target.ready:
-            return None
-        pos, _ = self._target.predict(
-            stamp_ns, self.period_ns, self.scenario.controller.horizon + 1
-        )
-        return pos
+    def target_paths(self, periods: int) -> np.ndarray:
+        """The ground station's own prediction of the target over the horizon (the coordinated-
+        turn filter of the agents) at the time of each of the first `periods` periods
+        (periods, M + 1, 2) North, East [m], NaN before the first observation. Each period's
+        is made once, from the observations stamped at or before its time received by then."""
+        done = self._target_paths.count
+        if periods > done:
+            count = self.scenario.controller.horizon + 1
+            rows = np.full((periods - done, count, 2), np.nan)
+            pending = self._target_pending
+            for j, k in enumerate(range(done, periods)):
+                stamp_ns = k * self.period_ns
+                fused = 0
+                while fused < len(pending) and pending[fused][0] <= stamp_ns:
+                    m = pending[fused][1]
+                    self._target.observe(m.stamp_ns, np.array([m.north_m, m.east_m]))
+                    fused += 1
+                del pending[:fused]
+                if self._target.ready:
+                    rows[j], _ = self._target.predict(stamp_ns, self.period_ns, count)
+            self._target_paths.append(rows)
+        return self._target_paths.array[:periods]
 
     # -- the record -------------------------------------------------------------------------------
     def _convert_samples(self) -> None:
@@ -437,6 +455,7 @@ class LiveRecord:
             t_s=np.arange(first, k_n) * self.period_ns * 1e-9,
             **rows,
             min_separation_m=float(min_separation),
+            target_prediction=np.full((k_n - first, 2), np.nan),
             **self._constant_fields,
             desired_distance_m=self._desired_distance_m.copy(),
         )
@@ -452,16 +471,16 @@ class LiveRecord:
             speed_max_m_s=sc.controller.speed_max_m_s,
             yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
             d_safe_m=sc.controller.d_safe_m,
+            prediction_horizon_periods=sc.controller.horizon,
         )
 
     def live_rows(self, start: int, periods: int, *, copy: bool = True) -> LiveRows:
-        """Plans, setpoint rates and plan ages of periods `start` .. `periods` - 1, and the
-        target prediction at the last of them (what the ground station logs beside the
-        record's slice); with `copy` False, views as `record` gives them."""
+        """Plans, setpoint rates, plan ages and the target predictions of periods `start` ..
+        `periods` - 1 (what the ground station logs beside the record's slice); with `copy`
+        False, views as `record` gives them."""
         if not 0 <= start < periods:
             raise ValueError(f"no periods in {start} .. {periods - 1}")
         self._update_cache(periods)
         rows = self._received(start, periods, _LIVE_FIELDS, copy=copy)
-        return LiveRows(
-            **rows, target_prediction=self.target_prediction((periods - 1) * self.period_ns)
-        )
+        paths = self.target_paths(periods)[start:]
+        return LiveRows(**rows, target_path=paths.copy() if copy else paths)

@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["PERIOD_FIELDS", "FlightRecord", "LiveRows", "RunConstants"]
+__all__ = ["PERIOD_FIELDS", "FlightRecord", "LiveRows", "RunConstants", "period_rows"]
 
 PERIOD_FIELDS = (
     "truth",
@@ -20,9 +20,12 @@ PERIOD_FIELDS = (
     "qp_ok",
     "step_time_ms",
     "slot_offsets_world",
+    "target_prediction",
+    "plan_age_s",
 )
 """The FlightRecord fields with one row per period (besides `t_s`), in the order a recording
-stores them."""
+stores them. The last two are optional in a FlightRecord (None: not recorded); a recording
+stores NaN for them then (`period_rows`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +69,8 @@ class FlightRecord:
     d_safe_m: float
     target_prediction: np.ndarray | None = None
     """The first agent's prediction of the target's position at the end of its horizon, made at
-    each period (K, 2) [m]; nan while it has no target; None when the run did not record it."""
+    each period (K, 2) [m]; nan while it has no target (and throughout a live run: the agents do
+    not send it); None when the run did not record it."""
     prediction_horizon_periods: int = 0
     """How many periods ahead `target_prediction` looks (the controller's horizon M)."""
     plan_age_s: np.ndarray | None = None
@@ -82,7 +86,8 @@ class LiveRows:
     """What only a live run adds to the periods of a FlightRecord slice (K rows, N vehicles).
 
     Each row holds what the ground station had received for that period: the plan stamped at
-    it (held from an earlier period if it is missing) and the latest status at or before it.
+    it (held from an earlier period if it is missing), the latest status at or before it, and
+    its prediction of the target from the observations stamped at or before it.
     """
 
     plans: np.ndarray
@@ -92,9 +97,9 @@ class LiveRows:
     plan_age_s: np.ndarray
     """Age of each other vehicle's plan as vehicle i sees it (K, N, N - 1) [s], the others in
     fleet order; nan where not reported."""
-    target_prediction: np.ndarray | None
-    """The ground station's prediction of the target over the horizon (M + 1, 2) North, East
-    [m], made at the last row's time (None without a target observation)."""
+    target_path: np.ndarray
+    """The ground side's prediction of the target over the horizon, made at each row's time
+    (K, M + 1, 2) North, East [m]; NaN in rows before its first target observation."""
 
     @classmethod
     def blank(cls, periods: int, vehicles: int) -> "LiveRows":
@@ -103,7 +108,7 @@ class LiveRows:
             plans=np.full((periods, vehicles, 1, 2), np.nan),
             setpoint_rate_hz=np.full((periods, vehicles), np.nan),
             plan_age_s=np.full((periods, vehicles, max(vehicles - 1, 0)), np.nan),
-            target_prediction=None,
+            target_path=np.full((periods, 1, 2), np.nan),
         )
 
 
@@ -121,6 +126,9 @@ class RunConstants:
     speed_max_m_s: float
     yaw_rate_max_rad_s: float
     d_safe_m: float
+    prediction_horizon_periods: int = 0
+    """How many periods ahead the record's `target_prediction` looks (the controller's horizon
+    M)."""
 
     @classmethod
     def of(cls, rec: FlightRecord) -> "RunConstants":
@@ -130,3 +138,14 @@ class RunConstants:
     def as_fields(self) -> dict:
         """The constants by FlightRecord field name."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def period_rows(rec: FlightRecord, name: str) -> np.ndarray:
+    """The per-period field `name` of PERIOD_FIELDS: NaN rows of its shape where an optional
+    one (`target_prediction`, `plan_age_s`) was not recorded."""
+    value = getattr(rec, name)
+    if value is not None:
+        return np.asarray(value)
+    k, n = rec.truth.shape[:2]
+    shape = (k, 2) if name == "target_prediction" else (k, n, max(n - 1, 0))
+    return np.full(shape, np.nan)

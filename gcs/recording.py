@@ -23,11 +23,17 @@ a lockstep and a live run:
   coloured by a static SeriesLines;
 - `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
 - `map/plans` (each agent's planned horizon, LineStrips2D), `map/target_prediction` (the
-  ground side's prediction of the target over the horizon), `series/plan_age` [s] (one line per
-  vehicle and neighbour) and `series/setpoint_rate` [Hz];
-- `meta` (static AnyValues) and `flight_record` (AnyValues: one `periods` column, a float64
-  list per period that packs every per-period FlightRecord field in `record_layout`'s order):
-  what `fleetmpc.gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
+  ground side's prediction of the target over the horizon, made at each period's time from the
+  observations stamped up to it), `series/plan_age` [s] (one line per vehicle and neighbour)
+  and `series/setpoint_rate` [Hz];
+- `meta` (static AnyValues), `flight_record` (AnyValues: one `periods` column, a float64
+  list per period that packs every per-period FlightRecord field in `record_layout`'s order)
+  and `run_end` (static AnyValues, logged at the end: what the plan bus did): what
+  `fleetmpc.gcs.rrd_reader` needs to rebuild the FlightRecord bit for bit.
+
+Every per-period item is logged at its own period's time, whenever the slice that holds it
+goes out; events carry their own time too, which for a live run's events before the fleet
+clock started is negative (fleet time runs back from the epoch at the run's speed).
 
 Map frame: the viewer's 2-D x is East and its y is South (the viewer's y points down), so North
 is up on screen, as in the paper's Fig. 1. `map_from_ned` is the only place that conversion lives.
@@ -43,15 +49,17 @@ import rerun as rr
 
 from fleetmpc.gcs.blueprint import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, fleet_blueprint
 from fleetmpc.gcs.metrics import pair_indices
-from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants
+from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants, period_rows
 from fleetmpc.gcs.viewer import spawn_viewer as spawn_viewer_process
 
 __all__ = [
     "APPLICATION_ID",
+    "LEGACY_RECORD_ARRAYS",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
     "RECORD_COLUMN",
     "log_events",
+    "log_run_end",
     "log_map",
     "log_series",
     "log_meta",
@@ -64,6 +72,9 @@ __all__ = [
 APPLICATION_ID = "fleetmpc"
 RECORD_ARRAYS = PERIOD_FIELDS
 """Per-period FlightRecord fields stored losslessly under `flight_record`."""
+LEGACY_RECORD_ARRAYS = RECORD_ARRAYS[:-2]
+"""The `flight_record` parts of a recording whose `meta` has no `prediction_horizon_periods`
+(written before the agents' target prediction and plan ages were in it)."""
 RECORD_COLUMN = "periods"
 """The `flight_record` component: one float64 list per period, the parts of `record_layout`
 one after the other (qp_ok as 1.0 / 0.0)."""
@@ -73,9 +84,12 @@ was logged (a growing record logs it with every slice, so the newest row has the
 It is the only copy: `meta` holds what does not change."""
 
 
-def record_layout(n_vehicles: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
+def record_layout(
+    n_vehicles: int, *, arrays: tuple[str, ...] = RECORD_ARRAYS
+) -> tuple[tuple[str, tuple[int, ...]], ...]:
     """(name, per-period shape) of each part of a `flight_record` row, in order, for N vehicles:
-    the RECORD_ARRAYS, then MIN_SEPARATION_COLUMN (one value)."""
+    the `arrays` (RECORD_ARRAYS; a recording made before they held the agents' target
+    prediction and plan ages, `LEGACY_RECORD_ARRAYS`), then MIN_SEPARATION_COLUMN."""
     n = n_vehicles
     shapes = {
         "truth": (n, 3),
@@ -89,8 +103,10 @@ def record_layout(n_vehicles: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
         "qp_ok": (n,),
         "step_time_ms": (n,),
         "slot_offsets_world": (n, 2),
+        "target_prediction": (2,),
+        "plan_age_s": (n, max(n - 1, 0)),
     }
-    return (*((name, shapes[name]) for name in RECORD_ARRAYS), (MIN_SEPARATION_COLUMN, (1,)))
+    return (*((name, shapes[name]) for name in arrays), (MIN_SEPARATION_COLUMN, (1,)))
 
 
 _HEADING_ARROW_M = 2.0
@@ -179,6 +195,7 @@ def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: d
             speed_max_m_s=np.array([c.speed_max_m_s], dtype=np.float64),
             yaw_rate_max_rad_s=np.array([c.yaw_rate_max_rad_s], dtype=np.float64),
             d_safe_m=np.array([c.d_safe_m], dtype=np.float64),
+            prediction_horizon_periods=np.array([c.prediction_horizon_periods], dtype=np.int64),
             run_info_json=json.dumps(run_info, sort_keys=True),
         ),
         static=True,
@@ -188,7 +205,7 @@ def log_meta(stream: rr.RecordingStream, constants: RunConstants, *, run_info: d
 def _record_rows(columns: _Slice, rec: FlightRecord) -> None:
     """The record's periods as `flight_record` rows (`record_layout`)."""
     rows = columns.rows
-    parts = [np.asarray(getattr(rec, name)).reshape(rows, -1) for name in RECORD_ARRAYS]
+    parts = [period_rows(rec, name).reshape(rows, -1) for name in RECORD_ARRAYS]
     parts.append(np.full((rows, 1), rec.min_separation_m))
     packed = np.concatenate(parts, axis=1, dtype=np.float64)
     columns.values("flight_record", RECORD_COLUMN, packed)
@@ -243,19 +260,19 @@ def _series(columns: _Slice, rec: FlightRecord) -> None:
 
 
 def _live_map(columns: _Slice, live: LiveRows) -> None:
-    """Plans and the target prediction of a slice's live rows."""
+    """Plans and the target predictions of a slice's live rows."""
     plans = live.plans
-    k = plans.shape[0]
     has = np.isfinite(plans).all(axis=(2, 3))  # (K, N)
     # Rows where no vehicle has a plan are not logged; in the others a vehicle without one has
     # an empty strip.
     present = has.any(axis=1)
     if present.any():
         columns.strips("map/plans", map_from_ned(plans[present]), rows=present)
-    if live.target_prediction is not None:
-        prediction = map_from_ned(np.asarray(live.target_prediction))
-        # The prediction is made at the last row's time.
-        columns.strips("map/target_prediction", prediction[None, None], rows=np.array([k - 1]))
+    # Each row's prediction, made at its own time; rows before the first observation have none.
+    known = np.isfinite(live.target_path).all(axis=(1, 2))
+    if known.any():
+        path = map_from_ned(live.target_path[known])[:, None]  # (rows, 1 strip, M + 1, 2)
+        columns.strips("map/target_prediction", path, rows=known)
 
 
 def _live_series(columns: _Slice, live: LiveRows) -> None:
@@ -309,7 +326,7 @@ def _qp_events(
 def log_map(stream: rr.RecordingStream, rec: FlightRecord, live: LiveRows, *, head: bool) -> None:
     """The map of a slice of periods: the record's rows (with `head`, the first is only where
     the trail's first step starts: the period before the slice) and the live rows of the
-    periods logged (plans, and the target prediction at the last)."""
+    periods logged (plans, and each period's target prediction)."""
     start = 1 if head else 0
     columns = _Slice(stream, sim_time_ns(rec.t_s[start:]))
     _map(columns, rec, start=start)
@@ -327,6 +344,12 @@ def log_series(
     _series(columns, rec)
     _live_series(columns, live)
     log_events(stream, _qp_events(rec, t_ns=t_ns, run_start=run_start))
+
+
+def log_run_end(stream: rr.RecordingStream, facts: dict) -> None:
+    """The static `run_end`: facts about the run known only when it ends (JSON-able: what the
+    plan bus did), logged before the recording closes."""
+    stream.log("run_end", rr.AnyValues(run_end_json=json.dumps(facts, sort_keys=True)), static=True)
 
 
 def open_recording(

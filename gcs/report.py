@@ -1,7 +1,9 @@
 """`fleetmpc report RUN.rrd --out DIR`: the paper's figures and the metrics from a recording.
 
 The recording is read back into a FlightRecord (`fleetmpc.gcs.rrd_reader`), then the same
-`write_figures` and `compute_metrics` as `fleetmpc sim` run on it.
+`write_figures` and `compute_metrics` as `fleetmpc sim` run on it: the metrics are those `sim
+--metrics` (or the ground station's `--metrics`) wrote for the same run, with the facts logged
+at its start and end (a live run's periods recorded), and the recording's id.
 """
 
 import argparse
@@ -33,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
         "duration_s": float(rec.t_s[-1]),
         "recording_id": loaded.recording_id,
         **compute_metrics(rec),
+        **{k: v for k, v in loaded.run_end.items() if k != "network"},
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

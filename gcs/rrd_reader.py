@@ -4,7 +4,9 @@ Reads the `meta` and `flight_record` entities with rerun-sdk's chunk reader
 (`rr.chunk.RrdReader(path).stream()`); each `flight_record` row is unpacked by
 `fleetmpc.gcs.recording.record_layout`, the float64 arrays come back bit for bit, and the sample
 times as `sim_time` nanoseconds * 1e-9 (exactly the lockstep's `t_s`). The run's minimum separation
-is the newest row's `min_separation_known_m` (a live recording grows in slices).
+is the newest row's `min_separation_known_m` (a live recording grows in slices); what the plan
+bus did comes from the static `run_end`. A recording made before `flight_record` held the
+agents' target prediction and plan ages reads back without them.
 """
 
 import json
@@ -17,12 +19,18 @@ import rerun as rr
 from fleetmpc.errors import FleetMpcError
 from fleetmpc.gcs.blueprint import TIMELINE
 from fleetmpc.gcs.record import FlightRecord
-from fleetmpc.gcs.recording import MIN_SEPARATION_COLUMN, RECORD_COLUMN, record_layout
+from fleetmpc.gcs.recording import (
+    LEGACY_RECORD_ARRAYS,
+    MIN_SEPARATION_COLUMN,
+    RECORD_COLUMN,
+    record_layout,
+)
 
 __all__ = ["RecordingError", "RecordingRun", "read_recording"]
 
 _META_ENTITY = "/meta"
 _RECORD_ENTITY = "/flight_record"
+_RUN_END_ENTITY = "/run_end"
 
 
 class RecordingError(FleetMpcError):
@@ -32,10 +40,15 @@ class RecordingError(FleetMpcError):
 class RecordingRun:
     """A FlightRecord read back from a recording, with the run facts logged beside it."""
 
-    def __init__(self, *, record: FlightRecord, run_info: dict, recording_id: str) -> None:
+    def __init__(
+        self, *, record: FlightRecord, run_info: dict, recording_id: str, run_end: dict
+    ) -> None:
         self.record = record
         self.run_info = run_info
+        """Facts logged when the recording opened."""
         self.recording_id = recording_id
+        self.run_end = run_end
+        """Facts logged when the run ended (`network` is also the record's)."""
 
 
 def _data_columns(batch: pa.RecordBatch) -> dict[str, pa.Array]:
@@ -64,11 +77,14 @@ def read_recording(path: str | Path) -> RecordingRun:
     except Exception as e:  # the reader raises plain exceptions on a corrupt file
         raise RecordingError(f"{p}: not a readable Rerun recording ({e})") from e
     meta: dict[str, pa.Array] = {}
+    run_end: dict[str, pa.Array] = {}
     times: list[np.ndarray] = []
     packed: list[pa.Array] = []
     for chunk in chunks:
         if chunk.entity_path == _META_ENTITY:
             meta.update(_data_columns(chunk.to_record_batch()))
+        elif chunk.entity_path == _RUN_END_ENTITY:
+            run_end.update(_data_columns(chunk.to_record_batch()))
         elif chunk.entity_path == _RECORD_ENTITY:
             batch = chunk.to_record_batch()
             data = _data_columns(batch)
@@ -85,7 +101,8 @@ def read_recording(path: str | Path) -> RecordingRun:
     t_ns = t_ns[order]
     ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
     n, k = len(ids), len(t_ns)
-    layout = record_layout(n)
+    legacy = "prediction_horizon_periods" not in meta
+    layout = record_layout(n, arrays=LEGACY_RECORD_ARRAYS) if legacy else record_layout(n)
     width = sum(int(np.prod(shape)) for _, shape in layout)
     flat = np.concatenate([c.flatten().to_numpy(zero_copy_only=False) for c in packed])
     if flat.size != k * width:
@@ -100,6 +117,8 @@ def read_recording(path: str | Path) -> RecordingRun:
 
     def scalar(name: str) -> float:
         return float(_rows(meta[name])[0][0])
+
+    facts = json.loads(str(run_end["run_end_json"][0][0])) if "run_end_json" in run_end else {}
 
     record = FlightRecord(
         scenario=str(meta["scenario"][0][0]),
@@ -122,7 +141,13 @@ def read_recording(path: str | Path) -> RecordingRun:
         speed_max_m_s=scalar("speed_max_m_s"),
         yaw_rate_max_rad_s=scalar("yaw_rate_max_rad_s"),
         d_safe_m=scalar("d_safe_m"),
+        target_prediction=None if legacy else parts["target_prediction"],
+        prediction_horizon_periods=0
+        if legacy
+        else int(_rows(meta["prediction_horizon_periods"])[0][0]),
+        plan_age_s=None if legacy else parts["plan_age_s"],
+        network=facts.get("network"),
     )
     run_info = json.loads(str(meta["run_info_json"][0][0])) if "run_info_json" in meta else {}
     rid = recordings[0].recording_id if recordings else ""
-    return RecordingRun(record=record, run_info=run_info, recording_id=rid)
+    return RecordingRun(record=record, run_info=run_info, recording_id=rid, run_end=facts)

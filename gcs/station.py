@@ -90,8 +90,10 @@ class GroundStation:
         self.logged_periods = 0
         """Periods given to the sinks."""
         self.sinks: list[TelemetrySink] = []
-        self._events: list[tuple[int, str, str]] = []
-        """(sim_time ns, level, text) events not logged yet."""
+        self._events: list[tuple[int | None, int, str, str]] = []
+        """(fleet time [ns] or None, wall time [ns], level, text) of the events not logged
+        yet: None for one that happened on the wall clock (a mode change, a STATUSTEXT), placed
+        on the fleet clock once it has an epoch (`_timed_events`)."""
         self.run_info = {
             "learning": scenario.learning.enabled,
             "feasible": check_scenario(scenario).feasible,
@@ -122,7 +124,7 @@ class GroundStation:
         link.last_wall_s = received_ns * 1e-9
         if link.lost_reported:
             link.lost_reported = False
-            self._event("INFO", f"UAV {vid}: link back")
+            self._event("INFO", f"UAV {vid}: link back", wall_ns=received_ns)
         kind = msg.get_type()
         if kind == "HEARTBEAT":
             try:
@@ -133,14 +135,15 @@ class GroundStation:
             armed = bool(msg.base_mode & ModeFlag.SAFETY_ARMED)
             if (mode, armed) != (link.mode, link.armed):
                 name = mode.name if mode is not None else f"custom mode {msg.custom_mode}"
-                self._event("INFO", f"UAV {vid}: {name}, {'armed' if armed else 'disarmed'}")
+                state = "armed" if armed else "disarmed"
+                self._event("INFO", f"UAV {vid}: {name}, {state}", wall_ns=received_ns)
             link.autopilot, link.mode, link.armed = autopilot, mode, armed
         elif kind == "EXTENDED_SYS_STATE":
             with contextlib.suppress(ValueError):
                 link.landed_state = LandedState(msg.landed_state)
         elif kind == "STATUSTEXT":
             level = "WARN" if msg.severity <= Severity.WARNING else "INFO"
-            self._event(level, f"UAV {vid}: {msg.text}")
+            self._event(level, f"UAV {vid}: {msg.text}", wall_ns=received_ns)
         elif kind == "GLOBAL_POSITION_INT":
             link.last_position_wall_s = received_ns * 1e-9
             if not link.ground_truth:
@@ -166,9 +169,24 @@ class GroundStation:
         )
         self.live.add_pose(vid, link.clock.fleet_ns(boot_ns) * 1e-9, north, east, yaw)
 
-    def _event(self, level: str, text: str) -> None:
-        t = self.fleet_s()
-        self._events.append((max(0, round((t or 0.0) * 1e9)), level, text))
+    def _event(self, level: str, text: str, *, wall_ns: int | None = None) -> None:
+        """An event that happens now (or at `wall_ns`) on the wall clock."""
+        wall_ns = time.time_ns() if wall_ns is None else wall_ns
+        self._events.append((None, wall_ns, level, text))
+
+    def _timed_events(self, *, final: bool) -> list[tuple[int, str, str]]:
+        """The events not logged yet, each at its own fleet time [ns]: one that happened before
+        the fleet clock started is before 0, as far back as its wall time scaled by the speed.
+        Before the epoch they are kept (an empty list), unless `final`: a fleet that never got
+        an epoch has its events placed as if the fleet clock started now."""
+        if self.epoch_ns is None and not final:
+            return []
+        epoch = self.epoch_ns if self.epoch_ns is not None else time.time_ns()
+        events, self._events = self._events, []
+        return [
+            (round((wall - epoch) * self.speed) if t is None else t, level, text)
+            for t, wall, level, text in events
+        ]
 
     def links_to_ask(self, now_wall_s: float) -> list[int]:
         """The ids of every vehicle heard for the first time, or heard but sending no position
@@ -198,7 +216,8 @@ class GroundStation:
                 continue
             if now_wall_s - link.last_wall_s > _LINK_LOST_WALL_S:
                 link.lost_reported = True
-                self._event("WARN", f"UAV {vid}: no MAVLink for {_LINK_LOST_WALL_S:g} s")
+                text = f"UAV {vid}: no MAVLink for {_LINK_LOST_WALL_S:g} s"
+                self._event("WARN", text, wall_ns=round(now_wall_s * 1e9))
 
     # -- the bus ----------------------------------------------------------------------------------
     def drain_bus(self) -> None:
@@ -210,9 +229,8 @@ class GroundStation:
             if isinstance(message, PlanMessage):
                 self.live.add_plan(message)
                 if message.status.qp_fallback:
-                    self._events.append(
-                        (message.stamp_ns, "WARN", f"UAV {message.sender_id}: QP fallback")
-                    )
+                    text = f"UAV {message.sender_id}: QP fallback"
+                    self._events.append((message.stamp_ns, time.time_ns(), "WARN", text))
             elif isinstance(message, StatusMessage):
                 self.live.add_status(message)
             elif isinstance(message, TargetObservation):
@@ -227,17 +245,32 @@ class GroundStation:
             sink.open(self.live.constants(), self.run_info)
 
     def close_sinks(self) -> None:
-        """Close the sinks: everything given to them is written."""
+        """Close the sinks: everything given to them is written, and the facts of the run's
+        end (`run_end_facts`)."""
+        facts = self.run_end_facts()
+        events = self._timed_events(final=True)  # (a run cut short before its last flush)
         for sink in self.sinks:
+            for event in events:
+                sink.event(*event)
+            sink.finish(facts)
             sink.close()
         self.sinks = []
+
+    def run_end_facts(self) -> dict:
+        """What the metrics say of the run beside its record: the periods recorded of those
+        expected, and the vehicles recorded from their simulator's ground truth."""
+        return {
+            "periods_recorded": min(self.live.complete_periods(), self.periods),
+            "periods_expected": self.periods,
+            "ground_truth": sorted(v for v, link in self.links.items() if link.ground_truth),
+        }
 
     def flush(self, *, final: bool = False) -> None:
         """Give the sinks what arrived since the last flush: the events, and the samples of the
         periods completed since then; then flush them (the last flush of a run leaves that to
         `close_sinks`)."""
         self.drain_bus()
-        events, self._events = self._events, []
+        events = self._timed_events(final=final)
         done = min(self.live.complete_periods(), self.periods)
         if not self.sinks:
             self.logged_periods = done
@@ -290,9 +323,7 @@ class GroundStation:
             **self.run_info,
             "duration_s": float(rec.t_s[-1]),
             **compute_metrics(rec),
-            "periods_recorded": periods,
-            "periods_expected": self.periods,
-            "ground_truth": sorted(v for v, link in self.links.items() if link.ground_truth),
+            **self.run_end_facts(),
         }
 
 

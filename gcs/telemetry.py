@@ -3,8 +3,9 @@
 The lockstep simulation and the live ground station both describe a run as `PeriodSample`s, one
 per control period (every vehicle's pose, command, first correction c_0, learned β, QP status,
 step time, plan, neighbour plan ages and setpoint rate; the target and the slots; the minimum
-separation known so far), and hand them to `TelemetrySink`s: opened with the run's constants,
-given samples and events, flushed, closed. A sink is chosen by URL, as the links are:
+separation known so far; the first agent's target prediction and the ground side's), and hand
+them to `TelemetrySink`s: opened with the run's constants, given samples and events, flushed,
+told the facts of the run's end, closed. A sink is chosen by URL, as the links are:
 
 - ``memory:`` keeps the samples; `MemorySink.record` stacks them into the `FlightRecord` the
   metrics and the figures read;
@@ -25,7 +26,7 @@ import numpy as np
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs import blueprint, recording
-from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants
+from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants, period_rows
 
 __all__ = [
     "FLUSH_S",
@@ -83,13 +84,17 @@ class PeriodSample:
     """Age of each other vehicle's plan as vehicle i sees it (N, N - 1) [s], fleet order."""
     setpoint_rate_hz: np.ndarray
     """Each vehicle's setpoint rate (N,) [Hz]."""
-    target_prediction: np.ndarray | None = None
-    """The ground side's prediction of the target over the horizon (M + 1, 2) [m], or None."""
+    target_prediction: np.ndarray
+    """The first agent's prediction of the target's position at the end of its horizon (2,)
+    [m]; NaN where it has none (a live run: the agents do not send it)."""
+    target_path: np.ndarray | None = None
+    """The ground side's prediction of the target over the horizon from this period's time
+    (M + 1, 2) [m]; None before its first target observation."""
 
 
 def record_of(constants: RunConstants, samples: Sequence[PeriodSample], **extra) -> FlightRecord:
     """The FlightRecord of consecutive samples (its minimum separation the last one's);
-    `extra`: FlightRecord fields samples do not carry (the lockstep's target prediction)."""
+    `extra`: FlightRecord fields samples do not carry (what the plan bus did)."""
     if not samples:
         raise ValueError("no samples")
     arrays = {name: np.array([getattr(s, name) for s in samples]) for name in PERIOD_FIELDS}
@@ -103,30 +108,33 @@ def record_of(constants: RunConstants, samples: Sequence[PeriodSample], **extra)
 
 
 def live_rows_of(samples: Sequence[PeriodSample]) -> LiveRows:
-    """Plans, plan ages, setpoint rates of the samples, and the last one's target prediction."""
+    """Plans, plan ages, setpoint rates and the ground side's target predictions of the samples
+    (NaN rows where a sample has no prediction)."""
+    paths = [s.target_path for s in samples]
+    shape = next((np.shape(p) for p in paths if p is not None), (1, 2))
     return LiveRows(
         plans=np.array([s.plans for s in samples]),
         setpoint_rate_hz=np.array([s.setpoint_rate_hz for s in samples]),
         plan_age_s=np.array([s.plan_age_s for s in samples]),
-        target_prediction=samples[-1].target_prediction,
+        target_path=np.array([np.full(shape, np.nan) if p is None else p for p in paths]),
     )
 
 
 def samples_of(rec: FlightRecord, live: LiveRows) -> list[PeriodSample]:
-    """The samples of a record's periods and the live rows of the same periods (the target
-    prediction goes with the last)."""
+    """The samples of a record's periods and the live rows of the same periods."""
     k = len(rec.t_s)
+    rows = {name: period_rows(rec, name) for name in PERIOD_FIELDS}
+    known_path = np.isfinite(live.target_path).all(axis=(1, 2))
     out = []
     for j in range(k):
         out.append(
             PeriodSample(
                 t_ns=round(float(rec.t_s[j]) * 1e9),
-                **{name: getattr(rec, name)[j] for name in PERIOD_FIELDS},
+                **{name: rows[name][j] for name in PERIOD_FIELDS},
                 min_separation_m=rec.min_separation_m,
                 plans=live.plans[j],
-                plan_age_s=live.plan_age_s[j],
                 setpoint_rate_hz=live.setpoint_rate_hz[j],
-                target_prediction=live.target_prediction if j == k - 1 else None,
+                target_path=live.target_path[j] if known_path[j] else None,
             )
         )
     return out
@@ -151,6 +159,11 @@ class TelemetrySink(Protocol):
         """Pass on what was logged so far (a live viewer shows it)."""
         ...
 
+    def finish(self, facts: dict) -> None:
+        """Facts about the run known only at its end (JSON-able: `network`, what the plan bus
+        did), before `close`."""
+        ...
+
     def close(self) -> None:
         """End the run: everything logged is passed on."""
         ...
@@ -164,6 +177,7 @@ class MemorySink:
         self.run_info: dict = {}
         self.samples: list[PeriodSample] = []
         self.events: list[tuple[int, str, str]] = []
+        self.run_end: dict = {}
 
     def open(self, constants: RunConstants, run_info: dict) -> None:
         self.constants, self.run_info = constants, dict(run_info)
@@ -177,21 +191,25 @@ class MemorySink:
     def flush(self) -> None:
         pass
 
+    def finish(self, facts: dict) -> None:
+        self.run_end = dict(facts)
+
     def close(self) -> None:
         pass
 
     def record(self, **extra) -> FlightRecord:
-        """The FlightRecord of every sample so far (`record_of`)."""
+        """The FlightRecord of every sample so far (`record_of`), with the run's end facts."""
         if self.constants is None:
             raise RuntimeError("the sink was never opened")
-        return record_of(self.constants, self.samples, **extra)
+        return record_of(self.constants, self.samples, **{**self.run_end, **extra})
 
 
 class RerunSink:
     """A Rerun recording (a `.rrd` file, a viewer, or both): samples are kept until `flush`,
-    which logs the map of the new periods; the time series, the flight_record rows and the QP
-    events go out every `series_every` flushes that had new periods, and at `close`. A logging
-    call costs per entity, not per row, so bigger slices cost less per period."""
+    which logs the map of the new periods, each at its own time; the time series, the
+    flight_record rows and the QP events go out every `series_every` flushes that had new
+    periods, and at `close`. A logging call costs per entity, not per row, so bigger slices
+    cost less per period."""
 
     def __init__(
         self,
@@ -259,6 +277,10 @@ class RerunSink:
         self._send(series=new and self._flushes % self.series_every == 0)
         self.stream.flush(timeout_sec=0)
 
+    def finish(self, facts: dict) -> None:
+        if self.stream is not None:
+            recording.log_run_end(self.stream, facts)
+
     def close(self) -> None:
         if self.stream is None:
             return
@@ -304,11 +326,13 @@ def write_recording(
     recording_id: str | None = None,
     run_info: dict | None = None,
 ) -> str:
-    """Write a FlightRecord on its own (no plans, plan ages or setpoint rates) to an `.rrd`
-    file; the recording's id."""
+    """Write a FlightRecord on its own (no plans, setpoint rates or ground-side target
+    predictions) to an `.rrd` file; the recording's id."""
     sink = RerunSink(path=path, recording_id=recording_id)
     sink.open(RunConstants.of(rec), run_info or {})
     rid = sink.stream.get_recording_id()
     sink.log(samples_of(rec, LiveRows.blank(*rec.truth.shape[:2])))
+    if rec.network is not None:
+        sink.finish({"network": rec.network})
     sink.close()
     return rid

@@ -10,7 +10,8 @@ it. Deterministic for a seed.
 
 Each period becomes a `PeriodSample` (`fleetmpc.gcs.telemetry`), as a live ground station makes
 them; the run's FlightRecord stacks them, and any telemetry sinks given (a Rerun recording, a
-viewer) are handed them as the ground station hands its own, every `FLUSH_S` of flight.
+viewer) are handed them as the ground station hands its own, each with its own time, and
+flushed every `FLUSH_S` of flight; at the end they are told what the plan bus did.
 """
 
 from collections.abc import Callable, Sequence
@@ -111,6 +112,7 @@ def _fly(
         speed_max_m_s=sc.controller.speed_max_m_s,
         yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
         d_safe_m=sc.controller.d_safe_m,
+        prediction_horizon_periods=sc.controller.horizon,
     )
     for sink in sinks:
         sink.open(constants, run_info or {})
@@ -125,7 +127,6 @@ def _fly(
     """The target's observations reach the agents on the plan bus too, as in a live fleet."""
     setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
     samples: list[PeriodSample] = []
-    predictions: list[np.ndarray] = []
     min_sep = np.inf
     upper = np.triu_indices(n, 1)
     for k in range(periods):
@@ -152,9 +153,9 @@ def _fly(
             tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
         )
         slots = truth_formation.slots(np.array([centre]), np.array([course]))[0]
-        prediction = None
-        if ground_target is not None and ((k + 1) % flush_every == 0 or k == periods - 1):
-            prediction, _ = ground_target.predict(t_ns, period_ns, sc.controller.horizon + 1)
+        target_path = None
+        if ground_target is not None and ground_target.ready:
+            target_path, _ = ground_target.predict(t_ns, period_ns, sc.controller.horizon + 1)
         ages = [o.neighbour_ages_s for o, _ in outs]
         sample = PeriodSample(
             t_ns=t_ns,
@@ -175,10 +176,10 @@ def _fly(
                 [[ages[i].get(ids[j], np.nan) for j in others[i]] for i in range(n)]
             ).reshape(n, n - 1),
             setpoint_rate_hz=setpoint_rate,
-            target_prediction=prediction,
+            target_prediction=outs[0][0].target_prediction_m,
+            target_path=target_path,
         )
         samples.append(sample)
-        predictions.append(outs[0][0].target_prediction_m)
         for sink in sinks:  # (the QP fallbacks become events from the samples)
             sink.log([sample])
             if (k + 1) % flush_every == 0:
@@ -199,18 +200,12 @@ def _fly(
             min_sep = min(min_sep, float(gaps.min()))
         if progress is not None:
             progress((k + 1) * period_ns * 1e-9, duration_s)
-    for sink in sinks:
-        sink.close()
     network = _network_report(pool.report(), faults, periods)
+    for sink in sinks:
+        sink.finish({"network": network})
+        sink.close()
     target_bus.close()
-    return record_of(
-        constants,
-        samples,
-        target_prediction=np.array(predictions),
-        prediction_horizon_periods=sc.controller.horizon,
-        plan_age_s=np.array([s.plan_age_s for s in samples]),
-        network=network,
-    )
+    return record_of(constants, samples, network=network)
 
 
 def _network_report(

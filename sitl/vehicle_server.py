@@ -390,7 +390,13 @@ class VehicleServer:
         advance_timestamp(mav, timestamp)
 
     def _admitted(self, message) -> bool:
-        """True if `message` may be acted on: signing is off, or the guard accepts it."""
+        """True if `message` may be acted on: signing is off, or the guard accepts it. A
+        message for another system is not this vehicle's to check: it is dropped unchecked and
+        uncounted (a ground station's UDP server link sends every vehicle's commands, each
+        signed with that vehicle's key, to every vehicle it hears; checked here they were "bad
+        signature" once per vehicle in every clean run)."""
+        if getattr(message, "target_system", 0) not in (0, self.ident.system_id):
+            return False
         if self.signing is None or self.signing.admit(message):
             return True
         self.signing_rejected += 1

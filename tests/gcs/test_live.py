@@ -65,9 +65,13 @@ def test_live_record_gives_the_lockstep_metrics(paper, lockstep) -> None:
     assert got["qp_fallbacks"] == want["qp_fallbacks"]
     # Interpolated between 0.2 s samples on the plant tick: a little above the plant-rate minimum.
     assert want["min_separation_m"] <= got["min_separation_m"] <= want["min_separation_m"] + 0.05
-    prediction = live.target_prediction(round(lockstep.t_s[-1] * 1e9))
-    assert prediction.shape == (paper.controller.horizon + 1, 2)
-    np.testing.assert_allclose(prediction[0], lockstep.target[-1], atol=0.05)
+    # The ground side's prediction of the target, at every period's time from the first.
+    paths = live.target_paths(len(lockstep.t_s))
+    assert paths.shape == (len(lockstep.t_s), paper.controller.horizon + 1, 2)
+    np.testing.assert_allclose(paths[:, 0], lockstep.target, atol=0.1)
+    # The agents do not send their predictions: known as the horizon only.
+    assert np.isnan(rec.target_prediction).all() and got["target_prediction_rms_m"] is None
+    assert rec.prediction_horizon_periods == paper.controller.horizon
 
 
 def test_without_telemetry_positions_come_from_the_plans(paper, lockstep) -> None:
@@ -248,10 +252,8 @@ def test_ground_station_flushes_read_back_as_the_live_record(
         ["UAV 1 sees 2", "UAV 1 sees 3", "UAV 2 sees 1"]
         + ["UAV 2 sees 3", "UAV 3 sees 1", "UAV 3 sees 2"]
     ]
-    # One target prediction per flush, at its last period.
-    assert sum(r is not None for r in rows("/map/target_prediction", "LineStrips2D:strips")) == (
-        math.ceil(k / 7)
-    )
+    # A target prediction at every period's time.
+    assert len(rows("/map/target_prediction", "LineStrips2D:strips")) == k
 
 
 def _bits(a: np.ndarray) -> tuple:

@@ -59,14 +59,9 @@ def test_round_trip_is_bit_exact(run, rrd):
     back = read_recording(path)
     assert back.recording_id == rid == "test-run"
     assert back.run_info == {"learning": True}
-    # A recording holds what a live ground station sees; the agents' own target predictions and
-    # plan ages are not in it (lockstep records only).
-    assert back.record.target_prediction is None
-    assert back.record.prediction_horizon_periods == 0
-    agents_only = {"target_prediction", "prediction_horizon_periods", "plan_age_s", "network"}
+    # Every field comes back: the agents' target predictions and plan ages in the flight_record
+    # rows, the horizon in meta, what the plan bus did in run_end.
     for field in dataclasses.fields(FlightRecord):
-        if field.name in agents_only:
-            continue
         a, b = getattr(rec, field.name), getattr(back.record, field.name)
         if isinstance(a, np.ndarray):
             assert b.shape == a.shape, field.name
@@ -74,16 +69,26 @@ def test_round_trip_is_bit_exact(run, rrd):
             assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field.name
         else:
             assert a == b, field.name
-    direct, again = compute_metrics(rec), compute_metrics(back.record)
-    assert again["separation_error_m"] == pytest.approx(direct["separation_error_m"], abs=1e-9)
-    for key in ("centre_distance_error_m", "formation_rms_m", "c_norm_final", "min_separation_m"):
-        assert again[key] == pytest.approx(direct[key], abs=1e-9), key
-    direct.pop("target_prediction_rms_m")
-    assert again.pop("target_prediction_rms_m") is None
-    for key in ("plan_age_s", "network"):  # (the plan bus's own view: see above)
-        direct.pop(key)
-        again.pop(key, None)
-    assert again == direct  # float64 is stored as float64: the round trip is exact
+    assert back.record.prediction_horizon_periods == 5
+    # float64 is stored as float64 and the plan bus's counters as JSON: the round trip is exact.
+    assert compute_metrics(back.record) == compute_metrics(rec)
+
+
+def test_a_record_without_the_agents_fields_reads_back_without_them(run, tmp_path):
+    """A record that has no agents' predictions or plan ages (a live one's are NaN) is written
+    with NaN rows and reads back with NaN: the metrics say "unknown" for both."""
+    rec, _ = run
+    bare = dataclasses.replace(rec, target_prediction=None, plan_age_s=None, network=None)
+    path = tmp_path / "bare.rrd"
+    write_recording(bare, path)
+    back = read_recording(path).record
+    assert np.isnan(back.target_prediction).all() and np.isnan(back.plan_age_s).all()
+    assert back.network is None
+    metrics = compute_metrics(back)
+    assert metrics["target_prediction_rms_m"] is None
+    assert (
+        metrics["plan_age_s"]["median"] is None and metrics["plan_age_s"]["missing_fraction"] == 1
+    )
 
 
 def test_every_entity_family_is_in_the_file(run, rrd):
@@ -96,8 +101,8 @@ def test_every_entity_family_is_in_the_file(run, rrd):
     expected |= {f"/series/beta/{name}" for name, _ in BETA_SERIES}
     chunks = _chunks_by_entity(path)
     assert expected <= set(chunks), sorted(expected - set(chunks))
-    # A record on its own has no plans or plan ages: those entities hold their statics only.
-    for entity in ("/map/plans", "/series/plan_age"):
+    # A record on its own has no plans or ground-side predictions: those hold their statics.
+    for entity in ("/map/plans", "/map/target_prediction"):
         assert all(c.is_static for c in chunks[entity]), entity
     k = len(rec.t_s)
     # Every time series has one row per period on the sim_time timeline, in integer ns.
@@ -183,21 +188,38 @@ def test_qp_fallback_becomes_a_warning_event(run, tmp_path, strict_rerun):
     assert not read_recording(path).record.qp_ok[7, 1]
 
 
-def test_sim_rrd_then_report_regenerates_figures_and_metrics(tmp_path, capsys):
+def _same(got, want) -> bool:
+    """JSON values equal, floats within rounding (1e-12 relative), at any depth."""
+    if isinstance(want, dict):
+        return (
+            isinstance(got, dict)
+            and got.keys() == want.keys()
+            and all(_same(got[k], want[k]) for k in want)
+        )
+    if isinstance(want, list):
+        return isinstance(got, list) and len(got) == len(want) and all(map(_same, got, want))
+    if isinstance(want, float) and isinstance(got, float):
+        return got == pytest.approx(want, rel=1e-12, abs=1e-12)
+    return type(got) is type(want) and got == want
+
+
+def test_report_gives_every_metric_sim_gives_for_the_same_run(tmp_path, capsys):
+    """`fleetmpc report` of a `sim --rrd` recording: every key of `sim --metrics`, equal (the
+    target prediction RMS, the plan ages and what the plan bus did included), and the figures."""
     rrd, sim_metrics, out = tmp_path / "run.rrd", tmp_path / "sim.json", tmp_path / "report"
-    args = ["sim", "scenarios/paper.toml", "--duration", "3", "--quiet"]
+    args = ["sim", "scenarios/paper.toml", "--duration", "3", "--quiet", "--seed", "11"]
     assert main([*args, "--metrics", str(sim_metrics), "--rrd", str(rrd)]) == 0
     assert main(["report", str(rrd), "--out", str(out)]) == 0
     for name in FIGURE_FILES:
         assert (out / name).stat().st_size > 1000, name
     direct = json.loads(sim_metrics.read_text())
     reported = json.loads((out / METRICS_FILE).read_text())
-    assert reported.pop("target_prediction_rms_m") is None  # the agents' predictions: sim only
-    assert direct.pop("target_prediction_rms_m") > 0
-    # The plan bus's own view (plan ages as the agents used them, its counters): sim only.
-    assert reported.pop("plan_age_s") is None and direct.pop("plan_age_s")["max"] > 0
-    assert "network" not in reported and direct.pop("network")["received"]["accepted"] > 0
-    assert {k: reported[k] for k in direct} == direct
+    assert direct["target_prediction_rms_m"] > 0 and direct["plan_age_s"]["max"] > 0
+    assert direct["network"]["received"]["accepted"] > 0 and direct["seed"] == 11
+    assert set(direct) <= set(reported), sorted(set(direct) - set(reported))
+    for key, want in direct.items():
+        assert _same(reported[key], want), (key, reported[key], want)
+    assert reported["source"] == "lockstep"  # (and the recording's id: what only it has)
 
 
 def test_report_of_a_missing_or_foreign_file_is_a_clean_error(tmp_path, capsys):

@@ -138,6 +138,32 @@ def test_the_vehicle_announces_each_rejection_once_and_signs_what_it_sends():
         rig.close()
 
 
+def test_another_vehicles_signed_commands_are_ignored_not_refused():
+    """A ground station's UDP server link sends each vehicle's commands (signed with that
+    vehicle's key) to every vehicle it hears: a vehicle ignores those for another system
+    without a word, and still refuses a frame for itself signed with another key."""
+    rig = _signed_rig()
+    try:
+        rig.run(S)
+        other = Client(rig.sock, rig.client.address)
+        sign_outgoing(other.enc.mav, WRONG)  # vehicle 2's key, as the ground station signs
+        for _ in range(3):
+            other.send(
+                lambda mav: mav.command_long_encode(
+                    2, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 33, 200_000, 0, 0, 0, 0, 0
+                )
+            )
+        msgs = rig.run(S)
+        assert [m.text for m in of_type(msgs, "STATUSTEXT")] == []
+        assert rig.server.signing_rejected == 0
+        other.send(_disarm)  # for vehicle 1, with the wrong key
+        texts = [m.text for m in of_type(rig.run(S), "STATUSTEXT")]
+        assert texts == ["signing: bad signature, refused (255/190)"]
+        assert rig.server.signing_rejected == 1
+    finally:
+        rig.close()
+
+
 def test_setup_signing_changes_the_key_only_on_a_trusted_link_and_only_while_disarmed():
     rig = Rig()  # no key: signing off, and no link is trusted to set one
     try:
