@@ -103,6 +103,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="ArduPilot: position estimate ready after boot",
     )
+    timing.add_argument(
+        "--heading-ready",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="PX4: arming refused until S after boot, as a real PX4 SITL refuses it while its"
+        " heading estimate settles (4.5-13 s; default 0)",
+    )
+    timing.add_argument(
+        "--com-disarm-prflt",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="PX4 COM_DISARM_PRFLT: armed and never off the ground for S, the vehicle disarms"
+        " itself (PX4's default 10; default here 0: never, as offboard flies on the ground)",
+    )
+    timing.add_argument(
+        "--takeoff-stall",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="PX4: a takeoff commanded within S of boot is accepted but never climbs (default 0)",
+    )
 
 
 def _ns(option: str, seconds: float, *, lo: float, hi: float) -> int:
@@ -203,6 +226,9 @@ def _build_config(
         offboard_loss_timeout_ns=_ns("--com-of-loss-t", args.com_of_loss_t, lo=0.05, hi=60.0),
         guided_timeout_ns=_ns("--guided-timeout", args.guided_timeout, lo=0.05, hi=60.0),
         position_ready_ns=_ns("--position-ready", args.position_ready, lo=0.0, hi=600.0),
+        heading_ready_ns=_ns("--heading-ready", args.heading_ready, lo=0.0, hi=600.0),
+        preflight_disarm_ns=_ns("--com-disarm-prflt", args.com_disarm_prflt, lo=0.0, hi=600.0),
+        takeoff_stall_ns=_ns("--takeoff-stall", args.takeoff_stall, lo=0.0, hi=600.0),
         local_origin_m=_boot_origin(args.boot_origin, spec),
     )
     common = dict(
