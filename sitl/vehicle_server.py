@@ -226,7 +226,7 @@ class VehicleServer:
 
     @property
     def addresses(self) -> dict[str, str]:
-        """Local endpoints by link name, e.g. "udp 127.0.0.1:14580 -> 127.0.0.1:14540"."""
+        """Local endpoints by link name, e.g. "udp 127.0.0.1:24580 -> 127.0.0.1:14540"."""
         out = {}
         for link in self._links.udp:
             host, port = link.local_address
