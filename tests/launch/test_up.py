@@ -288,9 +288,9 @@ def test_a_px4_sitl_instance_flies_vehicle_2_through_refusals_next_to_our_vehicl
     """The issue's fleet: vehicle 2 on a PX4 SITL instance 1 (system id 2, binding PX4's
     14580 + 1 and 18570 + 1, moved here with the test's free network), which refuses arming
     while its heading settles (here for 40 s of its time, so that the agent, started later,
-    sees it) and whose first takeoff ends disarmed on the ground (COM_DISARM_PRFLT, 10 s). A PX4-profile
-    vehicle started by hand stands in for it. `up` starts vehicles 1 and 3 next to it, and
-    vehicle 2's agent asks again, starts over after the failed takeoff, and engages."""
+    sees it) and whose first takeoff ends disarmed on the ground (COM_DISARM_PRFLT, 10 s). A
+    PX4-profile vehicle started by hand stands in for it. `up` starts vehicles 1 and 3 next to
+    it, and vehicle 2's agent asks again, starts over after the failed takeoff, and engages."""
     from fleetmpc.network import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT, Network
     from fleetmpc.scenario import load_scenario
 
