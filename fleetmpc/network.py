@@ -1,8 +1,14 @@
 """The fleet's network: which host and port each process binds to or sends to.
 
 Vehicle (system id) i uses each base port plus i - 1 (ArduPilot's TCP ports: plus 10 (i - 1)),
-as PX4's and ArduPilot's multi-vehicle SITLs number theirs. `check_ports` refuses a fleet two of
-whose processes would share a port, naming the field the clash derives from.
+as PX4's and ArduPilot's multi-vehicle SITLs number theirs. The ports a vehicle streams to are
+PX4's (the offboard API's 14540 + i - 1, the ground station's 14550), so a real PX4 SITL
+instance i - 1 flown as vehicle i streams where that vehicle's agent listens; the ports our
+simulated vehicles bind or serve are PX4's and ArduPilot's plus 10000 (UDP 24580 + i - 1 and
+28570 + i - 1, TCP 15760 + 10 (i - 1)), so they never take one a real SITL binds (PX4 instance
+n: 14580 + n and 18570 + n; ArduCopter instance n: TCP 5760 + 10 n to 5763 + 10 n) and a fleet
+that mixes both starts with the defaults. `check_ports` refuses a fleet two of whose processes
+would share a port, naming the field the clash derives from.
 """
 
 from dataclasses import dataclass, replace
@@ -17,6 +23,8 @@ __all__ = [
     "Network",
     "PX4_GCS_LOCAL_BASE_PORT",
     "PX4_OFFBOARD_LOCAL_BASE_PORT",
+    "SITL_GCS_LOCAL_BASE_PORT",
+    "SITL_OFFBOARD_LOCAL_BASE_PORT",
     "check_ports",
     "mavlink_url",
     "vehicle_host",
@@ -40,16 +48,18 @@ class Network:
     """PX4 offboard-API UDP port of vehicle 1 (vehicle i: + i - 1)."""
     gcs_port: int = 14550
     """UDP port every vehicle streams to for ground stations."""
-    ardupilot_tcp_base_port: int = 5760
-    """ArduPilot SITL TCP port of vehicle 1 (vehicle i: + 10 * (i - 1))."""
+    ardupilot_tcp_base_port: int = 15760
+    """TCP port our ArduPilot-profile vehicle 1 serves (vehicle i: + 10 * (i - 1)): ArduPilot
+    SITL's 5760 + 10000, clear of a real ArduCopter SITL's."""
     zenoh_port: int = 7447
     """TCP port of the Zenoh router or first peer."""
     offboard_local_base_port: int | None = None
     """PX4: the UDP port vehicle 1's SITL binds its offboard link to (vehicle i: + i - 1);
-    None: PX4's 14580, moved with `offboard_base_port` (which leaves room for 40 vehicles)."""
+    None: 24580 (PX4's 14580 + 10000, clear of a real PX4 SITL's), moved with
+    `offboard_base_port`."""
     gcs_local_base_port: int | None = None
     """The UDP port vehicle 1's SITL binds its ground-station link to (vehicle i: + i - 1);
-    None: PX4's 18570, moved with `gcs_port`."""
+    None: 28570 (PX4's 18570 + 10000), moved with `gcs_port`."""
 
     def __post_init__(self) -> None:
         for name in ("host", "router_host", "ground_station_host"):
@@ -89,21 +99,21 @@ class Network:
         return _derived_port("network.offboard_base_port", self.offboard_base_port, vehicle_id - 1)
 
     def offboard_local_port(self, vehicle_id: int) -> int:
-        """PX4: the UDP port vehicle `vehicle_id`'s SITL binds its offboard link to (PX4's
-        14580 + i - 1 on PX4's default network, moved with `offboard_base_port`)."""
+        """PX4: the UDP port vehicle `vehicle_id`'s SITL binds its offboard link to (24580 +
+        i - 1 on the default network, moved with `offboard_base_port`)."""
         base = self.offboard_local_base_port
         if base is None:
             base = (
-                PX4_OFFBOARD_LOCAL_BASE_PORT + self.offboard_base_port - Network.offboard_base_port
+                SITL_OFFBOARD_LOCAL_BASE_PORT + self.offboard_base_port - Network.offboard_base_port
             )
         return _derived_port("network.offboard_local_base_port", base, vehicle_id - 1)
 
     def gcs_local_port(self, vehicle_id: int) -> int:
-        """The UDP port vehicle `vehicle_id`'s SITL binds its ground-station link to (PX4's
-        18570 + i - 1 on PX4's default network, moved with `gcs_port`)."""
+        """The UDP port vehicle `vehicle_id`'s SITL binds its ground-station link to (28570 +
+        i - 1 on the default network, moved with `gcs_port`)."""
         base = self.gcs_local_base_port
         if base is None:
-            base = PX4_GCS_LOCAL_BASE_PORT + self.gcs_port - Network.gcs_port
+            base = SITL_GCS_LOCAL_BASE_PORT + self.gcs_port - Network.gcs_port
         return _derived_port("network.gcs_local_base_port", base, vehicle_id - 1)
 
     def ports(self, vehicles: "tuple[VehicleSpec, ...]") -> list[tuple[str, int, str, str]]:
@@ -160,9 +170,13 @@ class Network:
 SUGGEST_WITHIN = 1000
 """How far above a clashing field's value `check_ports` looks for one that clears every clash."""
 PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
-"""PX4 SITL binds its offboard-API link here (vehicle I: + I - 1), on PX4's default network."""
+"""A real PX4 SITL binds its offboard-API link here (instance n: + n)."""
 PX4_GCS_LOCAL_BASE_PORT = 18570
-"""PX4 SITL binds its ground-station link here (vehicle I: + I - 1), on PX4's default network."""
+"""A real PX4 SITL binds its ground-station link here (instance n: + n)."""
+SITL_OFFBOARD_LOCAL_BASE_PORT = PX4_OFFBOARD_LOCAL_BASE_PORT + 10_000
+"""Our PX4-profile vehicle 1 binds its offboard link here by default (vehicle i: + i - 1)."""
+SITL_GCS_LOCAL_BASE_PORT = PX4_GCS_LOCAL_BASE_PORT + 10_000
+"""Our vehicle 1 binds its ground-station link here by default (vehicle i: + i - 1)."""
 
 
 def check_ports(network: Network, vehicles: "tuple[VehicleSpec, ...]") -> None:

@@ -269,8 +269,7 @@ def run(args: argparse.Namespace) -> int:
                         f"vehicles {', '.join(missing)} not armed and engaged after "
                         f"{args.engage_timeout:g} s (modes: "
                         + ", ".join(
-                            f"{v}: {link.mode.name if link.mode else 'silent'}"
-                            for v, link in gs.links.items()
+                            f"{v}: {link.mode_name or 'silent'}" for v, link in gs.links.items()
                         )
                         + ")"
                     )

@@ -238,6 +238,8 @@ def format_summary(metrics: dict) -> str:
                 f"drift {b['drift_m_s']:.3f} m/s",
             )
         )
+    for vid in metrics.get("beta_error_without_truth", ()):
+        rows.append((f"beta error UAV {vid}", "unknown: no simulated truth (a real autopilot)"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
 

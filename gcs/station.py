@@ -24,6 +24,7 @@ from fleetmpc.protocol.mavlink_map import (
     LandedState,
     ModeFlag,
     Severity,
+    custom_mode_name,
     mode_from_custom,
 )
 from fleetmpc.protocol.messages import PlanMessage, StatusMessage, TargetObservation
@@ -45,6 +46,9 @@ class VehicleLink:
 
     autopilot: Autopilot | None = None
     mode: FlightMode | None = None
+    mode_name: str | None = None
+    """Its mode as its autopilot names it (ArduCopter: GUIDED, LOITER, ...; PX4: OFFBOARD,
+    HOLD, ...), None before its first HEARTBEAT."""
     armed: bool = False
     last_wall_s: float | None = None
     messages: int = 0
@@ -132,12 +136,12 @@ class GroundStation:
             except ValueError:
                 return
             mode = mode_from_custom(msg.custom_mode, autopilot)
+            name = custom_mode_name(msg.custom_mode, autopilot)
             armed = bool(msg.base_mode & ModeFlag.SAFETY_ARMED)
-            if (mode, armed) != (link.mode, link.armed):
-                name = mode.name if mode is not None else f"custom mode {msg.custom_mode}"
+            if (name, armed) != (link.mode_name, link.armed):
                 state = "armed" if armed else "disarmed"
                 self._event("INFO", f"UAV {vid}: {name}, {state}", wall_ns=received_ns)
-            link.autopilot, link.mode, link.armed = autopilot, mode, armed
+            link.autopilot, link.mode, link.mode_name, link.armed = autopilot, mode, name, armed
         elif kind == "EXTENDED_SYS_STATE":
             with contextlib.suppress(ValueError):
                 link.landed_state = LandedState(msg.landed_state)
@@ -297,7 +301,7 @@ class GroundStation:
             plan = self.live.latest_plan(vid)
             ages = [a.age_ns * 1e-9 for a in st.status.neighbour_plan_ages] if st else []
             vehicles[str(vid)] = {
-                "mode": link.mode.name if link.mode is not None else None,
+                "mode": link.mode_name,
                 "armed": link.armed,
                 "slot_error_m": st.status.slot_error_m if st else None,
                 "solve_ms": plan.status.solve_time_us * 1e-3 if plan else None,
@@ -318,12 +322,19 @@ class GroundStation:
         if periods < 1:
             return None
         rec = self.live.record(periods)
+        truth = sorted(v for v, link in self.links.items() if link.ground_truth)
+        metrics = compute_metrics(rec)
+        # The learned model's error is against the simulated truth: a vehicle that sends none (a
+        # real autopilot, or its SITL) has no truth to compare with.
+        untrue = [b["vehicle"] for b in metrics["beta_error"] if b["vehicle"] not in truth]
+        metrics["beta_error"] = [b for b in metrics["beta_error"] if b["vehicle"] in truth]
         return {
             "scenario": self.scenario.name,
             **self.run_info,
             "duration_s": float(rec.t_s[-1]),
-            **compute_metrics(rec),
+            **metrics,
             **self.run_end_facts(),
+            **({"beta_error_without_truth": untrue} if untrue else {}),
         }
 
 

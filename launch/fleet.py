@@ -79,6 +79,12 @@ class FleetOptions:
     secrets_dir: str | None = None
     """The folder of the run's secrets (`fleetmpc.launch.keys`) as the processes see it; None:
     an insecure fleet (unsigned MAVLink)."""
+    connect_timeout_s: float | None = None
+    """Wall seconds each agent waits for its autopilot's HEARTBEAT and first pose (``fleetmpc
+    agent --connect-timeout``); None: the agent's default."""
+    engage_timeout_s: float | None = None
+    """Wall seconds each agent keeps trying to engage its vehicle (``fleetmpc agent
+    --engage-timeout``); None: the agent's default."""
     vehicles_per_sitl: int = 1
     """Simulated vehicles one SITL process serves at most (vehicles next to each other in the
     scenario, on one host): fewer processes wake the host less often
@@ -174,6 +180,12 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     for v in scenario.vehicles:
         argv = ["agent", *common, "--vehicle", str(v.id), *bus_of(v.id), *speed, "--wait-epoch"]
         argv += key(v.id)
+        for flag, seconds in (
+            ("--connect-timeout", options.connect_timeout_s),
+            ("--engage-timeout", options.engage_timeout_s),
+        ):
+            if seconds is not None:
+                argv += [flag, _num(seconds)]
         if v.id in external:
             argv += ["--mavlink", external[v.id]]
         if options.agent_records_dir is not None:

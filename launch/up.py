@@ -69,6 +69,9 @@ _STOP_ORDER = (("gcs",), ("agent", "target"), ("sitl", "router"))
 HOLD while their autopilots still run) with the target, then the vehicles and the router."""
 _GRACE_S = 3.0
 _TAIL_LINES = 15
+_ENGAGE_SLACK_S = 15.0
+"""Wall seconds the ground station waits for the fleet beyond an agent's connect and engage
+timeouts (the processes' start, the setpoint warm-up before engaging)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,10 +89,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--metrics", type=Path, help="metrics JSON (default: RUN_DIR/metrics.json)")
     parser.add_argument("--run-dir", type=Path, help="logs and outputs (default: runs/up-<time>)")
     parser.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="wall seconds each agent waits for its autopilot's HEARTBEAT and first pose"
+        " (`fleetmpc agent --connect-timeout`; default 60)",
+    )
+    parser.add_argument(
         "--engage-timeout",
         type=float,
-        default=120.0,
-        help="wall seconds for every vehicle to engage",
+        default=60.0,
+        metavar="S",
+        help="wall seconds each agent keeps trying to engage its vehicle, asking again while the"
+        " autopilot refuses (`fleetmpc agent --engage-timeout`; default 60: a cold ArduCopter"
+        " SITL arms some 40 s after boot); the ground station waits for the whole fleet the"
+        f" connect and engage timeouts and {_ENGAGE_SLACK_S:g} s more",
     )
     parser.add_argument(
         "--flush-s",
@@ -266,10 +281,20 @@ def _default_viewer() -> str:
     return "none"
 
 
+def _fleet_wait_s(args: argparse.Namespace) -> float:
+    """Wall seconds the ground station waits for every vehicle to engage: an agent's connect
+    and engage timeouts, and `_ENGAGE_SLACK_S`."""
+    return args.connect_timeout + args.engage_timeout + _ENGAGE_SLACK_S
+
+
 def _gcs_options(args: argparse.Namespace) -> list[str]:
     """The ground station's own options of an `up` command line (checked here, so a bad value
     stops `up` before anything starts)."""
-    options = ["--engage-timeout", f"{args.engage_timeout:g}"]
+    for name in ("connect_timeout", "engage_timeout"):
+        value = getattr(args, name)
+        if not (value > 0 and math.isfinite(value)):
+            raise ConfigError(f"--{name.replace('_', '-')}", f"must be seconds > 0, got {value}")
+    options = ["--engage-timeout", f"{_fleet_wait_s(args):g}"]
     for name in ("flush_s", "series_flush_s", "gate_formation_m"):
         value = getattr(args, name)
         flag = f"--{name.replace('_', '-')}"
@@ -373,6 +398,8 @@ def run(args: argparse.Namespace) -> int:
             viewer=viewer,
             agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
             external_autopilots=external,
+            connect_timeout_s=args.connect_timeout,
+            engage_timeout_s=args.engage_timeout,
             secrets_dir=None if secrets is None else str(secrets),
             vehicles_per_sitl=per_sitl,
         ),
@@ -415,7 +442,7 @@ def run(args: argparse.Namespace) -> int:
             child = fleet.start(spec)
             if spec.role == "router":
                 fleet.wait_for_text(child, "listening", timeout_s=15.0)
-        wall_limit = time.monotonic() + args.engage_timeout + duration / args.speed + 60.0
+        wall_limit = time.monotonic() + _fleet_wait_s(args) + duration / args.speed + 60.0
         while not interrupted.is_set():
             if faults is not None:
                 if faults.epoch_ns is None:

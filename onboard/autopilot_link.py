@@ -20,7 +20,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode, LandedState
+from fleetmpc.protocol.mavlink_map import (
+    Autopilot,
+    FlightMode,
+    LandedState,
+    custom_mode_name,
+    flight_mode_name,
+)
 
 __all__ = [
     "AutopilotLink",
@@ -60,6 +66,8 @@ class LinkState:
     """HEARTBEAT's SAFETY_ARMED flag."""
     mode: FlightMode | None = None
     """Flight mode from HEARTBEAT.custom_mode (None: unknown or not reported)."""
+    custom_mode: int | None = None
+    """HEARTBEAT.custom_mode as sent (None: not reported)."""
     engaged: bool = False
     """The link has put the vehicle in offboard/guided mode."""
     mode_lost: bool = False
@@ -72,6 +80,14 @@ class LinkState:
     """Last STATUSTEXT from the autopilot."""
     landed_state: LandedState | None = None
     """EXTENDED_SYS_STATE's landed state (None: not reported)."""
+
+    @property
+    def mode_name(self) -> str | None:
+        """The mode as the autopilot names it (ArduCopter: GUIDED, LOITER, RTL, ...; PX4:
+        OFFBOARD, HOLD, ...), None while unknown."""
+        if self.custom_mode is not None and self.autopilot is not None:
+            return custom_mode_name(self.custom_mode, self.autopilot)
+        return None if self.mode is None else flight_mode_name(self.mode, self.autopilot)
 
     @property
     def has_pose(self) -> bool:

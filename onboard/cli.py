@@ -5,7 +5,7 @@
 
 MAVLink: ``--mavlink URL`` (any pymavlink URL), by default the vehicle's SITL as the scenario
 describes it (`fleetmpc.network.mavlink_url`: PX4 ``udpin:HOST:14540 + I - 1``, ArduPilot
-``tcp:HOST:5760 + 10 (I - 1)``). Zenoh: by default a member of the fleet's full peer mesh on
+``tcp:HOST:15760 + 10 (I - 1)``). Zenoh: by default a member of the fleet's full peer mesh on
 explicit endpoints (`fleetmpc.protocol.zenoh_config.options_from_args`), scouting off;
 ``--zenoh-connect`` makes a client of a router, ``--zenoh-config FILE`` loads a Zenoh config file.
 Fleet time (`fleetmpc.onboard.runner`): ``--epoch-ns`` gives the epoch, ``--wait-epoch`` takes the

@@ -2,9 +2,13 @@
 
 The link detects the autopilot from its HEARTBEAT and uses its semantics (`engage`):
 PX4 — setpoints must already stream (PX4's code needs a recent one, its documentation asks for
-> 2 Hz for 1 s: the runner's streamer gives it 1.5 s), then arm and DO_SET_MODE OFFBOARD
-(COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6); ArduPilot — GUIDED, arm with retries
-until accepted, takeoff. On connecting, SET_MESSAGE_INTERVAL for the streams it reads.
+> 2 Hz for 1 s: the runner's streamer gives it 1.5 s), then arm (and, on the ground, take off)
+and DO_SET_MODE OFFBOARD (COMMAND_LONG 176, param1 CUSTOM_MODE_ENABLED, param2 6); ArduPilot —
+GUIDED, arm, takeoff. A refused step is asked again, and a sequence that comes to nothing (a
+takeoff that ends on the ground) starts again from where the vehicle is, until the engage
+timeout; the autopilot's reason (COMMAND_ACK result, STATUSTEXT) is logged. On connecting,
+SET_MESSAGE_INTERVAL for the streams it reads. Everything sent is addressed to the system id of
+the autopilot's HEARTBEAT (component 1), never to an assumed one.
 Setpoints are SET_POSITION_TARGET_LOCAL_NED with type_mask 1479 (velocity + yaw rate),
 frame BODY_NED (8) for PX4 and BODY_OFFSET_NED (9) for ArduPilot, vx = forward speed; a hold is
 type_mask 3576 (position only) in LOCAL_NED, which both autopilots fly with their own position
@@ -119,6 +123,12 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._acks: dict[int, int] = {}
+        self._texts: list[str] = []
+        """The autopilot's STATUSTEXTs, the newest last (the last `_KEPT_TEXTS`)."""
+        self._texts_seen = 0
+        """STATUSTEXTs received so far."""
+        self._reason: str | None = None
+        """Why the last engage step failed (the autopilot's answer), None: none failed."""
         self._odometry_seen = threading.Event()
         """Set by the first valid ODOMETRY: the autopilot streams the pose in one message."""
         self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
@@ -204,6 +214,9 @@ class MavlinkAutopilotLink(AutopilotLink):
                 self._update(rejected=st.rejected + 1)
         elif kind == "STATUSTEXT":
             text = str(getattr(msg, "text", ""))[:50]
+            with self._cond:
+                self._texts = [*self._texts[-(_KEPT_TEXTS - 1) :], text]
+                self._texts_seen += 1
             self._update(last_text=text)
             self._log(f"autopilot: {text}")
 
@@ -259,6 +272,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             system_id=src,
             armed=armed,
             mode=mode,
+            custom_mode=int(msg.custom_mode) if custom else None,
             heartbeats=st.heartbeats + 1,
         )
         now = self.state()
@@ -267,12 +281,12 @@ class MavlinkAutopilotLink(AutopilotLink):
             self._update(mode_lost=True)
             self._log("mode lost: the autopilot disarmed")
         elif now.mode_lost and not was_lost:
-            name = mode.name if mode is not None else "an unknown mode"
-            self._log(f"mode lost: the autopilot switched to {name}")
+            self._log(f"mode lost: the autopilot switched to {now.mode_name or 'an unknown mode'}")
 
     # -- send -----------------------------------------------------------------------------------
-    def _target(self) -> int:
-        return self.state().system_id or (self._want_system or 1)
+    def _target(self) -> int | None:
+        """The system id of the autopilot flown (its HEARTBEAT's), None before one is heard."""
+        return self.state().system_id or None
 
     def _send(self, fn: Callable[..., None], *args: object) -> bool:
         if self.faults is not None and self.faults.cut():
@@ -304,9 +318,9 @@ class MavlinkAutopilotLink(AutopilotLink):
         self._send_fields(encode_position_setpoint(north_m - shift[0], east_m - shift[1], down_m))
 
     def _send_fields(self, sp: SetpointFields) -> None:
-        if self._setpoints_paused:
-            return  # (an ArduPilot takeoff is under way)
         target = self._target()
+        if self._setpoints_paused or target is None:
+            return  # (an ArduPilot takeoff is under way, or no autopilot heard yet)
         boot_ms = max(self.state().time_boot_ns, 0) // 1_000_000 & MAX_BOOT_MS
         mav = self._conn.mav
         sent = self._send(
@@ -318,11 +332,14 @@ class MavlinkAutopilotLink(AutopilotLink):
             self.setpoints_sent += 1
 
     def _command(self, command: int, params: tuple[float, ...], *, timeout_s: float) -> int | None:
-        """COMMAND_LONG and wait for its ACK: the MAV_RESULT, or None on timeout."""
+        """COMMAND_LONG to the autopilot's system and wait for its ACK: the MAV_RESULT, or None
+        on timeout (or before any autopilot is heard)."""
         p = (*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)[:7]
         with self._cond:
             self._acks.pop(command, None)
         target = self._target()
+        if target is None:
+            return None
         mav = self._conn.mav
         self._send(lambda: mav.command_long_send(target, 1, command, 0, *p))
         deadline = time.monotonic() + timeout_s
@@ -334,16 +351,41 @@ class MavlinkAutopilotLink(AutopilotLink):
                 self._cond.wait(left)
             return self._acks.pop(command)
 
-    def _retry(self, command: int, params: tuple[float, ...], *, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and not self._stop.is_set():
-            result = self._command(command, params, timeout_s=min(1.0, timeout_s))
+    def _retry(self, command: int, params: tuple[float, ...], *, deadline: float) -> bool:
+        """Send a command until the autopilot accepts it or the deadline (time.monotonic)
+        passes; each refusal's reason (`_refused`) is kept and logged when it changes."""
+        while not self._stop.is_set():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            texts_before = self._texts_seen
+            result = self._command(command, params, timeout_s=min(1.0, left))
             if result == MavResult.ACCEPTED:
                 return True
-            self._stop.wait(0.25)
+            self._stop.wait(_RETRY_PAUSE_S)  # (and the STATUSTEXT saying why may come)
+            self._refused(command, result, texts_before=texts_before)
         return False
 
-    def _set_mode(self, mode: FlightMode, *, timeout_s: float) -> bool:
+    def _refused(self, command: int, result: int | None, *, texts_before: int) -> None:
+        """Keep (and log, if new) the reason the autopilot gave for refusing `command`: the
+        COMMAND_ACK's result and its newest STATUSTEXT since the command was sent."""
+        what = _COMMAND_NAMES.get(command, f"command {command}")
+        answer = "not acknowledged" if result is None else MavResult(result).name
+        self._fail(f"{what}: {answer}", texts_before=texts_before)
+
+    def _fail(self, reason: str, *, texts_before: int) -> None:
+        """Keep `reason` (with the autopilot's newest STATUSTEXT since `texts_before` texts had
+        come) as the last reason an engage step failed; log it when it changes."""
+        with self._cond:
+            new = self._texts_seen - texts_before
+            text = self._texts[-1] if new > 0 and self._texts else None
+        if text is not None:
+            reason = f"{reason} ({text})"
+        if reason != self._reason:
+            self._log(f"engage: {reason}; trying again")
+        self._reason = reason
+
+    def _set_mode(self, mode: FlightMode, *, deadline: float) -> bool:
         autopilot = self.state().autopilot or Autopilot.PX4
         if autopilot == Autopilot.PX4:
             params = (float(ModeFlag.CUSTOM_MODE_ENABLED), float(_px4_main(mode)))
@@ -352,7 +394,7 @@ class MavlinkAutopilotLink(AutopilotLink):
             params = (*params, float(sub))
         else:
             params = (float(ModeFlag.CUSTOM_MODE_ENABLED), float(custom_mode_of(mode, autopilot)))
-        return self._retry(176, params, timeout_s=timeout_s)
+        return self._retry(176, params, deadline=deadline)
 
     def connect(self, *, timeout_s: float) -> LinkState:
         deadline = time.monotonic() + timeout_s
@@ -396,53 +438,79 @@ class MavlinkAutopilotLink(AutopilotLink):
             self._command(511, (float(msg_id), float(interval_us)), timeout_s=1.0)
 
     def engage(self, *, timeout_s: float) -> bool:
+        """Put the vehicle under the agent's control within `timeout_s` of wall time. Each step
+        is asked again while the autopilot refuses it (an arming refused while its estimator
+        settles), and the whole sequence starts again from where the vehicle is when one comes
+        to nothing (a takeoff that ends on the ground, disarmed); only when the time is up does
+        it give up, logging the last reason."""
+        deadline = time.monotonic() + timeout_s
+        self._reason = None
+        while not self._stop.is_set():
+            if self._engage_once(deadline):
+                self._update(engaged=True, mode_lost=False)
+                if self._reason is not None:
+                    self._log("engage: done")
+                return True
+            if time.monotonic() >= deadline:
+                break
+            self._stop.wait(_RETRY_PAUSE_S)
+        self._log(
+            f"engage: gave up after {timeout_s:g} s; last reason: {self._reason or 'none given'}"
+        )
+        return False
+
+    def _engage_once(self, deadline: float) -> bool:
+        """One pass of the autopilot's engage sequence from the vehicle's present state."""
         st = self.state()
+        arm = (1.0,)
         if st.autopilot == Autopilot.ARDUPILOTMEGA:
             # A GUIDED target sent during ArduCopter's takeoff replaces the takeoff (its guided
             # mode leaves SubMode::TakeOff), and the stream holds the vehicle at the altitude it
             # is at, the ground: setpoints are held back until it is airborne.
-            ok = self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s) and self._retry(
-                400, (1.0,), timeout_s=timeout_s
+            ok = self._set_mode(FlightMode.OFFBOARD, deadline=deadline) and self._retry(
+                400, arm, deadline=deadline
             )
-            self._setpoints_paused = ok
+            if not ok or self.state().landed_state == LandedState.IN_AIR:
+                return ok
+            self._setpoints_paused = True
             try:
-                ok = ok and self._take_off(_TAKEOFF_ALT_M, timeout_s=timeout_s)
+                return self._take_off(_TAKEOFF_ALT_M, deadline=deadline)
             finally:
                 self._setpoints_paused = False
-        elif st.landed_state == LandedState.ON_GROUND:
+        if st.landed_state == LandedState.ON_GROUND:
             # PX4 flies no offboard setpoint off the ground at a constant altitude: it takes off
             # first (AUTO_TAKEOFF to MIS_TAKEOFF_ALT, param 7 NaN), then holds (AUTO_LOITER).
-            ok = (
-                self._retry(400, (1.0,), timeout_s=timeout_s)
-                and self._take_off(math.nan, timeout_s=timeout_s)
-                and self._set_mode(FlightMode.OFFBOARD, timeout_s=timeout_s)
+            return (
+                self._retry(400, arm, deadline=deadline)
+                and self._take_off(math.nan, deadline=deadline)
+                and self._set_mode(FlightMode.OFFBOARD, deadline=deadline)
             )
-        else:
-            ok = self._retry(400, (1.0,), timeout_s=timeout_s) and self._set_mode(
-                FlightMode.OFFBOARD, timeout_s=timeout_s
-            )
-        if ok:
-            self._update(engaged=True, mode_lost=False)
-        return ok
+        return self._retry(400, arm, deadline=deadline) and self._set_mode(
+            FlightMode.OFFBOARD, deadline=deadline
+        )
 
-    def _take_off(self, altitude: float, *, timeout_s: float) -> bool:
+    def _take_off(self, altitude: float, *, deadline: float) -> bool:
         """MAV_CMD_NAV_TAKEOFF to `altitude` (param 7; NaN: the autopilot's own), retried until
         accepted, then wait until the vehicle is airborne."""
-        accepted = self._retry(22, (0,) * 6 + (altitude,), timeout_s=timeout_s)
-        return accepted and self._wait_airborne(timeout_s=timeout_s)
+        texts_before = self._texts_seen
+        accepted = self._retry(22, (0,) * 6 + (altitude,), deadline=deadline)
+        return accepted and self._wait_airborne(deadline=deadline, texts_before=texts_before)
 
-    def _wait_airborne(self, *, timeout_s: float) -> bool:
+    def _wait_airborne(self, *, deadline: float, texts_before: int) -> bool:
         """Until the takeoff is over (landed state IN_AIR): ArduCopter's landed state is TAKEOFF
         while it climbs (a GUIDED target would end the takeoff), PX4's until its takeoff setpoint
         is reached and it loiters, so the vehicle is not the agent's until then. An autopilot
-        that reports no landed state within a second is taken at its word."""
+        that reports no landed state within a second is taken at its word. A takeoff that ends
+        first (the vehicle disarmed on the ground: PX4's COM_DISARM_PRFLT, ArduCopter's
+        DISARM_DELAY) is a failure whose reason is the autopilot's newest STATUSTEXT since
+        `texts_before` texts had come."""
         climbing_modes = (
             (FlightMode.OFFBOARD,)
             if self.state().autopilot == Autopilot.ARDUPILOTMEGA
             else (FlightMode.TAKEOFF, FlightMode.HOLD)
         )
-        deadline = time.monotonic() + timeout_s
-        quiet_until = time.monotonic() + 1.0
+        started = time.monotonic()
+        quiet_until = started + 1.0
         # A real ArduPilot sends HEARTBEAT once a second: the state may not show the arming and
         # mode the acknowledged commands set until one comes.
         climbing_seen = False
@@ -455,19 +523,26 @@ class MavlinkAutopilotLink(AutopilotLink):
                     return True
                 climbing = st.armed and (st.mode is None or st.mode in climbing_modes)
                 if climbing_seen and not climbing:
-                    self._log("the takeoff ended before the vehicle was airborne")
-                    return False
+                    break
                 climbing_seen = climbing_seen or climbing
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    self._log(f"not airborne {timeout_s:g} s after the takeoff command")
-                    return False
+                    break
                 self._cond.wait(min(left, 0.1))
+        if self._stop.wait(_RETRY_PAUSE_S):  # (the STATUSTEXT saying why may come after)
+            return False
+        st = self.state()
+        if climbing_seen and not (st.armed and st.mode in climbing_modes):
+            where = "disarmed" if not st.armed else f"in {st.mode_name or 'an unknown mode'}"
+            reason = f"the takeoff ended before the vehicle was airborne, {where}"
+        else:
+            reason = f"not airborne {time.monotonic() - started:.0f} s after the takeoff command"
+        self._fail(reason, texts_before=texts_before)
         return False
 
     def hold(self) -> bool:
         self._update(engaged=False)
-        return self._set_mode(FlightMode.HOLD, timeout_s=1.0)
+        return self._set_mode(FlightMode.HOLD, deadline=time.monotonic() + 1.0)
 
     def close(self) -> None:
         if self._stop.is_set():
@@ -480,6 +555,12 @@ class MavlinkAutopilotLink(AutopilotLink):
 
 _TAKEOFF_ALT_M = 10.0
 """ArduPilot takeoff altitude [m] (the horizontal plant flies at any altitude)."""
+_RETRY_PAUSE_S = 0.25
+"""Wall seconds between a refused command and its next try, or between two engage passes."""
+_KEPT_TEXTS = 8
+"""The autopilot's newest STATUSTEXTs kept for the reasons of refusals."""
+_COMMAND_NAMES = {400: "arm", 176: "mode", 22: "takeoff", 511: "message interval"}
+"""Names of the commands the link sends, for its log."""
 
 
 def _px4_main(mode: FlightMode) -> int:

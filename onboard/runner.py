@@ -220,7 +220,7 @@ class FleetRunner:
         self.sync.update(time_boot_ns=state.time_boot_ns, received_wall_ns=state.received_ns)
         if state.mode_lost and not self._mode_lost_reported and self._own_gap_s() is None:
             self._mode_lost_reported = True
-            mode = state.mode.name if state.mode is not None else "unknown"
+            mode = state.mode_name or "unknown"
             self._log(f"vehicle {self.agent.vehicle_id}: mode lost ({mode}); not re-engaging")
         fleet_now = self.sync.fleet_ns(state.time_boot_ns)
         if fleet_now is None or not state.has_pose or fleet_now < self.next_step_ns:
@@ -352,7 +352,7 @@ class FleetRunner:
                 str(k): (v if math.isfinite(v) else None) for k, v in out.neighbour_ages_s.items()
             },
             "formation_terms": out.formation_terms,
-            "mode": state.mode.name if state.mode is not None else None,
+            "mode": state.mode_name,
             "mode_lost": state.mode_lost,
             "step_ms": step_ms,
             "setpoint_rate_hz": self.setpoint_rate_hz(),
@@ -376,7 +376,7 @@ class FleetRunner:
         gap_s = self._own_gap_s()
         if gap_s is None:
             return state
-        mode = state.mode.name if state.mode is not None else "unknown"
+        mode = state.mode_name or "unknown"
         self._log(
             f"vehicle {self.agent.vehicle_id}: mode lost ({mode}) after a {gap_s:.1f} s gap in"
             " its own setpoints; taking it back"
@@ -473,7 +473,7 @@ class FleetRunner:
             "reengaged": self.reengaged,
             "resumes": self.agent.resumes,
             "mode_lost": st.mode_lost,
-            "mode": st.mode.name if st.mode is not None else None,
+            "mode": st.mode_name,
             "clock_offset_ns": self.sync.offset_ns,
             "clock_samples": self.sync.samples,
             "last_offset_sample_ns": self.sync.last_sample_ns,

@@ -26,7 +26,9 @@ __all__ = [
     "Px4MainMode",
     "Severity",
     "base_mode",
+    "custom_mode_name",
     "custom_mode_of",
+    "flight_mode_name",
     "mode_from_custom",
     "px4_custom_mode",
     "px4_split_custom_mode",
@@ -221,6 +223,39 @@ def mode_from_custom(custom_mode: int, autopilot: Autopilot) -> FlightMode | Non
             sub = 0
         return MODE_OF_PX4.get(px4_custom_mode(main, sub))
     return MODE_OF_COPTER.get(custom_mode)
+
+
+def custom_mode_name(custom_mode: int, autopilot: Autopilot) -> str:
+    """The name `autopilot` gives the mode of a HEARTBEAT's custom_mode: ArduCopter's own mode
+    names (GUIDED, LOITER, RTL, ...); PX4's as `FlightMode` names them (OFFBOARD, HOLD for
+    AUTO.LOITER, POSITION, TAKEOFF, LAND), else its main and AUTO sub mode (AUTO.RTL, ALTCTL)."""
+    if autopilot == Autopilot.ARDUPILOTMEGA:
+        try:
+            return CopterMode(custom_mode).name
+        except ValueError:
+            return f"mode {custom_mode}"
+    mode = mode_from_custom(custom_mode, autopilot)
+    if mode is not None:
+        return mode.name
+    main, sub = px4_split_custom_mode(custom_mode)
+    try:
+        main_name = Px4MainMode(main).name
+    except ValueError:
+        return f"mode {main}.{sub}"
+    if main != Px4MainMode.AUTO:
+        return main_name
+    try:
+        return f"AUTO.{Px4AutoSubMode(sub).name}"
+    except ValueError:
+        return f"AUTO.{sub}"
+
+
+def flight_mode_name(mode: FlightMode, autopilot: Autopilot | None) -> str:
+    """The name `autopilot` gives `mode` (ArduCopter: GUIDED for OFFBOARD, LOITER for HOLD,
+    POSHOLD for POSITION; PX4 and an unknown autopilot: the `FlightMode` name)."""
+    if autopilot == Autopilot.ARDUPILOTMEGA and mode in COPTER_MODE_OF:
+        return CopterMode(COPTER_MODE_OF[mode]).name
+    return mode.name
 
 
 def base_mode(*, armed: bool, mode: FlightMode) -> int:

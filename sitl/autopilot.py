@@ -16,6 +16,14 @@ Profiles:
   takeoff (a simplification: a real PX4 leaves the ground only on a climb demand or a takeoff,
   which is why the agent takes off first). TAKEOFF (MAV_CMD_NAV_TAKEOFF) climbs to the takeoff
   altitude and then switches to HOLD; the landed state is TAKEOFF during the climb, IN_AIR after.
+  Three behaviours of a real PX4 SITL can be switched on (all off by default): arming refused
+  (TEMPORARILY_REJECTED, "Preflight Fail: heading estimate not stable") until `heading_ready_ns`
+  after boot, as PX4 refuses it while its heading estimate settles (4.5-13 s after a SITL's
+  boot); COM_DISARM_PRFLT (`preflight_disarm_ns`): armed and never off the ground for that long,
+  the vehicle disarms itself ("Disarmed by auto preflight disarming") and a takeoff under way
+  ends in HOLD; and a takeoff commanded before `takeoff_stall_ns` after boot is accepted but
+  never climbs, as a real PX4 SITL's first takeoff once did (its cause is not modelled), so a
+  client sees a takeoff end on the ground.
 - ArduPilot (Copter): boots in STABILIZE. Arming and the modes that need a position are refused
   until the position estimate is ready (`position_ready_ns` after boot). A GUIDED target flies
   only once airborne (the takeoff command comes first), and one sent during the takeoff replaces
@@ -115,6 +123,16 @@ class AutopilotConfig:
     disarm_delay_ns: int = 10_000_000_000
     """ArduPilot DISARM_DELAY: armed on the ground without taking off for this long, the vehicle
     disarms itself [ns] (ArduCopter's default 10 s; 0: never)."""
+    heading_ready_ns: int = 0
+    """PX4: arming is refused until this time after boot, while the heading estimate settles
+    [ns] (0: at once; a real PX4 SITL: 4.5-13 s)."""
+    preflight_disarm_ns: int = 0
+    """PX4 COM_DISARM_PRFLT: armed and never off the ground for this long since arming, the
+    vehicle disarms itself [ns] (0: never; PX4's default is 10 s, but this profile flies
+    offboard setpoints on the ground, which a real PX4 would not)."""
+    takeoff_stall_ns: int = 0
+    """PX4: a takeoff commanded before this time after boot is accepted but never climbs [ns]
+    (0: none stalls)."""
     local_origin_m: tuple[float, float] = (0.0, 0.0)
     """Where the vehicle's local frame (LOCAL_POSITION_NED, position targets) has its origin in
     the scenario's frame (North, East) [m]: a real autopilot's estimator starts where it boots."""
@@ -142,6 +160,9 @@ class AutopilotConfig:
             "guided_timeout_ns",
             "position_ready_ns",
             "disarm_delay_ns",
+            "heading_ready_ns",
+            "preflight_disarm_ns",
+            "takeoff_stall_ns",
         ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
@@ -180,6 +201,12 @@ class Autopilot:
         self._hold_point: tuple[float, float] | None = None
         self._grounded_since_ns: int | None = None
         """ArduPilot: since when the vehicle is armed on the ground, not taking off."""
+        self._armed_ns = 0
+        """When the vehicle was last armed [ns]."""
+        self._flown_since_arming = False
+        """PX4: the vehicle has left the ground since it was last armed."""
+        self._takeoff_stalled = False
+        """PX4: the takeoff under way never climbs (`AutopilotConfig.takeoff_stall_ns`)."""
         self.holding: tuple[float, float] | None = None
         """The (North, East) point the position controller flies to this tick; None while a
         velocity demand is flown or the vehicle cannot fly horizontally (set by `step`)."""
@@ -249,7 +276,13 @@ class Autopilot:
             return self._refuse(Severity.CRITICAL, "Arming denied: not in an armable mode")
         if self.px4 and self.mode == FlightMode.OFFBOARD and not self.setpoint_stream_ok(now_ns):
             return self._refuse(Severity.CRITICAL, "Arming denied: no offboard setpoints")
+        if self.px4 and now_ns < self.config.heading_ready_ns:
+            # (PX4's commander answers a refused arming TEMPORARILY_REJECTED)
+            self._refuse(Severity.CRITICAL, "Preflight Fail: heading estimate not stable")
+            return MavResult.TEMPORARILY_REJECTED
         self.armed = True
+        self._armed_ns = now_ns
+        self._flown_since_arming = False
         self._notify(Severity.INFO, "Armed by external command")
         return MavResult.ACCEPTED
 
@@ -287,6 +320,7 @@ class Autopilot:
                 return self._refuse(Severity.WARNING, "Takeoff denied: landing")
             self._takeoff_target_m = target
             self._enter(FlightMode.TAKEOFF)
+            self._takeoff_stalled = now_ns < c.takeoff_stall_ns
             return MavResult.ACCEPTED
         if self.mode != FlightMode.OFFBOARD or not self.armed or not self.landed:
             return self._refuse(Severity.WARNING, "Takeoff failed: needs GUIDED, armed, landed")
@@ -383,6 +417,8 @@ class Autopilot:
             rate = -c.fall_rate_m_s if self.altitude_m > 0.0 else 0.0
         elif self.mode == FlightMode.LAND:
             rate = -c.descent_rate_m_s
+        elif target is not None and self._takeoff_stalled and self.mode == FlightMode.TAKEOFF:
+            rate = 0.0
         elif target is not None:
             rate = c.climb_rate_m_s
         elif self.mode == FlightMode.OFFBOARD and isinstance(demand, PositionDemand):
@@ -398,6 +434,7 @@ class Autopilot:
             self._finish_takeoff(target)
         self.altitude_m = altitude
         self.climb_rate_m_s = rate if altitude > 0.0 or rate > 0.0 else 0.0
+        self._flown_since_arming = self._flown_since_arming or (self.armed and altitude > 0.0)
         if self.armed and self.mode == FlightMode.LAND and self.landed:
             self._notify(Severity.INFO, "Landing detected")
             self._disarm("Disarmed by landing")
@@ -418,7 +455,16 @@ class Autopilot:
         self.mode = mode
 
     def _auto_disarm(self, now_ns: int) -> None:
-        """ArduPilot: disarm a vehicle left armed on the ground (DISARM_DELAY)."""
+        """Disarm a vehicle left armed on the ground: ArduPilot's DISARM_DELAY, PX4's
+        COM_DISARM_PRFLT."""
+        if self.px4:
+            delay = self.config.preflight_disarm_ns
+            grounded = self.armed and not self._flown_since_arming and self.landed
+            if delay and grounded and now_ns - self._armed_ns >= delay:
+                if self.mode == FlightMode.TAKEOFF:
+                    self._enter(FlightMode.HOLD)
+                self._disarm("Disarmed by auto preflight disarming")
+            return
         delay = self.config.disarm_delay_ns
         waiting = self.armed and self.landed and self._takeoff_target_m is None
         if self.px4 or not delay or not waiting:
@@ -433,6 +479,7 @@ class Autopilot:
     def _disarm(self, text: str) -> None:
         self.armed = False
         self._takeoff_target_m = None
+        self._takeoff_stalled = False
         self._notify(Severity.INFO, text)
 
     def _refuse(self, severity: Severity, text: str) -> MavResult:

@@ -3,13 +3,15 @@
 One vehicle per ``--vehicle``; several in one process serve each its own endpoints, system id and
 ports, as a multi-instance SITL does (`fleetmpc.sitl.vehicle_group`).
 
-PX4 ports (as PX4 SITL, vehicle I): binds 14580 + I - 1 and streams to the offboard-API port
-14540 + I - 1; binds 18570 + I - 1 and streams to the ground-station port 14550. ArduPilot: TCP
-server on 5760 + 10 (I - 1), plus the same ground-station UDP stream (as ArduPilot SITL's
-``--out udp:HOST:14550``; ``--gcs-port 0`` turns it off). The profile is the vehicle's
+PX4 ports (vehicle I): streams to the offboard-API port 14540 + I - 1 and to the ground-station
+port 14550, as PX4 SITL instance I - 1 does, from ports it binds 10000 above PX4's (24580 + I - 1
+and 28570 + I - 1), so it never takes one a real PX4 SITL binds. ArduPilot: TCP server on
+15760 + 10 (I - 1) (ArduPilot SITL's 5760 + 10000: a real ArduCopter SITL keeps its own), plus
+the same ground-station UDP stream (as ArduPilot SITL's ``--out udp:HOST:14550``; ``--gcs-port 0``
+turns it off) (`fleetmpc.network`). The profile is the vehicle's
 ``autopilot`` in the scenario unless --autopilot says otherwise. Base ports come from the
 scenario's [network] table (the agent's default URL uses the same arithmetic,
-`fleetmpc.network.mavlink_url`); the bound ports keep their PX4 distance to the ports streamed
+`fleetmpc.network.mavlink_url`); the bound ports keep their distance to the ports streamed
 to, so a [network] table that moves the offboard or ground-station port moves them too and two
 fleets with different tables share no port. --port-offset shifts all of them, and each can be
 set explicitly (with one --vehicle only). SIGINT/SIGTERM stop the vehicles (exit code 0).
@@ -102,6 +104,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=4.0,
         metavar="S",
         help="ArduPilot: position estimate ready after boot",
+    )
+    timing.add_argument(
+        "--heading-ready",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="PX4: arming refused until S after boot, as a real PX4 SITL refuses it while its"
+        " heading estimate settles (4.5-13 s; default 0)",
+    )
+    timing.add_argument(
+        "--com-disarm-prflt",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="PX4 COM_DISARM_PRFLT: armed and never off the ground for S, the vehicle disarms"
+        " itself (PX4's default 10; default here 0: never, as offboard flies on the ground)",
+    )
+    timing.add_argument(
+        "--takeoff-stall",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="PX4: a takeoff commanded within S of boot is accepted but never climbs (default 0)",
     )
 
 
@@ -203,6 +228,9 @@ def _build_config(
         offboard_loss_timeout_ns=_ns("--com-of-loss-t", args.com_of_loss_t, lo=0.05, hi=60.0),
         guided_timeout_ns=_ns("--guided-timeout", args.guided_timeout, lo=0.05, hi=60.0),
         position_ready_ns=_ns("--position-ready", args.position_ready, lo=0.0, hi=600.0),
+        heading_ready_ns=_ns("--heading-ready", args.heading_ready, lo=0.0, hi=600.0),
+        preflight_disarm_ns=_ns("--com-disarm-prflt", args.com_disarm_prflt, lo=0.0, hi=600.0),
+        takeoff_stall_ns=_ns("--takeoff-stall", args.takeoff_stall, lo=0.0, hi=600.0),
         local_origin_m=_boot_origin(args.boot_origin, spec),
     )
     common = dict(

@@ -3,7 +3,11 @@
 Every field acted on is validated first: random payloads often decode as valid messages. Every
 COMMAND_LONG/COMMAND_INT addressed to this vehicle is answered with one COMMAND_ACK (unknown
 commands: UNSUPPORTED); SET_MODE is answered with a COMMAND_ACK whose command is 11, as ArduPilot
-does. Messages addressed to other systems, and this vehicle's own echoes, are ignored.
+does. Messages addressed to other systems, and this vehicle's own echoes, are ignored; a command
+addressed to another system is ignored without an ACK and, in the PX4 profile, logged as PX4's
+`MavlinkReceiver::handle_message_command_both` logs it ("Ignore command 511 from 255/190 to
+1/1"), once for each sender and target (a ground station's one UDP port sends every vehicle's
+requests to every vehicle it hears), the rest counted.
 """
 
 import math
@@ -89,14 +93,19 @@ class MessageHandler:
         *,
         schedule_of: Callable[[Incoming], StreamSchedule],
         snapshot: Callable[[], Snapshot],
+        log: Callable[[str], None] | None = None,
     ) -> None:
         self.autopilot = autopilot
         self.ident = ident
         self.mav = mav
         self._schedule_of = schedule_of
         self._snapshot = snapshot
+        self._log = log or (lambda _text: None)
         self.ignored = 0
         self.commands = 0
+        self.commands_to_others = 0
+        """Commands addressed to another system, ignored."""
+        self._others_logged: set[tuple[int, int, int, int]] = set()
 
     @property
     def _px4(self) -> bool:
@@ -150,6 +159,7 @@ class MessageHandler:
         """Act on a COMMAND_LONG/COMMAND_INT for this vehicle; the ACK comes first."""
         m = inc.message
         if not self._for_me(m.target_system, m.target_component):
+            self._ignore_command(m, cmd.command)
             return []
         self.commands += 1
         replies: list[Reply] = []
@@ -159,6 +169,18 @@ class MessageHandler:
             cmd.command, int(result), 0, 0, header.srcSystem, header.srcComponent
         )
         return [Reply(ack, inc), *replies]
+
+    def _ignore_command(self, m, command: int) -> None:
+        self.commands_to_others += 1
+        header = m.get_header()
+        route = (header.srcSystem, header.srcComponent, m.target_system, m.target_component)
+        if not self._px4 or route in self._others_logged:
+            return
+        self._others_logged.add(route)
+        self._log(
+            f"Ignore command {command} from {route[0]}/{route[1]} to {route[2]}/{route[3]}"
+            " (the same route again: counted)"
+        )
 
     def _dispatch(
         self, inc: Incoming, cmd: _Command, *, now_ns: int, replies: list[Reply]

@@ -26,6 +26,7 @@ frame could lock its owner out.)
 
 import contextlib
 import selectors
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -187,12 +188,16 @@ class VehicleServer:
             self.encoder.mav,
             schedule_of=lambda inc: self._schedules[inc.link],
             snapshot=self.snapshot,
+            log=self._log,
         )
         try:
             self._open()
         except BaseException:
             self.close()
             raise
+
+    def _log(self, text: str) -> None:
+        print(f"fleetmpc sitl: vehicle {self.ident.system_id}: {text}", file=sys.stderr, flush=True)
 
     # ----------------------------------------------------------------------------- set-up
     def _open(self) -> None:
@@ -221,7 +226,7 @@ class VehicleServer:
 
     @property
     def addresses(self) -> dict[str, str]:
-        """Local endpoints by link name, e.g. "udp 127.0.0.1:14580 -> 127.0.0.1:14540"."""
+        """Local endpoints by link name, e.g. "udp 127.0.0.1:24580 -> 127.0.0.1:14540"."""
         out = {}
         for link in self._links.udp:
             host, port = link.local_address
@@ -460,7 +465,8 @@ class VehicleServer:
         text = (
             f"vehicle {self.ident.system_id}: t = {self.plant.time_ns * 1e-9:.2f} s, "
             f"received {s.messages} messages ({s.bytes} bytes), dropped {s.bad_frames} bad frames "
-            f"and {s.unknown} unknown, {self.handler.commands} commands, sent {c.sent}; "
+            f"and {s.unknown} unknown, {self.handler.commands} commands"
+            f" ({self.handler.commands_to_others} to other systems ignored), sent {c.sent}; "
             f"setpoints rejected: {rejected}; loop errors: {c.loop_errors}"
         )
         if self.signing is not None or self.signing_rejected:

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from fleetmpc.network import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT, Network
+from fleetmpc.network import SITL_GCS_LOCAL_BASE_PORT, SITL_OFFBOARD_LOCAL_BASE_PORT, Network
 
 __all__ = [
     "ROOT",
@@ -145,8 +145,8 @@ def scenario_on_free_ports(source: Path, dest: Path) -> Path:
     else:  # (a pattern: vehicles 1..count)
         n = doc["formation"]["pattern"]["count"]
     px4 = Network()
-    offboard_bound = PX4_OFFBOARD_LOCAL_BASE_PORT - px4.offboard_base_port
-    gcs_bound = PX4_GCS_LOCAL_BASE_PORT - px4.gcs_port
+    offboard_bound = SITL_OFFBOARD_LOCAL_BASE_PORT - px4.offboard_base_port
+    gcs_bound = SITL_GCS_LOCAL_BASE_PORT - px4.gcs_port
     udp, tcp = (socket.SOCK_DGRAM,), (socket.SOCK_STREAM,)
     offboard_offsets = [*range(n), *(offboard_bound + i for i in range(n))]
     offboard = free_port_block(offboard_offsets, kinds=udp)

@@ -119,13 +119,47 @@ def test_each_vehicle_gets_the_url_of_its_autopilot():
         "tcp:127.0.0.2:25770",
         "udpin:127.0.0.2:24542",
     ]
-    # PX4 SITL and ArduPilot SITL conventions on the default network.
+    # On the default network: PX4's offboard ports, our ArduPilot profile's TCP ports clear of
+    # ArduCopter SITL's.
     default = Network()
     assert [mavlink_url(default, v) for v in sc.vehicles] == [
         "udpin:127.0.0.1:14540",
-        "tcp:127.0.0.1:5770",
+        "tcp:127.0.0.1:15770",
         "udpin:127.0.0.1:14542",
     ]
+
+
+def test_the_default_ports_of_simulated_vehicles_are_clear_of_real_sitls():
+    """A fleet that mixes our vehicles with real SITLs starts on the defaults: no port our
+    vehicles bind or serve is one a PX4 SITL instance binds (offboard 14580 + n, ground station
+    18570 + n, payload 14280 + n, gimbal 13030 + n, simulator 4560 + n) or an ArduCopter SITL
+    instance serves (TCP 5760 + 10 n to 5763 + 10 n), for 50 vehicles and 50 instances. The
+    ports they stream to stay PX4's: instance n streams where vehicle n + 1's agent listens."""
+    from fleetmpc.launch.fleet import FleetOptions, fleet_processes
+
+    n = 50
+    pattern = {"kind": "grid", "count": n, "spacing_m": 5.0, "columns": 10}
+    px4 = parse_scenario({"name": "px4", "formation": {"pattern": pattern}})
+    net = px4.network
+    real_px4 = {p + i for p in (14580, 18570, 14280, 13030, 4560) for i in range(n)}
+    real_ardupilot = {p + 10 * i for p in (5760, 5762, 5763) for i in range(n)}
+    ours_udp = {net.offboard_local_port(v) for v in range(1, n + 1)}
+    ours_udp |= {net.gcs_local_port(v) for v in range(1, n + 1)}
+    ours_tcp = {net.ardupilot_tcp_port(v) for v in range(1, n + 1)}
+    assert len(ours_udp) == 2 * n and not ours_udp & real_px4
+    assert not ours_tcp & real_ardupilot
+    assert min(ours_udp | ours_tcp) >= 15760 and max(ours_udp | ours_tcp) < 32768  # (ephemeral)
+    assert [net.offboard_port(v) for v in (1, 2)] == [14540, 14541]  # (PX4 instance 0, 1)
+    # What `up` starts: the issue's fleet, vehicle 2 on PX4 instance 1, binds none of its ports.
+    paper = load_scenario(ROOT / "scenarios" / "paper.toml", live=True)
+    specs = fleet_processes(
+        paper, FleetOptions("s.toml", external_autopilots={2: "udpin:127.0.0.1:14541"})
+    )
+    assert [p.name for p in specs if p.role == "sitl"] == ["sitl-1", "sitl-3"]
+    bound = {paper.network.offboard_local_port(v) for v in (1, 3)}
+    bound |= {paper.network.gcs_local_port(v) for v in (1, 3)}
+    assert bound == {24580, 24582, 28570, 28572}
+    assert not bound & {14581, 18571}
 
 
 def test_hosts_place_the_router_the_ground_station_and_each_vehicle():
@@ -182,7 +216,7 @@ def test_a_live_fleet_whose_ports_collide_is_refused_naming_the_field():
     moved = {**doc, "network": {"gcs_port": 14650}}
     assert len(parse_scenario(moved, live=True).vehicles) == 11
     ardupilot = [{**v, "autopilot": "ardupilot"} for v in vehicles[:2]]
-    clash = {"name": "clash", "vehicles": ardupilot, "network": {"zenoh_port": 5770}}
+    clash = {"name": "clash", "vehicles": ardupilot, "network": {"zenoh_port": 15770}}
     with pytest.raises(ConfigError) as e:
         parse_scenario(clash, live=True)
     assert e.value.field == "network.ardupilot_tcp_base_port"

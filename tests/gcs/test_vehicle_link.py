@@ -135,3 +135,50 @@ def test_a_vehicle_that_sends_ground_truth_is_recorded_from_it_alone():
         assert rec.truth[:, i, 0] == pytest.approx(10.0 * (i + 1) + np.arange(3) + 0.05, abs=0.01)
         assert rec.truth[:, i, 1] == pytest.approx([0.04] * 3, abs=0.01)
     assert gs.metrics()["ground_truth"] == [1]
+    metrics = gs.metrics()
+    # The learned model is judged against the simulated truth only where there is one.
+    assert [b["vehicle"] for b in metrics["beta_error"]] == [1]
+    assert metrics["beta_error_without_truth"] == [2, 3]
+    import re
+
+    from fleetmpc.gcs.metrics import format_summary
+
+    summary = format_summary(metrics)
+    assert re.search(r"beta error UAV 1 +a_V", summary)
+    for vid in (2, 3):
+        assert re.search(rf"beta error UAV {vid} +unknown: no simulated truth", summary)
+
+
+def test_each_autopilot_s_modes_are_named_as_it_names_them():
+    """The status table and the events call ArduCopter's modes GUIDED and LOITER, PX4's
+    OFFBOARD and HOLD, and name modes the profiles do not fly (RTL) rather than hide them."""
+    from pathlib import Path
+
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from fleetmpc.gcs.station import GroundStation
+    from fleetmpc.protocol.mavlink_map import CopterMode, base_mode, custom_mode_of
+    from fleetmpc.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[2]
+    gs = GroundStation(load_scenario(root / "scenarios" / "paper.toml"), speed=1.0, duration_s=5.0)
+    beats = [
+        (1, Autopilot.PX4, custom_mode_of(FlightMode.OFFBOARD, Autopilot.PX4)),
+        (2, Autopilot.ARDUPILOTMEGA, int(CopterMode.GUIDED)),
+        (3, Autopilot.ARDUPILOTMEGA, int(CopterMode.LOITER)),
+    ]
+    for vid, autopilot, custom in beats:
+        mav = mavlink.MAVLink(None, srcSystem=vid, srcComponent=1)
+        flags = base_mode(armed=True, mode=FlightMode.OFFBOARD)
+        beat = mav.heartbeat_encode(2, int(autopilot), flags, custom, 4)
+        beat.pack(mav)
+        gs.on_mavlink(beat, received_ns=0)
+    modes = {v: s["mode"] for v, s in gs.status_snapshot("waiting")["vehicles"].items()}
+    assert modes == {"1": "OFFBOARD", "2": "GUIDED", "3": "LOITER"}
+    texts = [text for _, _, text in gs._events]
+    assert texts == ["UAV 1: OFFBOARD, armed", "UAV 2: GUIDED, armed", "UAV 3: LOITER, armed"]
+    mav = mavlink.MAVLink(None, srcSystem=3, srcComponent=1)
+    beat = mav.heartbeat_encode(2, int(Autopilot.ARDUPILOTMEGA), 0, int(CopterMode.RTL), 4)
+    beat.pack(mav)
+    gs.on_mavlink(beat, received_ns=0)
+    assert gs.status_snapshot("waiting")["vehicles"]["3"]["mode"] == "RTL"

@@ -167,3 +167,43 @@ def test_up_refuses_another_fleets_secrets_naming_the_option(tmp_path):
         check_keys(paper, ours)
     with pytest.raises(ConfigError, match="--keys: cannot read"):
         check_keys(paper, tmp_path / "none")
+
+
+def test_up_gives_each_agent_its_connect_and_engage_timeouts():
+    """`up --connect-timeout` and `--engage-timeout` mean what they mean to `fleetmpc agent`
+    (each agent's own waits); the ground station waits for the fleet that long and more."""
+    from fleetmpc.onboard import cli as agent_cli
+
+    args = _up_args("--connect-timeout", "90", "--engage-timeout", "45")
+    gcs = _gcs_args(up._gcs_options(args))
+    assert gcs.engage_timeout == 90 + 45 + up._ENGAGE_SLACK_S
+    sc = load_scenario(ROOT / "scenarios" / "paper.toml")
+    opts = FleetOptions(scenario_path="s.toml", connect_timeout_s=90.0, engage_timeout_s=45.0)
+    agent = {p.name: p for p in fleet_processes(sc, opts)}["agent-2"]
+    parser = argparse.ArgumentParser()
+    agent_cli.add_arguments(parser)
+    parsed = parser.parse_args(list(agent.argv[1:]))
+    assert (parsed.connect_timeout, parsed.engage_timeout) == (90.0, 45.0)
+    for bad in ("0", "nan"):
+        with pytest.raises(ConfigError, match="--engage-timeout"):
+            up._gcs_options(_up_args("--engage-timeout", bad))
+
+
+def test_the_real_autopilot_docs_name_only_flags_the_commands_have():
+    """Every `--flag` docs/real-autopilots.md names is one of `fleetmpc up`'s, `fleetmpc
+    agent`'s or `fleetmpc sitl`'s (or of the autopilots' own tools, listed)."""
+    import re
+
+    from fleetmpc.onboard import cli as agent_cli
+    from fleetmpc.sitl import cli as sitl_cli
+
+    known: set[str] = set()
+    for add in (up.add_arguments, agent_cli.add_arguments, sitl_cli.add_arguments):
+        parser = argparse.ArgumentParser()
+        add(parser)
+        known |= {s for a in parser._actions for s in a.option_strings}
+    theirs = {"--model", "--speedup", "--home", "--defaults", "--serial1", "--out", "--board"}
+    text = (ROOT / "docs" / "real-autopilots.md").read_text()
+    named = set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", text))
+    assert named - theirs <= known, sorted(named - theirs - known)
+    assert {"--connect-timeout", "--engage-timeout", "--mavlink", "--target-system"} <= named

@@ -280,3 +280,48 @@ def test_an_ardupilot_answering_as_system_1_and_booted_elsewhere_flies_vehicle_2
     assert abs(mean_across) <= 0.02, (mean_across, mean_along)
     assert abs(mean_along) <= 0.06, (mean_across, mean_along)
     assert np.median(np.hypot(offset[:, 0], offset[:, 1])) <= 0.1
+
+
+def test_a_px4_sitl_instance_flies_vehicle_2_through_refusals_next_to_our_vehicles(
+    launch, tmp_path
+):
+    """The issue's fleet: vehicle 2 on a PX4 SITL instance 1 (system id 2, binding PX4's
+    14580 + 1 and 18570 + 1, moved here with the test's free network), which refuses arming
+    while its heading settles (here for 40 s of its time, so that the agent, started later,
+    sees it) and whose first takeoff ends disarmed on the ground (COM_DISARM_PRFLT, 10 s). A
+    PX4-profile vehicle started by hand stands in for it. `up` starts vehicles 1 and 3 next to
+    it, and vehicle 2's agent asks again, starts over after the failed takeoff, and engages."""
+    from fleetmpc.network import PX4_GCS_LOCAL_BASE_PORT, PX4_OFFBOARD_LOCAL_BASE_PORT, Network
+    from fleetmpc.scenario import load_scenario
+
+    paper = scenario_on_free_ports(PAPER, tmp_path / "paper.toml")
+    net = load_scenario(paper).network
+    # Where PX4 instance 1 binds on this network (PX4's distances from the ports streamed to).
+    offboard_bound = (
+        net.offboard_port(2) + PX4_OFFBOARD_LOCAL_BASE_PORT - Network.offboard_base_port
+    )
+    gcs_bound = net.gcs_port + PX4_GCS_LOCAL_BASE_PORT - Network.gcs_port + 1
+    px4_log = (tmp_path / "px4-instance-1.log").open("w")  # noqa: SIM115 (closed below)
+    px4 = subprocess.Popen(
+        [sys.executable, "-m", "fleetmpc.cli", "sitl", "--scenario", str(paper), "--vehicle", "2",
+         "--speed", f"{SPEED:g}", "--offboard-local-port", str(offboard_bound),
+         "--gcs-local-port", str(gcs_bound), "--heading-ready", "40", "--takeoff-stall", "45",
+         "--com-disarm-prflt", "10"],
+        stdout=px4_log, stderr=subprocess.STDOUT, cwd=ROOT,
+    )  # fmt: skip
+    try:
+        metrics = tmp_path / "metrics.json"
+        url = f"udpin:{net.host}:{net.offboard_port(2)}"
+        up = launch(paper, tmp_path / "run", "--mavlink", f"2={url}", "--metrics", str(metrics))
+        assert up.wait(timeout_s=180.0) == 0, up.text()
+    finally:
+        px4.terminate()
+        px4.wait(timeout=10.0)
+        px4_log.close()
+    log = (tmp_path / "run" / "logs" / "agent-2.log").read_text()
+    assert "engage: arm: TEMPORARILY_REJECTED (Preflight Fail: heading estimate not stable)" in log
+    assert "(Disarmed by auto preflight disarming); trying again" in log
+    assert "vehicle 2: engaged" in log
+    m = json.loads(metrics.read_text())
+    assert m["periods_recorded"] == m["periods_expected"], m
+    assert m["min_separation_m"] >= 2.0, m

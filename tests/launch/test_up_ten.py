@@ -40,8 +40,8 @@ GRID10 = Path(__file__).resolve().parent / "data" / "grid10.toml"
 GRID25 = Path(__file__).resolve().parent / "data" / "grid25.toml"
 GATE_FORMATION_M = ComposeOptions.gate_formation_m
 """The formation gate of a composed fleet's ground station [m]."""
-ENGAGE_TIMEOUT_S = 120.0
-"""Wall seconds `up` gives the ten vehicles to engage (its default)."""
+ENGAGE_TIMEOUT_S = 60.0
+"""Wall seconds `up` gives each of the ten agents to engage (its default)."""
 MARGIN_S = 90.0
 """Wall seconds allowed beyond engagement and the flight, for start-up and shutdown."""
 

@@ -228,3 +228,36 @@ def test_geodetic_scale():
     assert lon == pytest.approx(8.0, abs=1e-12)
     _, lon = geodetic_from_ned(0.0, 1000.0, home_lat_deg=60.0, home_lon_deg=8.0)
     assert (lon - 8.0) == pytest.approx(2 * math.degrees(1000.0 / EARTH_RADIUS_M), rel=1e-6)
+
+
+def test_modes_are_named_as_each_autopilot_names_them():
+    from fleetmpc.onboard.autopilot_link import LinkState
+    from fleetmpc.protocol.mavlink_map import (
+        Autopilot,
+        CopterMode,
+        FlightMode,
+        Px4AutoSubMode,
+        Px4MainMode,
+        custom_mode_name,
+        custom_mode_of,
+        flight_mode_name,
+        px4_custom_mode,
+    )
+
+    ap, px4 = Autopilot.ARDUPILOTMEGA, Autopilot.PX4
+    assert flight_mode_name(FlightMode.OFFBOARD, ap) == "GUIDED"
+    assert flight_mode_name(FlightMode.HOLD, ap) == "LOITER"
+    assert flight_mode_name(FlightMode.POSITION, ap) == "POSHOLD"
+    assert flight_mode_name(FlightMode.HOLD, px4) == "HOLD"
+    assert custom_mode_name(int(CopterMode.RTL), ap) == "RTL"
+    assert custom_mode_name(99, ap) == "mode 99"
+    assert custom_mode_name(custom_mode_of(FlightMode.OFFBOARD, px4), px4) == "OFFBOARD"
+    rtl = px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.RTL)
+    assert custom_mode_name(rtl, px4) == "AUTO.RTL"
+    assert custom_mode_name(px4_custom_mode(Px4MainMode.ALTCTL), px4) == "ALTCTL"
+    # The agent's state, and so its final report: LOITER, not HOLD, for an ArduCopter.
+    loiter = LinkState(autopilot=ap, mode=FlightMode.HOLD, custom_mode=int(CopterMode.LOITER))
+    assert loiter.mode_name == "LOITER"
+    assert LinkState(autopilot=ap, mode=FlightMode.HOLD).mode_name == "LOITER"  # (the fake)
+    assert LinkState(autopilot=ap, custom_mode=int(CopterMode.RTL)).mode_name == "RTL"
+    assert LinkState().mode_name is None

@@ -1,14 +1,28 @@
 """PX4 offboard semantics of the `fleetmpc sitl` process, seen by a pymavlink client on loopback.
 
 All times are the vehicle's simulated time (time_boot_ms), so the checks hold at any --speed.
+The agent's link is flown against it too: addressed to a system id other than 1, and engaging
+through the refusals and failed takeoffs of a real PX4 SITL.
 """
 
 import math
+import re
+import time
 
 import pytest
-from sim_client import SimClient, fly_offboard, horizontal_speed, px4_args, wait_hold_after_stop
+from pymavlink import mavutil
+from sim_client import (
+    SimClient,
+    fly_offboard,
+    free_port,
+    horizontal_speed,
+    px4_args,
+    wait_hold_after_stop,
+)
 
-from fleetmpc.protocol.mavlink_map import FlightMode
+from fleetmpc.onboard.mavlink_autopilot_link import MavlinkAutopilotLink
+from fleetmpc.onboard.setpoints import SetpointStreamer
+from fleetmpc.protocol.mavlink_map import FlightMode, MavResult
 from fleetmpc.protocol.mavlink_setpoint import Frame, SetpointFields, TypeMask, encode_setpoint
 
 
@@ -89,4 +103,124 @@ def test_invalid_setpoints_leave_the_motion_unchanged(start_sitl):
         ), "each kind of bad setpoint is reported once"
     finally:
         client.close()
+    assert sitl.stop() == 0
+
+
+def _px4_vehicle(start_sitl, *args: str, vehicle: int = 2, speed: float = 4.0):
+    """A PX4-profile vehicle (system id `vehicle`) streaming its offboard link to a free port;
+    (the SITL child, that port, the port its offboard link binds)."""
+    port = free_port()
+    sitl, ready = start_sitl(
+        "--vehicle", str(vehicle), "--speed", f"{speed:g}", "--offboard-port", str(port),
+        "--offboard-local-port", "0", "--gcs-port", "0", *args,
+    )  # fmt: skip
+    bound = int(re.search(r"offboard udp 127\.0\.0\.1:(\d+)", ready["endpoints"])[1])
+    return sitl, port, bound
+
+
+def _engage(link: MavlinkAutopilotLink, *, timeout_s: float) -> bool:
+    """Connect, stream a position hold where the vehicle is (what PX4 needs for OFFBOARD),
+    engage."""
+    state = link.connect(timeout_s=10.0)
+    streamer = SetpointStreamer(link, period_s=0.02)
+    streamer.hold_position(north_m=state.north_m, east_m=state.east_m)
+    streamer.start()
+    try:
+        return link.engage(timeout_s=timeout_s)
+    finally:
+        streamer.stop()
+
+
+def test_a_vehicle_of_system_2_is_addressed_as_system_2_and_ignores_commands_to_system_1(
+    start_sitl,
+):
+    """Everything the agent's link sends goes to the system id of the autopilot's HEARTBEAT:
+    its stream requests are taken (the pose comes in ODOMETRY alone) and it engages. A command
+    to another system gets no ACK, and the PX4 profile logs it as PX4 does."""
+    sitl, port, bound = _px4_vehicle(start_sitl, vehicle=2)
+    logs: list[str] = []
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", log=logs.append)
+    kinds: list[str] = []
+    handle = link._handle
+    link._handle = lambda msg: (kinds.append(msg.get_type()), handle(msg))
+    try:
+        assert _engage(link, timeout_s=20.0), logs
+        state = link.state()
+        time.sleep(0.3)  # (the streams stopped last may still be in flight)
+        kinds.clear()
+        time.sleep(0.5)
+    finally:
+        link.close()
+    assert state.system_id == 2 and state.engaged and state.armed
+    assert state.mode == FlightMode.OFFBOARD and state.mode_name == "OFFBOARD"
+    assert kinds.count("ODOMETRY") >= 20 and "LOCAL_POSITION_NED" not in kinds
+
+    other = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{bound}", source_system=255, source_component=190
+    )
+    try:
+        acks = []
+        for target in (1, 2):  # (to system 2 as well: the way there works)
+            other.mav.command_long_send(target, 1, 511, 0, 33, 200_000, 0, 0, 0, 0, 0)
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                m = other.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.1)
+                if m is not None and m.command == 511:
+                    acks.append((target, m.result))
+                    break
+    finally:
+        other.close()
+    assert acks == [(2, MavResult.ACCEPTED)]
+    assert sitl.stop() == 0
+    assert "vehicle 2: Ignore command 511 from 255/190 to 1/1" in sitl.stderr
+    assert "(1 to other systems ignored)" in sitl.stderr
+
+
+def test_an_arming_refused_and_a_takeoff_that_ends_on_the_ground_are_tried_again(start_sitl):
+    """A real PX4 SITL refuses arming while its heading estimate settles, and its first
+    takeoff once ended on the ground, disarmed by COM_DISARM_PRFLT: the link asks again, starts
+    the sequence over, logs the autopilot's reasons, and engages."""
+    sitl, port, _ = _px4_vehicle(
+        start_sitl, "--heading-ready", "3", "--takeoff-stall", "5", "--com-disarm-prflt", "2"
+    )
+    logs: list[str] = []
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", log=logs.append)
+    try:
+        t0 = time.monotonic()
+        assert _engage(link, timeout_s=30.0), logs
+        print(f"engaged in {time.monotonic() - t0:.1f} s of wall time at x4")
+        state = link.state()
+    finally:
+        link.close()
+    assert state.engaged and state.armed and state.mode == FlightMode.OFFBOARD
+    engage = [text for text in logs if text.startswith("engage: ")]
+    assert engage == [
+        "engage: arm: TEMPORARILY_REJECTED (Preflight Fail: heading estimate not stable);"
+        " trying again",
+        "engage: the takeoff ended before the vehicle was airborne, disarmed (Disarmed by auto"
+        " preflight disarming); trying again",
+        "engage: done",
+    ]
+    assert sitl.stop() == 0
+
+
+def test_engage_gives_up_at_its_timeout_naming_the_last_reason(start_sitl):
+    sitl, port, _ = _px4_vehicle(start_sitl, "--heading-ready", "600")
+    logs: list[str] = []
+    link = MavlinkAutopilotLink(f"udpin:127.0.0.1:{port}", log=logs.append)
+    try:
+        t0 = time.monotonic()
+        assert not _engage(link, timeout_s=2.0)
+        took_s = time.monotonic() - t0
+        state = link.state()
+    finally:
+        link.close()
+    assert not state.engaged and not state.armed
+    assert 2.0 <= took_s <= 3.5
+    assert logs[-1] == (
+        "engage: gave up after 2 s; last reason: arm: TEMPORARILY_REJECTED (Preflight Fail:"
+        " heading estimate not stable)"
+    )
+    # Each reason is logged once, not at every refusal.
+    assert sum("trying again" in text for text in logs) == 1
     assert sitl.stop() == 0

@@ -46,20 +46,23 @@ def free_offset(ports: list[int]) -> int:
     raise AssertionError("no free port offset")
 
 
-def test_default_ports_follow_px4_and_ardupilot_sitl(start_sitl):
-    offset = free_offset([14581, 18571, 18572, 5780])
+def test_default_ports_stream_to_px4_s_and_bind_clear_of_real_sitls(start_sitl):
+    """Vehicle i streams to PX4's offboard port 14540 + i - 1 and the ground station's 14550,
+    and binds PX4's ports + 10000 (a real PX4 SITL instance 1 binds 14581 and 18571); an
+    ArduPilot-profile vehicle serves ArduPilot SITL's TCP port + 10000."""
+    offset = free_offset([24581, 28571, 28572, 15780])
     px4, ready = start_sitl("--vehicle", "2", "--port-offset", str(offset))
     assert ready["endpoints"] == (
-        f"offboard udp 127.0.0.1:{14581 + offset} -> 127.0.0.1:{14541 + offset}, "
-        f"gcs udp 127.0.0.1:{18571 + offset} -> 127.0.0.1:{14550 + offset}"
+        f"offboard udp 127.0.0.1:{24581 + offset} -> 127.0.0.1:{14541 + offset}, "
+        f"gcs udp 127.0.0.1:{28571 + offset} -> 127.0.0.1:{14550 + offset}"
     )
     apm, ready = start_sitl(
         "--vehicle", "3", "--autopilot", "ardupilot", "--port-offset", str(offset),
         scenario=IDEAL_SCENARIO.parent / "three.toml",
     )  # fmt: skip
     assert ready["endpoints"] == (
-        f"gcs udp 127.0.0.1:{18572 + offset} -> 127.0.0.1:{14550 + offset}, "
-        f"ardupilot tcp 127.0.0.1:{5780 + offset}"
+        f"gcs udp 127.0.0.1:{28572 + offset} -> 127.0.0.1:{14550 + offset}, "
+        f"ardupilot tcp 127.0.0.1:{15780 + offset}"
     )
     assert px4.stop() == 0 and apm.stop() == 0
 
@@ -114,17 +117,17 @@ def test_bound_ports_move_with_the_scenario_network(tmp_path):
     )
     px4 = build_configs(parse("--vehicle", "2", scenario=moved))[0]
     assert [(ep.name, ep.local_port, ep.remote_port) for ep in px4.udp] == [
-        ("offboard", 24581, 24541),
-        ("gcs", 38571, 34550),
+        ("offboard", 34581, 24541),
+        ("gcs", 48571, 34550),
     ]
     apm = build_configs(parse("--vehicle", "2", "--autopilot", "ardupilot", scenario=moved))[0]
     assert apm.tcp_port == 25770
-    assert [(ep.name, ep.local_port, ep.remote_port) for ep in apm.udp] == [("gcs", 38571, 34550)]
-    # PX4's own numbers on the default network.
+    assert [(ep.name, ep.local_port, ep.remote_port) for ep in apm.udp] == [("gcs", 48571, 34550)]
+    # The default network: PX4's ports streamed to, PX4's + 10000 bound.
     default = build_configs(parse("--vehicle", "2"))[0]
     assert [(ep.local_port, ep.remote_port) for ep in default.udp] == [
-        (14581, 14541),
-        (18571, 14550),
+        (24581, 14541),
+        (28571, 14550),
     ]
 
 
@@ -138,6 +141,9 @@ def test_bound_ports_move_with_the_scenario_network(tmp_path):
         (["--vehicle", "1", "--gcs-local-port", "70000"], "--gcs-local-port"),
         (["--vehicle", "1", "--autopilot", "ardupilot", "--tcp-port", "-1"], "--tcp-port"),
         (["--vehicle", "1", "--position-ready", "-1"], "--position-ready"),
+        (["--vehicle", "1", "--heading-ready", "nan"], "--heading-ready"),
+        (["--vehicle", "1", "--com-disarm-prflt", "-1"], "--com-disarm-prflt"),
+        (["--vehicle", "1", "--takeoff-stall", "601"], "--takeoff-stall"),
         (["--vehicle", "1", "--vehicle", "1"], "--vehicle"),
         (["--vehicle", "1", "--vehicle", "2", "--offboard-port", "15000"], "--offboard-port"),
         (["--vehicle", "1", "--vehicle", "2", "--boot-origin", "0,0"], "--boot-origin"),
@@ -154,8 +160,8 @@ def test_several_vehicles_get_each_their_own_ports_and_identity():
     configs = build_configs(parse("--vehicle", "1", "--vehicle", "2", "--gcs-port", "0"))
     assert [c.vehicle.id for c in configs] == [1, 2]
     assert [[(ep.local_port, ep.remote_port) for ep in c.udp] for c in configs] == [
-        [(14580, 14540)],
-        [(14581, 14541)],
+        [(24580, 14540)],
+        [(24581, 14541)],
     ]
 
 
