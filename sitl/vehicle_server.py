@@ -399,9 +399,10 @@ class VehicleServer:
         message for another system is not this vehicle's to check: it is dropped unchecked and
         uncounted (a ground station's UDP server link sends every vehicle's commands, each
         signed with that vehicle's key, to every vehicle it hears; checked here they were "bad
-        signature" once per vehicle in every clean run)."""
+        signature" once per vehicle in every clean run), but for a command: that one goes on,
+        unchecked, to the handler, which ignores it as PX4 does, with its "Ignore command" log."""
         if getattr(message, "target_system", 0) not in (0, self.ident.system_id):
-            return False
+            return message.get_type() in ("COMMAND_LONG", "COMMAND_INT")
         if self.signing is None or self.signing.admit(message):
             return True
         self.signing_rejected += 1
