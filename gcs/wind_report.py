@@ -40,7 +40,25 @@ def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
     if wind.turbulence.sigma_m_s > 0:
         lines.append(_turbulence_line(wind, sc, whose))
     lines += [_gust_line(g, whose) for g in wind.gusts]
+    if not wind.is_steady and sc.learning.enabled:
+        lines.append(_learner_line(sc, whose))
     return lines
+
+
+def _learner_line(sc: Scenario, whose: str) -> str:
+    """How well the learned drift can follow the wind from positions alone (docs/design.md,
+    "Learning"): the steady-state Kalman filter of a position that integrates a random-walk
+    drift of intensity q, measured with noise of spectral density R = sigma_p^2 tau, follows it
+    with a bandwidth (q / R)^(1/4) and an error sqrt(sqrt(2) q^(3/4) R^(1/4))."""
+    q = sc.learning.beta_random_walk[2] ** 2
+    R = sc.learning.measurement_position_std_m**2 * sc.controller.period_s
+    bandwidth = (q / R) ** 0.25
+    error = math.sqrt(math.sqrt(2.0) * q**0.75 * R**0.25)
+    return (
+        f"wind{whose}: the learned drift follows it as a random walk of "
+        f"{sc.learning.beta_random_walk[2]:.3f} m/s per sqrt(s): from positions alone, with a "
+        f"bandwidth of {bandwidth:.2f} rad/s and an error of about {error:.3f} m/s RMS"
+    )
 
 
 def _turbulence_line(wind: Wind, sc: Scenario, whose: str) -> str:

@@ -162,3 +162,14 @@ def test_check_says_what_the_wind_means_at_the_vehicle(paper):
     assert "feels it for 20.0 s" in text
     calm = check_scenario(paper).render()
     assert "turbulence" not in calm and "gust" not in calm
+
+
+def test_check_says_how_well_the_learned_drift_can_follow_the_wind():
+    from fleetmpc.gcs.check import check_scenario
+    from fleetmpc.scenario import load_scenario
+
+    text = check_scenario(load_scenario("scenarios/wind/paper-turbulent.toml")).render()
+    # q = 0.110^2 (sigma sqrt(2 / T_c), T_c = 3.7 s), R = 0.05^2 x 0.2: (q/R)^(1/4) = 2.22 rad/s,
+    # sqrt(sqrt(2) q^(3/4) R^(1/4)) = 0.088 m/s.
+    assert "random walk of 0.110 m/s per sqrt(s)" in text
+    assert "a bandwidth of 2.22 rad/s and an error of about 0.088 m/s RMS" in text
