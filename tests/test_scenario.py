@@ -57,7 +57,7 @@ def test_paper_scenario_holds_the_issue_truth(paper):
         ({"target": {"kind": "spiral"}}, "target.kind"),
         ({"formation": {"frame": "body"}}, "formation.frame"),
         ({"truth": {"speed_effectiveness": 0.0}}, "vehicles[0].truth.speed_effectiveness"),
-        ({"truth": {"wind": {"mean_m_s": [1.0]}}}, "vehicles[0].truth.wind.mean_m_s"),
+        ({"truth": {"wind": {"mean_m_s": [1.0]}}}, "truth.wind.mean_m_s"),
         ({"plant_steps_per_period": 7}, "plant_steps_per_period"),
         ({"seed": -1}, "seed"),
         ({"colour": "red"}, "colour"),

@@ -175,7 +175,7 @@ def test_each_autopilot_s_modes_are_named_as_it_names_them():
         gs.on_mavlink(beat, received_ns=0)
     modes = {v: s["mode"] for v, s in gs.status_snapshot("waiting")["vehicles"].items()}
     assert modes == {"1": "OFFBOARD", "2": "GUIDED", "3": "LOITER"}
-    texts = [text for _, _, text in gs._events]
+    texts = [text for *_, text in gs._events]
     assert texts == ["UAV 1: OFFBOARD, armed", "UAV 2: GUIDED, armed", "UAV 3: LOITER, armed"]
     mav = mavlink.MAVLink(None, srcSystem=3, srcComponent=1)
     beat = mav.heartbeat_encode(2, int(Autopilot.ARDUPILOTMEGA), 0, int(CopterMode.RTL), 4)

@@ -461,9 +461,12 @@ def test_fleet_flies_the_formation_of_the_lockstep_run(flight: Flight) -> None:
         <= FORMATION_TOLERANCE_M
     ), (live["centre_distance_error_m"], ref["centre_distance_error_m"])
     assert live["min_separation_m"] >= flight.scenario.controller.d_safe_m
-    # Every agent took the announced epoch in time: its first step is fleet time 0, engaged.
+    # Every agent took the announced epoch in time: its first step is fleet time 0, engaged (in
+    # its autopilot's own mode: OFFBOARD for PX4, GUIDED for ArduPilot).
+    engaged = {"px4": "OFFBOARD", "ardupilot": "GUIDED"}
     for vid, rows in flight.records.items():
-        assert rows[0]["stamp_ns"] == 0 and rows[0]["mode"] == "OFFBOARD", (vid, rows[0])
+        mode = engaged[flight.scenario.vehicle(vid).autopilot]
+        assert rows[0]["stamp_ns"] == 0 and rows[0]["mode"] == mode, (vid, rows[0])
 
 
 # -- malformed payloads -------------------------------------------------------------------------
