@@ -136,11 +136,17 @@ def dask_available() -> bool:
     return True
 
 
-WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
-"""Dask settings of the workers a sweep starts: no statistical profiler (a thread that samples
+WORKER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.log-length": 100,
+    "distributed.admin.low-level-log-length": 100,
+}
+"""Dask settings of the cluster a sweep starts: no statistical profiler (a thread that samples
 the running run's stack every 10 ms and keeps an hour of it: time and memory a lockstep run
-needs for itself). Workers started by hand take it from the environment:
-``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` (docs/sweeps.md)."""
+needs for itself), and logs of a hundred entries where Dask keeps ten thousand and a thousand
+(its scheduler, in this process, kept about 12 kB a run until they filled; with these, the
+coordinator is flat from about 700 runs on). Workers started by hand take them from the
+environment: ``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` (docs/sweeps.md)."""
 
 
 def local_cluster(jobs: int) -> Any:
