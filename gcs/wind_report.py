@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 
+from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.wind import Gust, Wind, von_karman_correlation
 
@@ -93,9 +94,8 @@ def _gust_line(gust: Gust, whose: str) -> str:
 
 
 def _nearest_slot_spacing_m(sc: Scenario) -> float | None:
-    slots = np.array(sc.formation.slots_m)
-    if len(slots) < 2:
+    if len(sc.formation.slots_m) < 2:
         return None
-    d = np.linalg.norm(slots[:, None, :] - slots[None, :, :], axis=2)
+    d = Formation(sc.formation).desired_distances()
     np.fill_diagonal(d, np.inf)
     return float(d.min())
