@@ -185,13 +185,17 @@ def _wind(table: Any, prefix: str) -> Wind:
 def _drift_for_the_wind(
     learning: LearningSettings, wind_table: Any, controller: ControllerSettings
 ) -> LearningSettings:
-    """The learned drift's random walk as fast as the site's wind changes at the cruise
-    airspeed (`Wind.rate_m_s`), on top of the default's: what a forecast of the site's
-    turbulence tells the agents (docs/design.md, "Learning")."""
-    rate = _wind(wind_table, "truth.wind").rate_m_s(controller.reference_speed_m_s)
-    a_v, a_w, d, _ = learning.beta_random_walk
-    drift = math.hypot(d, rate)
-    return dataclasses.replace(learning, beta_random_walk=(a_v, a_w, drift, drift))
+    """The learned drift's gust as the site's wind: its intensity (`Wind.gust_std_m_s`) and the
+    time constant of a Gauss-Markov process that changes as fast (`Wind.rate_m_s` at the cruise
+    airspeed, sigma sqrt(2 / T)): what a forecast of the site's turbulence tells the agents
+    (docs/design.md, "The wind's two parts")."""
+    wind = _wind(wind_table, "truth.wind")
+    sigma, rate = wind.gust_std_m_s(), wind.rate_m_s(controller.reference_speed_m_s)
+    if sigma == 0.0 or rate == 0.0:
+        return learning
+    return dataclasses.replace(
+        learning, gust_std_m_s=sigma, gust_time_constant_s=2.0 * sigma * sigma / (rate * rate)
+    )
 
 
 def _refuse_own_turbulence(truth: Any, prefix: str) -> None:
@@ -352,7 +356,7 @@ def parse_scenario(
     truth_default = doc.get("truth", {})
     if not isinstance(truth_default, dict):
         raise ConfigError("truth", "must be a table")
-    if "beta_random_walk" not in doc.get("learning", {}):
+    if "gust_std_m_s" not in doc.get("learning", {}):
         learning = _drift_for_the_wind(learning, truth_default.get("wind", {}), controller)
     formation_table = dict(doc.get("formation", {}))
     pattern = formation_table.pop("pattern", None)

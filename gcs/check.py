@@ -157,6 +157,8 @@ def _slot_requirements(
     steady = np.ones(len(t) - 1, dtype=bool)
     windows = []
     for k in corner_indices(target_vel):
+        if k >= len(arc):
+            continue  # (a corner at the run's last instant: no transient within the run)
         steady[max(k - 2, 0) : k + 2] = False
         across = np.flatnonzero(np.abs(behind - arc[k]) <= CHORD_HALF_M + 0.5)
         across = across[across >= k] if sc.formation.trail_m >= 0 else across

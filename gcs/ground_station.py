@@ -166,6 +166,7 @@ def _viewer(text: str) -> tuple[bool, str | None]:
 GCS_STREAMS_US = {
     33: 200_000,
     115: 200_000,
+    231: 200_000,
     245: 1_000_000,
     30: -1,
     32: -1,
@@ -175,7 +176,8 @@ GCS_STREAMS_US = {
 }
 """SET_MESSAGE_INTERVAL asked of every vehicle when first heard, and of a silent one [us]:
 GLOBAL_POSITION_INT at 5 Hz (its place on the map), a simulator's ground truth
-(HIL_STATE_QUATERNION) at 5 Hz where there is one (docs/design.md, "Ground truth") and
+(HIL_STATE_QUATERNION) and its true wind (WIND_COV) at 5 Hz where there is one
+(docs/design.md, "Ground truth") and
 EXTENDED_SYS_STATE at 1 Hz (is it in the air); stopped (-1): ATTITUDE, LOCAL_POSITION_NED,
 VFR_HUD, SYS_STATUS and HOME_POSITION, which the ground station does not read (a PX4
 ground-station link streams them at 21 messages a second, each one a send for the autopilot and

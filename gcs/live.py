@@ -11,7 +11,8 @@ What each FlightRecord field holds in a live run:
   interpolated linearly to the period times; a vehicle with no telemetry falls back to the
   first state of its plans (the agent's estimate);
 - `target`, `target_velocity`, `slots`, `slot_offsets_world`, `beta_truth`: from the scenario's
-  scripted target and truth parameters (what the scenario knows);
+  scripted target and truth parameters (what the scenario knows), but for the wind of a vehicle
+  that reports its true wind (our SITL's WIND_COV): the newest sample at or before the period;
 - `command`, `qp_ok`, `step_time_ms`: from the plan stamped at that period (the plan's first
   input is the command the agent sent), held from the previous period if that plan is missing;
 - `c`: only the norm of c_0 travels on the wire; it is stored in the first component;
@@ -90,6 +91,8 @@ class _Track:
     unwrapped yaw, each contiguous as `np.interp` wants it (filled on demand)."""
     yaw_correction: float = 0.0
     """What the unwrapping adds to the newest sample's raw yaw [rad]."""
+    wind: list[tuple[float, float, float]] = field(default_factory=list)
+    """The true wind's samples (t_s, North, East), in time order."""
 
 
 _RECEIVED_FIELDS = ("truth", "command", "c", "qp_ok", "step_time_ms", "beta", "plan_age_s")
@@ -195,6 +198,32 @@ class LiveRecord:
         track.raw_yaw = yaw_rad
         track.pending += (t_s, north_m, east_m, yaw)
         track.newest_t_s = t_s
+
+    def add_wind(self, vehicle_id: int, t_s: float, north_m_s: float, east_m_s: float) -> None:
+        """A sample of the true wind where a vehicle is, at fleet time `t_s` (a simulator's
+        truth); out-of-order and non-finite samples are dropped."""
+        track = self._tracks.get(vehicle_id)
+        if track is None or not all(map(math.isfinite, (t_s, north_m_s, east_m_s))):
+            return
+        if track.wind and t_s <= track.wind[-1][0]:
+            return
+        track.wind.append((t_s, north_m_s, east_m_s))
+
+    def _with_true_wind(self, beta_truth: np.ndarray, first: int) -> np.ndarray:
+        """`beta_truth` (K, N, 4) of periods from `first` on, its wind columns the newest true
+        wind sample at or before each period where a vehicle has one (a copy when any has)."""
+        t = (first + np.arange(len(beta_truth))) * self.period_ns * 1e-9
+        out = beta_truth
+        for vid, track in self._tracks.items():
+            if not track.wind:
+                continue
+            samples = np.array(track.wind)
+            at = np.searchsorted(samples[:, 0], t + 1e-9, side="right") - 1
+            if out is beta_truth:
+                out = beta_truth.copy()
+            known = at >= 0
+            out[known, self._index[vid], 2:4] = samples[at[known], 1:]
+        return out
 
     def add_plan(self, message: PlanMessage) -> None:
         track = self._tracks.get(message.sender_id)
@@ -448,6 +477,7 @@ class LiveRecord:
         self._update_cache(k_n)
         scenario = self._scenario_rows.rows(first, k_n)
         rows = {name: a.copy() if copy else a for name, a in scenario.items()}
+        rows["beta_truth"] = self._with_true_wind(rows["beta_truth"], first)
         rows |= self._received(first, k_n, _RECEIVED_FIELDS, copy=copy)
         with np.errstate(invalid="ignore"):
             min_separation = np.fmin.reduce(self._received_rows["separation_min"].array[:k_n])

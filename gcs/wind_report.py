@@ -47,18 +47,25 @@ def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
 
 
 def _learner_line(sc: Scenario, whose: str) -> str:
-    """How well the learned drift can follow the wind from positions alone (docs/design.md,
-    "Learning"): the steady-state Kalman filter of a position that integrates a random-walk
-    drift of intensity q, measured with noise of spectral density R = sigma_p^2 tau, follows it
-    with a bandwidth (q / R)^(1/4) and an error sqrt(sqrt(2) q^(3/4) R^(1/4))."""
-    q = sc.learning.beta_random_walk[2] ** 2
-    R = sc.learning.measurement_position_std_m**2 * sc.controller.period_s
-    bandwidth = (q / R) ** 0.25
-    error = math.sqrt(math.sqrt(2.0) * q**0.75 * R**0.25)
+    """How well the learned drift can follow the wind from the reported ground velocity
+    (docs/design.md, "The wind's two parts"): the steady state of the scalar Kalman filter of a
+    Gauss-Markov gust (sigma, T) measured each period with noise sigma_v, its error and the
+    bandwidth -ln(phi (1 - K)) / tau at which it follows."""
+    s, tau = sc.learning, sc.controller.period_s
+    sigma, T, R = s.gust_std_m_s, s.gust_time_constant_s, s.measurement_velocity_std_m_s**2
+    if sigma == 0.0:
+        return f"wind{whose}: the learned drift follows it as a slow random walk only"
+    phi = math.exp(-tau / T)
+    P = sigma * sigma  # (iterate the Riccati recursion to its fixed point)
+    for _ in range(1000):
+        prior = phi * phi * P + sigma * sigma * (1.0 - phi * phi)
+        P = prior * R / (prior + R)
+    gain = prior / (prior + R)
+    bandwidth = -math.log(phi * (1.0 - gain)) / tau
     return (
-        f"wind{whose}: the learned drift follows it as a random walk of "
-        f"{sc.learning.beta_random_walk[2]:.3f} m/s per sqrt(s): from positions alone, with a "
-        f"bandwidth of {bandwidth:.2f} rad/s and an error of about {error:.3f} m/s RMS"
+        f"wind{whose}: the learned drift's gust part is {sigma:.3f} m/s over {T:.1f} s; from "
+        f"the ground velocity (noise {math.sqrt(R):.2f} m/s) it follows the wind with a "
+        f"bandwidth of {bandwidth:.2f} rad/s and an error of about {math.sqrt(P):.3f} m/s RMS"
     )
 
 

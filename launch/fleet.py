@@ -85,6 +85,9 @@ class FleetOptions:
     engage_timeout_s: float | None = None
     """Wall seconds each agent keeps trying to engage its vehicle (``fleetmpc agent
     --engage-timeout``); None: the agent's default."""
+    wind_epoch_ns: int | None = None
+    """Host time.time_ns() at which the fleet's wind clock reads 0, given to every SITL process
+    (``fleetmpc sitl --wind-epoch-ns``) so that they fly one wind; None: each its own start."""
     vehicles_per_sitl: int = 1
     """Simulated vehicles one SITL process serves at most (vehicles next to each other in the
     scenario, on one host): fewer processes wake the host less often
@@ -173,6 +176,8 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
         for vid in ids:
             argv += ["--vehicle", str(vid)]
         argv += speed
+        if options.wind_epoch_ns is not None:
+            argv += ["--wind-epoch-ns", str(options.wind_epoch_ns)]
         for vid in ids:  # (paired with the vehicles in order)
             argv += key(vid)
         name = f"sitl-{ids[0]}" if len(ids) == 1 else f"sitl-{ids[0]}..{ids[-1]}"

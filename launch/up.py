@@ -402,6 +402,7 @@ def run(args: argparse.Namespace) -> int:
             engage_timeout_s=args.engage_timeout,
             secrets_dir=None if secrets is None else str(secrets),
             vehicles_per_sitl=per_sitl,
+            wind_epoch_ns=time.time_ns(),  # (the launch: every SITL flies one wind)
         ),
     )
     gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]

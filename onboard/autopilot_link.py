@@ -62,6 +62,10 @@ class LinkState:
     """Local position Down [m] (minus the altitude above home)."""
     yaw_rad: float = math.nan
     """Heading [rad], clockwise from North."""
+    vel_north_m_s: float = math.nan
+    """Ground velocity North [m/s], from the same message as the position (nan: not reported)."""
+    vel_east_m_s: float = math.nan
+    """Ground velocity East [m/s]."""
     armed: bool = False
     """HEARTBEAT's SAFETY_ARMED flag."""
     mode: FlightMode | None = None
@@ -104,6 +108,8 @@ _TELEMETRY_FIELDS = frozenset(
         "east_m",
         "down_m",
         "yaw_rad",
+        "vel_north_m_s",
+        "vel_east_m_s",
         "heartbeats",
         "rejected",
     }

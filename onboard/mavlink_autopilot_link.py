@@ -243,6 +243,8 @@ class MavlinkAutopilotLink(AutopilotLink):
             north_m=float(x) + shift[0],
             east_m=float(y) + shift[1],
             down_m=float(z),
+            vel_north_m_s=float(vx),
+            vel_east_m_s=float(vy),
             position_boot_ns=t_ns,
             time_boot_ns=max(t_ns, st.time_boot_ns),
             received_ns=self._now_ns(),

@@ -120,6 +120,13 @@ def _hold_plan(plan: Plan, state: LinkState) -> Plan:
     )
 
 
+def _measurement(state: LinkState) -> np.ndarray:
+    """The pose (x, y, yaw), with the ground velocity after it when the autopilot reported one."""
+    pose = [state.north_m, state.east_m, state.yaw_rad]
+    velocity = [state.vel_north_m_s, state.vel_east_m_s]
+    return np.array(pose + velocity if all(map(math.isfinite, velocity)) else pose)
+
+
 def _vehicle_mode(state: LinkState) -> VehicleMode:
     if state.mode_lost or state.mode == FlightMode.HOLD:
         return VehicleMode.HOLD
@@ -254,7 +261,7 @@ class FleetRunner:
             measurement = None
             if state.position_boot_ns > self._last_pose_ns:
                 self._last_pose_ns = state.position_boot_ns
-                measurement = np.array([state.north_m, state.east_m, state.yaw_rad])
+                measurement = _measurement(state)
             obs, obs_stamp = self._targets.take(stamp_ns)
             plans = self.bus.latest_plans(stamp_ns, self.settings.plan_max_age_ns)
             held = _vehicle_mode(state) == VehicleMode.HOLD

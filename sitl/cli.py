@@ -15,12 +15,18 @@ scenario's [network] table (the agent's default URL uses the same arithmetic,
 to, so a [network] table that moves the offboard or ground-station port moves them too and two
 fleets with different tables share no port. --port-offset shifts all of them, and each can be
 set explicitly (with one --vehicle only). SIGINT/SIGTERM stop the vehicles (exit code 0).
+
+The wind (the scenario's [truth.wind], one field seeded by the scenario's seed) is read on one
+clock for the whole fleet: ``--wind-epoch-ns`` is the host's ``time.time_ns()`` at which it reads
+0 (`fleetmpc up` gives every SITL process its own launch time), default this process's start.
 """
 
 import argparse
+import dataclasses
 import math
 import signal
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,6 +80,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="MAVLink 2 signing key file (a passphrase, mode 0600; see `fleetmpc keys`): sign"
         " every frame and act only on frames signed with it (default: signing off); with several"
         " --vehicle, one each, in the same order",
+    )
+    parser.add_argument(
+        "--wind-epoch-ns",
+        type=int,
+        metavar="NS",
+        help="host time.time_ns() at which the fleet's wind clock reads 0, so that every SITL"
+        " process of a fleet flies one wind (default: this process's start)",
     )
     parser.add_argument(
         "--boot-origin",
@@ -288,6 +301,10 @@ class _StopFlag:
 def run(args: argparse.Namespace) -> int:
     configs = build_configs(args)
     clock = RealTimeClock(speed=args.speed)
+    booted_ns = time.time_ns()
+    if args.wind_epoch_ns is not None:
+        offset = round((booted_ns - args.wind_epoch_ns) * clock.speed)
+        configs = [dataclasses.replace(c, wind_clock_offset_ns=offset) for c in configs]
     stop = _StopFlag()
     previous = {s: signal.signal(s, stop.request) for s in (signal.SIGINT, signal.SIGTERM)}
     servers: list[VehicleServer] = []

@@ -34,6 +34,9 @@ class TruthParams:
     """Standard deviation of the position measurement noise [m] (truncated at 3 sigma)."""
     heading_noise_rad: float = 0.0
     """Standard deviation of the heading measurement noise [rad] (truncated at 3 sigma)."""
+    velocity_noise_m_s: float = 0.0
+    """Standard deviation of each ground-velocity component's measurement noise [m/s]
+    (truncated at 3 sigma)."""
     speed_limit_m_s: float = 2.0
     """Largest forward speed command the vehicle accepts [m/s]; larger commands are clamped."""
     yaw_rate_limit_rad_s: float = 0.5
@@ -47,6 +50,7 @@ class TruthParams:
             raise TypeError("wind must be a Wind")
         positive("position_noise_m", self.position_noise_m, allow_zero=True)
         positive("heading_noise_rad", self.heading_noise_rad, allow_zero=True)
+        positive("velocity_noise_m_s", self.velocity_noise_m_s, allow_zero=True)
         positive("speed_limit_m_s", self.speed_limit_m_s)
         positive("yaw_rate_limit_rad_s", self.yaw_rate_limit_rad_s)
 
@@ -69,15 +73,19 @@ class TruthPlant:
         y_m: float,
         yaw_rad: float,
         wind: WindField | None = None,
+        wind_clock_offset_ns: int = 0,
     ) -> None:
         """`wind`: the fleet's wind field (one realization of `params.wind` shared by every
-        vehicle); None builds the realization of seed 0."""
+        vehicle); None builds the realization of seed 0. `wind_clock_offset_ns`: what the
+        wind's clock reads when this plant's reads 0 (a live fleet's vehicles, each timed from
+        its own boot, fly one wind)."""
         self.params = params
         self.wind = WindField(params.wind, seed=0) if wind is None else wind
         self._s = [finite("x_m", x_m), finite("y_m", y_m), finite("yaw_rad", yaw_rad), 0.0, 0.0]
         self._cmd = (0.0, 0.0)
         self._held_velocity: tuple[float, float] | None = None  # set by fly_to, cleared by advance
         self.time_ns = 0
+        self._wind_offset_s = wind_clock_offset_ns * 1e-9
 
     @property
     def state(self) -> np.ndarray:
@@ -112,7 +120,7 @@ class TruthPlant:
     @property
     def wind_m_s(self) -> tuple[float, float]:
         """The wind (North, East) where the vehicle is now [m/s]."""
-        return self.wind.at(self.time_ns * 1e-9, self._s[0], self._s[1])
+        return self.wind.at(self.time_ns * 1e-9 + self._wind_offset_s, self._s[0], self._s[1])
 
     def command(self, speed_m_s: float, yaw_rate_rad_s: float) -> None:
         """Set the commanded input, held until the next command; clamped to the vehicle's limits.
@@ -183,7 +191,7 @@ class TruthPlant:
     def _stage_winds(self, h: float, x: float, y: float) -> tuple[tuple[float, float], ...]:
         """The wind at the start, middle and end of the tick of `h` seconds starting now at
         (x, y): the mean and sinusoid at each time, turbulence and gusts held from the start."""
-        t0 = self.time_ns * 1e-9
+        t0 = self.time_ns * 1e-9 + self._wind_offset_s
         wind = self.params.wind
         stages = wind.at(t0), wind.at(t0 + h / 2), wind.at(t0 + h)
         if not wind.varies_in_space:
@@ -220,15 +228,19 @@ class TruthPlant:
         self.time_ns += tick_ns
 
     def measure(self, rng: np.random.Generator) -> np.ndarray:
-        """A noisy measurement of (x_m, y_m, yaw_rad); noise is Gaussian truncated at 3 sigma."""
+        """A noisy measurement of (x_m, y_m, yaw_rad, v_north_m_s, v_east_m_s), the velocity
+        over ground as `ground_velocity_m_s`; noise is Gaussian truncated at 3 sigma."""
         p = self.params
-        nx, ny, nh = (min(max(n, -3.0), 3.0) for n in rng.standard_normal(3).tolist())
+        nx, ny, nh, nvx, nvy = (min(max(n, -3.0), 3.0) for n in rng.standard_normal(5).tolist())
         x, y, th = self._s[0], self._s[1], self._s[2]
         th = math.atan2(math.sin(th), math.cos(th)) + p.heading_noise_rad * nh
+        vx, vy = self.ground_velocity_m_s
         return np.array(
             [
                 x + p.position_noise_m * nx,
                 y + p.position_noise_m * ny,
                 math.atan2(math.sin(th), math.cos(th)),
+                vx + p.velocity_noise_m_s * nvx,
+                vy + p.velocity_noise_m_s * nvy,
             ]
         )

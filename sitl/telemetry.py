@@ -52,13 +52,17 @@ STREAMABLE = frozenset(
         M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
         M.MAVLINK_MSG_ID_ODOMETRY,
         M.MAVLINK_MSG_ID_HIL_STATE_QUATERNION,
+        M.MAVLINK_MSG_ID_WIND_COV,
     }
 )
 """Message ids a client may stream with SET_MESSAGE_INTERVAL (`PX4_ONLY`: on PX4 alone).
 HIL_STATE_QUATERNION is the simulator's ground truth, as PX4's SITL streams it (its
 GROUND_TRUTH stream, `src/modules/mavlink/streams/GROUND_TRUTH.hpp`), here with its time set
 (`build`); both profiles send it, for a ground station to judge a flight by where the vehicles
-were rather than by what their noisy estimates said (docs/design.md, "Ground truth")."""
+were rather than by what their noisy estimates said (docs/design.md, "Ground truth"). WIND_COV,
+which PX4 streams from its estimator's wind states, carries the simulator's true wind where the
+vehicle is: the estimator here is perfect, and the ground station records it beside each
+vehicle's learned drift."""
 
 PX4_ONLY = frozenset({M.MAVLINK_MSG_ID_ODOMETRY})
 """Message ids only the PX4 profile sends (an ArduPilot SET_MESSAGE_INTERVAL for them is
@@ -178,9 +182,9 @@ class Snapshot:
     yaw_rad: float
     """Measured heading [rad]."""
     vel_north_m_s: float
-    """True ground velocity North [m/s]."""
+    """Measured ground velocity North [m/s]."""
     vel_east_m_s: float
-    """True ground velocity East [m/s]."""
+    """Measured ground velocity East [m/s]."""
     yaw_rate_rad_s: float
     """Achieved yaw rate [rad/s]."""
     altitude_m: float
@@ -198,6 +202,14 @@ class Snapshot:
     """True position East of home [m]."""
     true_yaw_rad: float = math.nan
     """True heading [rad]."""
+    true_vel_north_m_s: float = math.nan
+    """True ground velocity North [m/s]."""
+    true_vel_east_m_s: float = math.nan
+    """True ground velocity East [m/s]."""
+    true_wind_north_m_s: float = math.nan
+    """The wind where the vehicle is, North [m/s] (the simulator's truth)."""
+    true_wind_east_m_s: float = math.nan
+    """The wind where the vehicle is, East [m/s]."""
 
 
 _SENSORS = (
@@ -336,14 +348,27 @@ def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity)
             lat,
             lon,
             round((site.home_alt_m + snap.altitude_m) * 1000.0),
-            _int16(snap.vel_north_m_s * 100.0),
-            _int16(snap.vel_east_m_s * 100.0),
+            _int16(snap.true_vel_north_m_s * 100.0),
+            _int16(snap.true_vel_east_m_s * 100.0),
             _int16(-snap.climb_rate_m_s * 100.0),
             0,
             0,
             0,
             0,
             0,
+        )
+    if msg_id == M.MAVLINK_MSG_ID_WIND_COV:
+        # The true wind (NED, m/s) with its time since boot; no variance: it is the truth.
+        return mav.wind_cov_encode(
+            snap.time_ns // 1000,
+            snap.true_wind_north_m_s,
+            snap.true_wind_east_m_s,
+            0.0,
+            0.0,
+            0.0,
+            site.home_alt_m + snap.altitude_m,
+            0.0,
+            0.0,
         )
     if msg_id == M.MAVLINK_MSG_ID_VFR_HUD:
         ground_speed = math.hypot(snap.vel_north_m_s, snap.vel_east_m_s)

@@ -102,7 +102,9 @@ class ServerConfig:
     autopilot: AutopilotConfig
     """Autopilot limits, timeouts and profile."""
     seed: int = 0
-    """Seed of the measurement noise (combined with the vehicle id)."""
+    """Seed of the measurement noise (combined with the vehicle id) and of the wind field."""
+    wind_clock_offset_ns: int = 0
+    """What the fleet's wind clock reads when this vehicle boots [ns] (`TruthPlant`)."""
     host: str = "127.0.0.1"
     """Address every socket binds to and streams to."""
     udp: tuple[UdpEndpoint, ...] = ()
@@ -158,6 +160,7 @@ class VehicleServer:
             y_m=v.initial[1],
             yaw_rad=v.initial[2],
             wind=WindField(v.truth.wind, seed=config.seed),
+            wind_clock_offset_ns=config.wind_clock_offset_ns,
         )
         self.autopilot = Autopilot(config.autopilot)
         px4 = config.autopilot.profile == Profile.PX4
@@ -251,7 +254,9 @@ class VehicleServer:
         """The vehicle as reported now (fresh measurement noise)."""
         z = self.plant.measure(self._rng)
         parked = self.parked
-        vn, ve = (0.0, 0.0) if parked else self.plant.ground_velocity_m_s
+        vn, ve = (0.0, 0.0) if parked else (float(z[3]), float(z[4]))
+        true_vn, true_ve = (0.0, 0.0) if parked else self.plant.ground_velocity_m_s
+        wind_n, wind_e = self.plant.wind_m_s
         ap = self.autopilot
         x, y, yaw = self.plant.pose
         return Snapshot(
@@ -272,6 +277,10 @@ class VehicleServer:
             true_north_m=x,
             true_east_m=y,
             true_yaw_rad=yaw,
+            true_vel_north_m_s=true_vn,
+            true_vel_east_m_s=true_ve,
+            true_wind_north_m_s=wind_n,
+            true_wind_east_m_s=wind_e,
         )
 
     # ----------------------------------------------------------------------------- loop

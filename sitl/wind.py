@@ -163,6 +163,15 @@ class Wind:
             )
         return math.sqrt(sum(p * p for p in parts))
 
+    def gust_std_m_s(self) -> float:
+        """Standard deviation on each axis of the wind's changing parts [m/s]: the turbulence's
+        sigma, the sinusoid's A / sqrt(2) and a quarter of the largest gust's peak (a 1 - cos
+        gust's mean square over its length is 3/8 of the peak's square; a quarter counts that
+        it blows once)."""
+        gust = max((math.hypot(*g.amplitude_m_s) for g in self.gusts), default=0.0)
+        parts = (self.turbulence.sigma_m_s, self.gust_amplitude_m_s / math.sqrt(2.0), gust / 4)
+        return math.sqrt(sum(p * p for p in parts))
+
     def at(self, t_s: float) -> tuple[float, float]:
         """The mean and the sinusoid (North, East) at time t_s [m/s]: the wind everywhere,
         but for turbulence and gusts (`WindField.local`)."""

@@ -145,7 +145,13 @@ class LearningSettings:
     beta_std_initial: tuple[float, float, float, float] = (0.2, 0.2, 0.5, 0.5)
     """Initial standard deviation of each parameter."""
     beta_random_walk: tuple[float, float, float, float] = (1e-3, 1e-3, 5e-3, 5e-3)
-    """Random-walk standard deviation of each parameter per second (per sqrt(s))."""
+    """Random-walk standard deviation of each parameter per second (per sqrt(s)); the drift's
+    is its slow mean's."""
+    gust_std_m_s: float = 0.0
+    """Standard deviation on each axis of the drift's fast part, a Gauss-Markov gust [m/s]
+    (docs/design.md, "The wind's two parts"); 0: the drift is its mean alone."""
+    gust_time_constant_s: float = 5.0
+    """Time constant of that gust [s]."""
     beta_min: tuple[float, float, float, float] = (0.5, 0.5, -3.0, -3.0)
     """Lower bound of each parameter."""
     beta_max: tuple[float, float, float, float] = (1.5, 1.5, 3.0, 3.0)
@@ -163,6 +169,9 @@ class LearningSettings:
     """Assumed standard deviation of position measurements [m]."""
     measurement_heading_std_rad: float = 0.01
     """Assumed standard deviation of heading measurements [rad]."""
+    measurement_velocity_std_m_s: float = 0.05
+    """Assumed standard deviation of each ground-velocity component the autopilot reports
+    [m/s]: its estimator's, GNSS-aided and smoothed by the inertial sensors."""
     excitation_min: tuple[float, float, float, float] = (0.05, 0.01, 0.0, 0.0)
     """Smallest |dstate/dbeta_i| / tau that lets beta_i update (a Schmidt "consider" update holds
     the others): with |V| below 0.05 m/s a_V is not learned, with |omega| below 0.01 rad/s a_w."""
@@ -205,10 +214,12 @@ class LearningSettings:
             "fixed_model_heading_std_rad",
             "measurement_position_std_m",
             "measurement_heading_std_rad",
+            "measurement_velocity_std_m_s",
             "innovation_gate",
         ):
             positive(f"learning.{name}", getattr(self, name))
-        for name in ("input_lag_s", "speed_excitation_m_s"):
+        positive("learning.gust_time_constant_s", self.gust_time_constant_s)
+        for name in ("input_lag_s", "speed_excitation_m_s", "gust_std_m_s"):
             positive(f"learning.{name}", getattr(self, name), allow_zero=True)
 
 

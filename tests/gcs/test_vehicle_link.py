@@ -76,7 +76,8 @@ def test_a_px4_heard_for_the_first_time_is_told_what_to_stream_once():
     assert gs.links_to_ask(1.0) == []
     gs.on_mavlink(fix, received_ns=29 * 10**9)
     assert gs.links_to_ask(30.0) == []  # and, while its positions come, never again
-    read = {33, 115, 245}  # GLOBAL_POSITION_INT, HIL_STATE_QUATERNION, EXTENDED_SYS_STATE
+    # GLOBAL_POSITION_INT, HIL_STATE_QUATERNION, WIND_COV, EXTENDED_SYS_STATE
+    read = {33, 115, 231, 245}
     assert {m for m, us in GCS_STREAMS_US.items() if us > 0} == read
     assert {30, 74, 1, 32} <= {m for m, us in GCS_STREAMS_US.items() if us == -1}
 
@@ -182,3 +183,43 @@ def test_each_autopilot_s_modes_are_named_as_it_names_them():
     beat.pack(mav)
     gs.on_mavlink(beat, received_ns=0)
     assert gs.status_snapshot("waiting")["vehicles"]["3"]["mode"] == "RTL"
+
+
+def test_the_true_wind_of_a_simulator_is_the_records_truth_and_a_real_autopilots_is_not():
+    """WIND_COV from a vehicle that sends ground truth (our SITL's true wind) replaces the
+    scenario's wind in the record's beta truth from the period it came on; WIND_COV from one
+    that sends none (a real autopilot's estimate) is not a truth."""
+    from pathlib import Path
+
+    import pytest
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from fleetmpc.gcs.station import GroundStation
+    from fleetmpc.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[2]
+    scenario = load_scenario(root / "scenarios" / "paper.toml")
+    gs = GroundStation(scenario, speed=1.0, duration_s=5.0)
+    gs.set_epoch(0)
+    scripted = gs.live.record(4).beta_truth[:, :, 2:]
+    for k in range(1, 4):
+        t_ns = k * 200_000_000
+        for vid in (1, 2):
+            mav = mavlink.MAVLink(None, srcSystem=vid, srcComponent=1)
+            messages = [mav.wind_cov_encode(t_ns // 1000, 0.1 * k, -0.2, 0, 0, 0, 0, 0, 0)]
+            if vid == 1:  # vehicle 1 is a simulator: its ground truth comes first
+                quaternion = [1.0, 0.0, 0.0, 0.0]
+                messages.insert(
+                    0,
+                    mav.hil_state_quaternion_encode(
+                        t_ns // 1000, quaternion, 0, 0, 0, 473977420, 85455940, 0, *[0] * 8
+                    ),
+                )
+            for message in messages:
+                message.pack(mav)
+                gs.on_mavlink(message, received_ns=t_ns)
+    wind = gs.live.record(4).beta_truth[:, :, 2:]
+    assert wind[0, 0] == pytest.approx(scripted[0, 0])  # (before the first sample)
+    assert wind[1:, 0, 0] == pytest.approx([0.1, 0.2, 0.3], abs=1e-6)
+    assert wind[1:, 0, 1] == pytest.approx([-0.2] * 3, abs=1e-6)
+    assert wind[:, 1:] == pytest.approx(scripted[:, 1:])  # vehicles 2 and 3: the scenario's

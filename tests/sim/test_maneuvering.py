@@ -17,6 +17,7 @@ from fleetmpc.scenario import load_scenario, parse_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 from fleetmpc.sim.suite import (
     CORNER_RECOVERY_MAX_S,
+    EFFECTIVENESS_ERROR_MAX,
     LEARNING_RATIO_MAX,
     PAPER_SLOT_RMS_MAX_M,
     QP_FALLBACK_MAX_FRACTION,
@@ -32,7 +33,7 @@ SCENARIOS = sorted(Path("scenarios").glob("*.toml"))
 
 @pytest.fixture(scope="module")
 def rows() -> list[dict]:
-    tasks = suite_tasks(SCENARIOS, seeds=3)
+    tasks = suite_tasks(SCENARIOS, seeds=3, known_model=False)
     with ProcessPoolExecutor(max_workers=2) as pool:
         return apply_gates(list(pool.map(fly, tasks)))
 
@@ -78,6 +79,13 @@ def test_learning_reduces_the_error_in_every_scenario_with_unmodeled_dynamics(ro
     # was the same with learning on and off. On the path, 0.22-0.29.)
     assert {r["scenario"] for r in judged} >= {"figure-eight", "square", "wedge-circle"}
     assert not _ids([r for r in judged if not r["learning_ratio"] <= LEARNING_RATIO_MAX])
+
+
+def test_the_learned_effectiveness_ends_near_the_truth_even_in_gusts(rows):
+    judged = [r for r in rows if r["learning"] and r["feasible"]]
+    assert {r["scenario"] for r in judged} >= {"gusty-square", "gust-in-turn", "turbulence-light"}
+    errors = [max(r["beta_error_speed_max"], r["beta_error_yaw_rate_max"]) for r in judged]
+    assert max(errors) <= EFFECTIVENESS_ERROR_MAX
 
 
 def test_the_target_prediction_on_a_circle(rows):

@@ -112,12 +112,10 @@ def test_a_calm_fleet_passes_every_gate(calm_dir, tmp_path, capsys, loose_gates)
     doc = json.loads(out.read_text())
     assert rc == 0, text
     rows = doc["rows"]
-    assert [(r["scenario"], r["seed"], r["learning"]) for r in rows] == [
-        ("calm", 3, True),
-        ("calm", 3, False),
-        ("calm", 4, True),
-        ("calm", 4, False),
-    ]
+    assert [(r["seed"], r["learning"], r["known_model"]) for r in rows] == [
+        (3, True, False), (3, False, False), (3, True, True),
+        (4, True, False), (4, False, False), (4, True, True),
+    ]  # fmt: skip
     for r in rows:
         assert set(r) >= ROW_KEYS
         assert r["error"] is None and r["gates_failed"] == []
@@ -128,17 +126,20 @@ def test_a_calm_fleet_passes_every_gate(calm_dir, tmp_path, capsys, loose_gates)
         assert r["min_separation_m"] >= 2.0
         assert r["qp_fallback_fraction"] == r["qp_fallbacks"] / (61 * 3)
         assert r["corners"] == 0 and r["corner_recovery_s"] is None
-    on, off = rows[0], rows[1]
+    on, off, known = rows[0], rows[1], rows[2]
     assert on["learning_ratio"] == pytest.approx(on["formation_rms_m"] / off["formation_rms_m"])
-    assert off["learning_ratio"] is None
+    assert on["learned_over_known"] == pytest.approx(
+        on["formation_rms_m"] / known["formation_rms_m"]
+    )
+    assert off["learning_ratio"] is None and known["learned_over_known"] is None
     assert doc["passed"] is True and doc["failed_gates"] == []
     assert set(doc["gates"]) == set(suite.GATES) and doc["wall_time_s"] > 0
     assert doc["seeds"] == 2 and doc["jobs"] == 2
     # one progress line per run, the table (a header and a row per run), the wall time
-    assert text.count("] calm seed ") == 4
-    assert "form RMS m" in text and "corner rec s" in text
+    assert text.count("] calm seed ") == 6
+    assert "form RMS m" in text and "corner rec s" in text and "lrn/known" in text
     assert sum(line.startswith("calm ") for line in text.splitlines()) == 4
-    assert "4 runs in" in text and "every gate held" in text
+    assert "6 runs in" in text and "every gate held" in text
 
 
 def test_a_missed_gate_exits_1_and_names_it(calm_dir, tmp_path, capsys, monkeypatch, loose_gates):
@@ -146,8 +147,9 @@ def test_a_missed_gate_exits_1_and_names_it(calm_dir, tmp_path, capsys, monkeypa
     monkeypatch.setattr(suite, "SLOT_RMS_MAX_M", 0.0)
     out = tmp_path / "suite.json"
     rc = main(
-        ["suite", str(calm_dir), "--seeds", "1", "--jobs", "2", "--json", str(out), "--quiet"]
-    )
+        ["suite", str(calm_dir), "--seeds", "1", "--jobs", "2", "--json", str(out), "--quiet",
+         "--no-known-model"]
+    )  # fmt: skip
     text = capsys.readouterr().out
     assert rc == 1
     doc = json.loads(out.read_text())
@@ -186,6 +188,8 @@ def _row(**changes) -> dict:
         "qp_fallback_fraction": 0.01,
         "corners": 2,
         "corner_recovery_s": 15.0,
+        "beta_error_speed_max": 0.1,
+        "beta_error_yaw_rate_max": 0.1,
     }
     return {**row, **changes}
 
@@ -208,6 +212,9 @@ def _off(**changes) -> dict:
         ({"corner_recovery_s": 15.2}, {}, ["corner_recovery"]),
         ({"corner_recovery_s": math.inf}, {}, ["corner_recovery"]),
         ({"corners": 0, "corner_recovery_s": None}, {}, []),
+        ({"beta_error_speed_max": 0.101}, {}, ["effectiveness"]),
+        ({"beta_error_yaw_rate_max": 0.101}, {}, ["effectiveness"]),
+        ({"beta_error_speed_max": 0.5, "feasible": False}, {}, []),
         # an infeasible target or no unmodeled dynamics switch the learning gates off
         ({"feasible": False, "formation_rms_m": 9.0, "corner_recovery_s": math.inf}, {}, []),
         ({"unmodeled_dynamics": False, "formation_rms_m": 0.1}, {"formation_rms_m": 0.1}, []),
@@ -247,6 +254,38 @@ def test_the_ratio_pairs_runs_of_the_same_file_and_seed():
     assert [r["gates_failed"] for r in rows[:2]] == [[], ["learning_ratio"]]
 
 
+def test_the_known_model_run_is_a_ratio_on_its_learned_runs_line():
+    known = _row(known_model=True, formation_rms_m=0.04, beta_error_speed_max=0.0)
+    rows = suite.apply_gates(
+        [
+            _row(formation_rms_m=0.1, slot_rms_max_vehicle_m=0.1, qp_fallbacks=0),
+            {**known, "min_separation_m": 1.0},  # the known model breaches d_safe
+            _off(),
+        ]
+    )
+    assert rows[0]["learned_over_known"] == pytest.approx(2.5)  # reported, not gated
+    assert rows[0]["gates_failed"] == [] and rows[1]["gates_failed"] == ["min_separation"]
+    assert rows[1]["learning_ratio"] is None and rows[1]["learned_over_known"] is None
+    table = suite.format_table(
+        [{**r, "target_prediction_rms_m": 0.1, "slot_rms_max_vehicle_m": 0.1, "qp_fallbacks": 0}
+         for r in rows]
+    )  # fmt: skip
+    lines = table.splitlines()
+    assert "lrn/known" in lines[0] and len(lines) == 3  # the known-model run has no line
+    assert "2.50" in lines[1] and lines[1].endswith("known model: min_separation")
+
+
+def test_suite_tasks_add_a_known_model_run_where_learning_is_on(tmp_path):
+    (tmp_path / "a.toml").write_text(Path("scenarios/paper.toml").read_text())
+    tasks = suite.suite_tasks([tmp_path / "a.toml"], seeds=2)
+    assert [(t.seed, t.learning, t.known_model) for t in tasks] == [
+        (7, True, False), (7, False, False), (7, True, True),
+        (8, True, False), (8, False, False), (8, True, True),
+    ]  # fmt: skip
+    plain = suite.suite_tasks([tmp_path / "a.toml"], seeds=1, known_model=False)
+    assert not any(t.known_model for t in plain)
+
+
 def test_the_table_marks_infeasible_targets_errors_and_unknowns():
     rows = suite.apply_gates(
         [
@@ -269,7 +308,7 @@ def test_the_table_marks_infeasible_targets_errors_and_unknowns():
     lines = suite.format_table(rows).splitlines()
     assert lines[1].split()[:4] == ["s", "*", "1", "on"]
     assert lines[1].split()[-3:] == ["unknown", "inf", "ok"]
-    assert lines[2].split() == ["s", "1", "off", *["-"] * 8, "error"]
+    assert lines[2].split() == ["s", "1", "off", *["-"] * 9, "error"]
     assert lines[3].startswith("* infeasible target")
     assert lines[4] == "error in 1 run: ValueError: boom"
 
@@ -279,7 +318,9 @@ def test_tasks_cover_files_seeds_and_learning(tmp_path):
     (tmp_path / "b.toml").write_text(
         CALM.replace('name = "calm"', 'name = "fixed"') + "\n[learning]\nenabled = false\n"
     )
-    tasks = suite.suite_tasks(sorted(tmp_path.glob("*.toml")), seeds=2, duration_s=None)
+    tasks = suite.suite_tasks(
+        sorted(tmp_path.glob("*.toml")), seeds=2, duration_s=None, known_model=False
+    )
     assert [(Path(t.path).name, t.seed, t.learning, t.duration_s) for t in tasks] == [
         ("a.toml", 3, True, 12.0),
         ("a.toml", 3, False, 12.0),

@@ -94,6 +94,26 @@ def test_in_the_same_field_two_plants_at_one_place_drift_alike():
     assert math.dist(plants[0].position_m, (5.0, 5.0)) > 0.1  # the turbulence moved them
 
 
+def test_a_plant_booted_later_reads_the_fleets_wind_clock():
+    """Two SITL processes of one fleet: the one booted 3 s after the wind's clock started
+    (offset 3 s) feels at its own time t what the other feels at t + 3 s."""
+    field = WindField(TURBULENT, seed=3)
+    first = TruthPlant(TruthParams(wind=TURBULENT), x_m=5.0, y_m=5.0, yaw_rad=0.0, wind=field)
+    later = TruthPlant(
+        TruthParams(wind=TURBULENT),
+        x_m=5.0,
+        y_m=5.0,
+        yaw_rad=0.0,
+        wind=field,
+        wind_clock_offset_ns=3_000_000_000,
+    )
+    assert first.wind_m_s == pytest.approx(field.at(0.0, 5.0, 5.0), abs=1e-12)
+    assert later.wind_m_s == pytest.approx(field.at(3.0, 5.0, 5.0), abs=1e-12)
+    assert math.dist(later.wind_m_s, first.wind_m_s) > 1e-3
+    later.advance(20_000_000, 50)
+    assert later.wind_m_s == pytest.approx(field.at(4.0, *later.position_m), abs=1e-12)
+
+
 def _doc(**wind) -> dict:
     return {
         "name": "w",
@@ -168,8 +188,16 @@ def test_check_says_how_well_the_learned_drift_can_follow_the_wind():
     from fleetmpc.gcs.check import check_scenario
     from fleetmpc.scenario import load_scenario
 
-    text = check_scenario(load_scenario("scenarios/wind/paper-turbulent.toml")).render()
-    # q = 0.110^2 (sigma sqrt(2 / T_c), T_c = 3.7 s), R = 0.05^2 x 0.2: (q/R)^(1/4) = 2.22 rad/s,
-    # sqrt(sqrt(2) q^(3/4) R^(1/4)) = 0.088 m/s.
-    assert "random walk of 0.110 m/s per sqrt(s)" in text
-    assert "a bandwidth of 2.22 rad/s and an error of about 0.088 m/s RMS" in text
+    text = check_scenario(load_scenario("scenarios/turbulence-moderate.toml")).render()
+    # The gust part: sigma = 0.15 m/s, T = T_c = 3.7 s; measured at tau = 0.2 s with noise
+    # R = 0.05^2. The steady-state prior variance a solves a^2 + a (R (1 - phi^2) - q) - q R = 0
+    # (q = sigma^2 (1 - phi^2)), the gain is a / (a + R), the error sqrt(a R / (a + R)).
+    sigma, T, R, tau = 0.15, 1.0 / (1.0 / 5.0 + 1.4142 / 20.0), 0.05**2, 0.2
+    phi = math.exp(-tau / T)
+    q = sigma**2 * (1 - phi**2)
+    b = R * (1 - phi**2) - q
+    a = (-b + math.sqrt(b * b + 4 * q * R)) / 2
+    gain = a / (a + R)
+    bandwidth, error = -math.log(phi * (1 - gain)) / tau, math.sqrt(a * R / (a + R))
+    assert "gust part is 0.150 m/s over 3.7 s" in text
+    assert f"a bandwidth of {bandwidth:.2f} rad/s and an error of about {error:.3f} m/s" in text
