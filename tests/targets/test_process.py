@@ -10,7 +10,7 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 from fleetmpc.protocol.zenoh_router import open_router
-from fleetmpc.sitl.target_process import wait_for_epoch
+from fleetmpc.targets.process import wait_for_epoch
 
 EPOCH_NS = 1_700_000_000_000_000_000
 
