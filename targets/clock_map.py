@@ -2,8 +2,9 @@
 
 A fix stamped `s` on the source's clock (its time since boot, a GPS time) arrives at fleet time
 `r = s (1 + drift) + offset + delay`, the delay positive and varying. The mapping is the straight
-line fitted (least squares) to the recent (s, r) pairs, then lowered to pass under all of them
-(the least-delayed fix had the least delay): its slope is 1 + drift, its value at s is the fleet
+line fitted (least squares) to the recent (s, r) pairs, refitted through the least-delayed pair
+of each of ENVELOPE_BINS stretches of them, then lowered to pass under all of them (the
+least-delayed fix had the least delay): its slope is 1 + drift, its value at s is the fleet
 time of the fix. Until the pairs span `DRIFT_SPAN_S`, the drift is taken as 0.
 """
 
@@ -17,6 +18,9 @@ DRIFT_SPAN_S = 20.0
 
 WINDOW = 600
 """Pairs kept (two minutes at 5 Hz)."""
+
+ENVELOPE_BINS = 10
+"""The drift is fitted through the least-delayed fix of each of this many stretches."""
 
 
 @dataclass(frozen=True)
@@ -64,15 +68,30 @@ class SourceClock:
 
 def _fit(pairs: list[tuple[float, float]]) -> ClockEstimate:
     s = [p[0] for p in pairs]
-    r = [p[1] for p in pairs]
     n = len(pairs)
     slope = 1.0
     if max(s) - min(s) >= DRIFT_SPAN_S:
-        ms, mr = sum(s) / n, sum(r) / n
-        sxx = sum((a - ms) ** 2 for a in s)
-        slope = sum((a - ms) * (b - mr) for a, b in zip(s, r, strict=True)) / sxx
+        slope = _slope(pairs)
+        # Refit through the least-delayed fix of each of ENVELOPE_BINS stretches of source
+        # time: the delays' spread leaves the fit, their floor stays.
+        lo, width = min(s), (max(s) - min(s)) / ENVELOPE_BINS
+        floor: dict[int, tuple[float, float]] = {}
+        for a, b in pairs:
+            k = min(int((a - lo) / width), ENVELOPE_BINS - 1)
+            if k not in floor or b - slope * a < floor[k][1] - slope * floor[k][0]:
+                floor[k] = (a, b)
+        slope = _slope(list(floor.values()))
     residuals = [b - slope * a for a, b in pairs]
     offset = min(residuals)
     return ClockEstimate(
         offset_s=offset, drift=slope - 1.0, delay_spread_s=max(residuals) - offset, pairs=n
     )
+
+
+def _slope(pairs: list[tuple[float, float]]) -> float:
+    """Least-squares slope of fleet time over source time."""
+    n = len(pairs)
+    ms = sum(a for a, _ in pairs) / n
+    mr = sum(b for _, b in pairs) / n
+    sxx = sum((a - ms) ** 2 for a, _ in pairs)
+    return sum((a - ms) * (b - mr) for a, b in pairs) / sxx

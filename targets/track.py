@@ -180,8 +180,9 @@ def track_stats(track: RecordedTrack) -> TrackStats:
 
 def noise_estimate(positions_m: np.ndarray) -> float:
     """The fixes' noise as their second differences show it: for white noise of std sigma on
-    smooth motion, a second difference has std sigma sqrt(6) on each axis [m]."""
-    d2 = np.diff(positions_m, n=2, axis=0)
+    smooth motion, a second difference has std sigma sqrt(6) on each axis; taken from their
+    median magnitude (0.6745 std for a normal), so that a gap or a corner does not count [m]."""
+    d2 = np.diff(np.asarray(positions_m, float), n=2, axis=0)
     if len(d2) == 0:
         return 0.0
-    return float(math.sqrt(np.mean(d2**2) / 6.0))
+    return float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0))
