@@ -75,7 +75,9 @@ class ObservationScreen:
             return "wrong system", f"following system {lim.system_id}"
         values = (fix.source_s, fix.lat_deg, fix.lon_deg, north_m, east_m, *(fix.velocity_ne_m_s or ()))
         if not all(math.isfinite(v) for v in values):
-            return "not a number", f"lat {fix.lat_deg} lon {fix.lon_deg} velocity {fix.velocity_ne_m_s}"
+            return "not a number", (
+                f"lat {fix.lat_deg:.7f} lon {fix.lon_deg:.7f} velocity {fix.velocity_ne_m_s}"
+            )
         if self._last is not None:
             last_s, last_n, last_e = self._last
             if fix.source_s == last_s:

@@ -160,6 +160,7 @@ class Agent:
             predict_s=controller.target_predict_s,
             reacquire_s=controller.target_reacquire_s,
             glide_speed_m_s=0.5 * controller.speed_max_m_s,
+            brake_m_s2=0.25 * controller.speed_rate_max_m_s2,
         )
         self.formation = Formation(formation)
         self.mpc = vehicle_mpc(controller, self.formation)

@@ -68,7 +68,7 @@ class ControllerSettings:
     seed_switch_ratio: float = 0.7
     """The linearization keeps following its previous plan unless another seed's rollout scores
     at most this fraction of the plan's (hysteresis against alternating seeds)."""
-    target_lost_s: float = 1.0
+    target_lost_s: float = 2.0
     """No target observation for this long: the target is lost and its prediction flown on
     (`fleetmpc.onboard.core.target_watch`) [s]."""
     target_predict_s: float = 8.0
