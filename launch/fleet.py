@@ -85,6 +85,11 @@ class FleetOptions:
     engage_timeout_s: float | None = None
     """Wall seconds each agent keeps trying to engage its vehicle (``fleetmpc agent
     --engage-timeout``); None: the agent's default."""
+    target_source: str = "script"
+    """The target process's source (``fleetmpc target --source``: ``script``,
+    ``mavlink:CONNECTION``, ``track:FILE``)."""
+    target_sysid: int | None = None
+    """The MAVLink system the target process follows (``--sysid``)."""
     vehicles_per_sitl: int = 1
     """Simulated vehicles one SITL process serves at most (vehicles next to each other in the
     scenario, on one host): fewer processes wake the host less often
@@ -140,6 +145,10 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     if secrets is not None:
         router += ("--security", str(secrets))
     target = ("target", *common, *bus_of(TARGET_ID), *speed, "--wait-epoch")
+    if options.target_source != "script":
+        target += ("--source", options.target_source)
+    if options.target_sysid is not None:
+        target += ("--sysid", str(options.target_sysid))
     procs = [
         ProcessSpec("zenoh-router", router, "router", net.router_address),
         ProcessSpec(
