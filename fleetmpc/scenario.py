@@ -16,10 +16,10 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.network import Network, check_ports
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.sitl.plant import TruthParams
+from fleetmpc.sitl.wind import Gust, Turbulence, Wind
 from fleetmpc.targets.script import TargetScript
 from fleetmpc.targets.track import RecordedTrack
 from fleetmpc.targets.track_file import load_track
-from fleetmpc.sitl.wind import Gust, Turbulence, Wind
 from fleetmpc.validate import finite, in_range, positive, vector
 
 __all__ = [
@@ -333,7 +333,8 @@ def _target(table: Any, site: "Site", source: str) -> TargetScript | RecordedTra
     unknown = sorted(set(table) - _TRACK_KEYS)
     if unknown:
         raise ConfigError(
-            f"target.{unknown[0]}", f"unknown key for a track (known: {', '.join(sorted(_TRACK_KEYS))})"
+            f"target.{unknown[0]}",
+            f"unknown key for a track (known: {', '.join(sorted(_TRACK_KEYS))})",
         )
     file = table.get("file")
     if not isinstance(file, str) or not file:

@@ -50,4 +50,3 @@ def track_lines(
             )
         lines.append(f"track gap at t = {start_s:.1f} s for {length_s:.1f} s: {how}")
     return lines, problems
-

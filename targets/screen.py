@@ -65,7 +65,8 @@ class ObservationScreen:
             self._last = (fix.source_s, north_m, east_m)
             return None
         self.rejected[fault] += 1
-        return f"rejected ({fault}): system {fix.system_id} {fix.message} t={fix.source_s:.3f} s: {why}"
+        where = f"system {fix.system_id} {fix.message} t={fix.source_s:.3f} s"
+        return f"rejected ({fault}): {where}: {why}"
 
     def _fault(
         self, fix: Fix, north_m: float, east_m: float, fleet_s: float | None, now_s: float
@@ -73,7 +74,14 @@ class ObservationScreen:
         lim = self.limits
         if lim.system_id is not None and fix.system_id != lim.system_id:
             return "wrong system", f"following system {lim.system_id}"
-        values = (fix.source_s, fix.lat_deg, fix.lon_deg, north_m, east_m, *(fix.velocity_ne_m_s or ()))
+        values = (
+            fix.source_s,
+            fix.lat_deg,
+            fix.lon_deg,
+            north_m,
+            east_m,
+            *(fix.velocity_ne_m_s or ()),
+        )
         if not all(math.isfinite(v) for v in values):
             return "not a number", (
                 f"lat {fix.lat_deg:.7f} lon {fix.lon_deg:.7f} velocity {fix.velocity_ne_m_s}"
@@ -88,7 +96,10 @@ class ObservationScreen:
             return "future", f"stamped {fleet_s - now_s:.3f} s ahead of fleet time {now_s:.3f} s"
         distance = math.hypot(north_m, east_m)
         if distance > lim.max_range_m:
-            return "too far", f"{distance / 1000.0:.1f} km from home (limit {lim.max_range_m / 1000.0:g} km)"
+            return (
+                "too far",
+                f"{distance / 1000.0:.1f} km from home (limit {lim.max_range_m / 1000.0:g} km)",
+            )
         if self._last is not None:
             dt = fix.source_s - last_s
             step = math.hypot(north_m - last_n, east_m - last_e)

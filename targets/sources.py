@@ -77,6 +77,4 @@ def open_source(url: str, *, system_id: int | None, track_start_s: float) -> Tar
         return _Mavlink(rest)
     if kind == "track" and rest:
         return TrackReplay(read_fixes(Path(rest), system_id=system_id), start_s=track_start_s)
-    raise ConfigError(
-        "--source", f"expected script, mavlink:CONNECTION or track:FILE, got {url!r}"
-    )
+    raise ConfigError("--source", f"expected script, mavlink:CONNECTION or track:FILE, got {url!r}")

@@ -2,11 +2,11 @@
 target (`[target] kind = "track"`), replayed live by `fleetmpc target --source track:FILE`.
 
 The track is what was observed: its positions carry the recording's own noise and its gaps. In a
-lockstep run the agents are handed its fixes at their recorded times (a gap is a dropout) as they are, noise and all,
-and the run is judged against the track smoothed: each fix replaced by the mean of the fixes
-within `SMOOTH_S` of it (the white part of the noise averaged out; a slow wander stays, as it
-would in any recording), linearly interpolated between fixes; its velocity is the recorded one,
-or the smoothed positions' change over `VELOCITY_WINDOW_S`.
+lockstep run the agents are handed its fixes at their recorded times (a gap is a dropout) as they
+are, noise and all, and the run is judged against the track smoothed: each fix replaced by the
+mean of the fixes within `SMOOTH_S` of it (the white part of the noise averaged out; a slow
+wander stays, as it would in any recording), linearly interpolated between fixes; its velocity
+is the recorded one, or the smoothed positions' change over `VELOCITY_WINDOW_S`.
 """
 
 import math

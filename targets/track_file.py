@@ -76,7 +76,8 @@ def _tlog_fixes(path: Path, system_id: int | None) -> list[Fix]:
         )
     if not fixes:
         raise ConfigError(
-            "target.system_id", f"{path}: no positions of system {system_id} (holds {sorted(systems)})"
+            "target.system_id",
+            f"{path}: no positions of system {system_id} (holds {sorted(systems)})",
         )
     return fixes
 
@@ -97,7 +98,9 @@ def load_track(
             raise ConfigError("target.file", f"{path}: fix {k} is not a number: {f}")
     ne = np.array(
         [
-            ned_from_geodetic(f.lat_deg, f.lon_deg, home_lat_deg=home_lat_deg, home_lon_deg=home_lon_deg)
+            ned_from_geodetic(
+                f.lat_deg, f.lon_deg, home_lat_deg=home_lat_deg, home_lon_deg=home_lon_deg
+            )
             for f in fixes
         ]
     )

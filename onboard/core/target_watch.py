@@ -72,16 +72,14 @@ class TargetWatch:
             return False
         self._last_ns = stamp_ns if self._last_ns is None else max(self._last_ns, stamp_ns)
         if followed is not None:
-            (ex, ey), = estimator.predicted_track(stamp_ns, 1, 1)[0]
+            ((ex, ey),) = estimator.predicted_track(stamp_ns, 1, 1)[0]
             dx, dy = followed[0] - ex, followed[1] - ey
             length_s = max(self._reacquire_s, math.hypot(dx, dy) / self._glide_speed)
             self._glide = (stamp_ns, round(length_s * 1e9), dx, dy)
             self.state = REACQUIRING
         return True
 
-    def track(
-        self, estimator: TargetEstimator, stamp_ns: int, period_ns: int, count: int
-    ) -> Track:
+    def track(self, estimator: TargetEstimator, stamp_ns: int, period_ns: int, count: int) -> Track:
         """The target's positions and velocities at stamp_ns + k period_ns, k < count, that the
         formation follows now."""
         self._update(estimator, stamp_ns)

@@ -7,9 +7,10 @@ The sphere's radius is not the ellipsoid's: at 47.4 deg latitude the meridian's 
 curvature is 6.370e6 m (North scale error 0.015 %) and the prime vertical's 6.390e6 m (East
 scale error 0.29 %). So the conversion adds an error growing with the distance from home, as
 measured here: 3 cm at (10, 10) m, 0.15 m at 1 km due North, 2.9 m at 1 km due East, 5.9 m at
-(2, -2) km, 14.7 m at 5 km due East. The fleet's own positions pass through the same projection (its SITL vehicles' fixes, a
-real autopilot's local origin), so what the formation follows is placed relative to the
-vehicles with 0.3 % of their distance from the target as error (3 cm at 10 m).
+(2, -2) km, 14.7 m at 5 km due East. The fleet's own positions pass through the same projection
+(its SITL vehicles' fixes, a real autopilot's local origin), so what the formation follows is
+placed relative to the vehicles with 0.3 % of their distance from the target as error (3 cm at
+10 m).
 """
 
 import math
@@ -51,9 +52,18 @@ def vincenty_inverse(lat1, lon1, lat2, lon2) -> tuple[float, float]:
     u2 = c2_alpha * (A * A - B * B) / (B * B)
     AA = 1 + u2 / 16384 * (4096 + u2 * (-768 + u2 * (320 - 175 * u2)))
     BB = u2 / 1024 * (256 + u2 * (-128 + u2 * (74 - 47 * u2)))
-    d_sigma = BB * s_sigma * (
-        c2_sm
-        + BB / 4 * (c_sigma * (-1 + 2 * c2_sm**2) - BB / 6 * c2_sm * (-3 + 4 * s_sigma**2) * (-3 + 4 * c2_sm**2))
+    d_sigma = (
+        BB
+        * s_sigma
+        * (
+            c2_sm
+            + BB
+            / 4
+            * (
+                c_sigma * (-1 + 2 * c2_sm**2)
+                - BB / 6 * c2_sm * (-3 + 4 * s_sigma**2) * (-3 + 4 * c2_sm**2)
+            )
+        )
     )
     distance = B * AA * (sigma - d_sigma)
     azimuth = math.atan2(cU2 * math.sin(lam), cU1 * sU2 - sU1 * cU2 * math.cos(lam))

@@ -77,7 +77,9 @@ def _send_bad_and_good_fixes(port: int) -> None:
     from fleetmpc.protocol.local_frame import geodetic_from_ned
 
     home = (47.397742, 8.545594)
-    links = {s: mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=s) for s in (4, 7)}
+    links = {
+        s: mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=s) for s in (4, 7)
+    }
 
     def position(sysid: int, t_ms: int, north: float, east: float = 0.0) -> None:
         lat, lon = geodetic_from_ned(north, east, home_lat_deg=home[0], home_lon_deg=home[1])

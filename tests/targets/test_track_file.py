@@ -86,7 +86,9 @@ def test_noise_estimate_and_stats_of_a_noisy_track_with_a_gap():
     t = t[(t < 20.0) | (t >= 26.0)]  # (a 6 s gap)
     radius, speed = 20.0, 1.5  # (a circle: turn rate 0.075 rad/s)
     a = speed * t / radius
-    p = radius * np.column_stack([np.sin(a), 1 - np.cos(a)]) + 0.1 * rng.standard_normal((t.size, 2))
+    p = radius * np.column_stack([np.sin(a), 1 - np.cos(a)]) + 0.1 * rng.standard_normal(
+        (t.size, 2)
+    )
     assert noise_estimate(p) == pytest.approx(0.1, rel=0.15)
     st = track_stats(RecordedTrack(times_s=t, positions_m=p))
     assert st.gaps == (pytest.approx((19.8, 6.2)),)
