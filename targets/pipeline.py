@@ -4,8 +4,8 @@ Each fix is placed in the fleet's local North-East frame about the scenario's ho
 (`fleetmpc.protocol.local_frame.ned_from_geodetic`), screened (`fleetmpc.targets.screen`), and,
 if accepted, stamped with the fleet time its source time maps to (`fleetmpc.targets.clock_map`,
 the fix's arrival added first). Its noise is the one given, or estimated from the accepted fixes'
-second differences. A source whose clock restarts (RESTART_AFTER fixes in a row going back in
-time) has its clock and screen started afresh, and says so.
+second differences. A source whose clock restarts or jumps (RESTART_AFTER fixes in a row going
+back in time, or ahead of fleet time) has its clock and screen started afresh, and says so.
 """
 
 import math
@@ -23,7 +23,8 @@ from fleetmpc.targets.track import noise_estimate
 __all__ = ["Observation", "ObservationPipeline"]
 
 RESTART_AFTER = 10
-"""Fixes in a row going back in time after which the source's clock is taken to have restarted."""
+"""Fixes in a row going back in time, or ahead of fleet time, after which the source's clock is
+taken to have restarted or jumped, and its mapping is estimated afresh."""
 
 NOISE_FIXES = 50
 """Accepted fixes the noise is estimated over."""
@@ -61,7 +62,9 @@ class ObservationPipeline:
         self.clock = SourceClock()
         self._noise_m = noise_m
         self._recent: deque[tuple[float, float]] = deque(maxlen=NOISE_FIXES)
-        self._backwards_in_a_row = 0
+        self._clock_faults_in_a_row = 0
+        """Fixes in a row rejected for the same fault of the source's clock."""
+        self._clock_fault = ""
         self.log: list[str] = []
 
     def take(self, fix: Fix, now_s: float) -> Observation | None:
@@ -76,7 +79,7 @@ class ObservationPipeline:
             self.log.append(why)
             self._restart_if_rebooted(why)
             return None
-        self._backwards_in_a_row = 0
+        self._clock_faults_in_a_row, self._clock_fault = 0, ""
         self.clock.add(fix.source_s, now_s)
         stamp_s = min(self.clock.fleet_s(fix.source_s), now_s)
         self._recent.append((north, east))
@@ -92,17 +95,21 @@ class ObservationPipeline:
         return self.clock.fleet_s(fix.source_s) if math.isfinite(fix.source_s) else None
 
     def _restart_if_rebooted(self, why: str) -> None:
-        self._backwards_in_a_row = self._backwards_in_a_row + 1 if "(backwards)" in why else 0
-        if self._backwards_in_a_row >= RESTART_AFTER:
+        fault = why.split(")", 1)[0].removeprefix("rejected (")
+        same = fault in ("backwards", "future") and fault == self._clock_fault
+        self._clock_fault = fault
+        self._clock_faults_in_a_row = self._clock_faults_in_a_row + 1 if same else 1
+        if fault in ("backwards", "future") and self._clock_faults_in_a_row >= RESTART_AFTER:
+            went = "back in time" if fault == "backwards" else "ahead of fleet time"
             self.log.append(
-                f"{RESTART_AFTER} fixes in a row went back in time: the source's clock restarted;"
-                " its mapping is estimated afresh"
+                f"{RESTART_AFTER} fixes in a row went {went}: the source's clock restarted or"
+                " jumped; its mapping is estimated afresh"
             )
             rejected = self.screen.rejected
             self.screen = ObservationScreen(self._limits, accepted=self.screen.accepted)
             self.screen.rejected = rejected
             self.clock.restart()
-            self._backwards_in_a_row = 0
+            self._clock_faults_in_a_row = 0
 
     @property
     def noise_m(self) -> float:

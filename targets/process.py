@@ -222,10 +222,13 @@ def _relay(
     published, next_report_s = 0, REPORT_S
     logged: dict[str, int] = {}
     while not stop.is_set() and not source.finished:
-        now_s = max(0.0, (time.time_ns() - epoch_ns) * 1e-9 * args.speed)
+        now_s = (time.time_ns() - epoch_ns) * 1e-9 * args.speed
         if args.duration is not None and now_s > args.duration:
             break
-        for fix in source.poll(0.05, now_s):
+        fixes = source.poll(0.05, now_s)
+        if now_s < 0.0:  # (before the epoch: nothing is published, nothing is learnt)
+            continue
+        for fix in fixes:
             obs = pipeline.take(fix, now_s)
             if obs is not None:
                 published += _publish(bus, obs)

@@ -16,6 +16,10 @@ from fleetmpc.targets.track_file import read_fixes
 
 __all__ = ["TargetSource", "TrackReplay", "open_source"]
 
+REPLAY_POLL_S = 0.005
+"""A replay looks for due fixes this often (wall seconds): a fix goes out at most this late
+(times the fleet's speed), which is what its source clock's delay spread then shows."""
+
 
 class TargetSource(Protocol):
     finished: bool
@@ -47,7 +51,7 @@ class TrackReplay:
             self._next += 1
         self.finished = self._next >= len(self._fixes)
         if not out and not self.finished:
-            time.sleep(timeout_s)
+            time.sleep(min(timeout_s, REPLAY_POLL_S))
         return out
 
     def close(self) -> None:

@@ -78,3 +78,13 @@ def test_a_restarted_source_clock_is_estimated_afresh():
 def test_a_wrong_system_id_to_follow_is_refused():
     with pytest.raises(ConfigError, match="sysid"):
         ScreenLimits(system_id=0)
+
+
+def test_a_source_clock_that_jumps_ahead_is_estimated_afresh():
+    p = _pipeline()
+    _warm(p)
+    for k in range(RESTART_AFTER):  # (its clock jumped 60 s ahead, and stays so)
+        assert p.take(_fix(162.0 + 0.2 * k, 2.0 + 0.2 * k, 5.0), 2.03 + 0.2 * k) is None
+    assert p.screen.rejected["future"] == RESTART_AFTER and "ahead" in p.log[-1]
+    obs = p.take(_fix(162.0 + 0.2 * RESTART_AFTER, 4.0, 5.0), 4.03)
+    assert obs is not None and obs.stamp_ns * 1e-9 == pytest.approx(4.03)
