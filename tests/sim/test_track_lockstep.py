@@ -1,5 +1,5 @@
 """A recorded track flown in lockstep: the walk with a 5 s dropout kept in the repository
-(scenarios/walk-dropout.toml, made by tools/make_walk_track.py), and a dropout longer than the
+(scenarios/tracks/walk-dropout.toml, made by tools/make_walk_track.py), and a dropout longer than the
 agents fly a prediction for, so that the formation holds and then re-acquires."""
 
 import dataclasses
@@ -13,7 +13,7 @@ from fleetmpc.sim.lockstep import run_lockstep
 from fleetmpc.targets.track import RecordedTrack
 
 ROOT = Path(__file__).resolve().parents[2]
-WALK = ROOT / "scenarios" / "walk-dropout.toml"
+WALK = ROOT / "scenarios" / "tracks" / "walk-dropout.toml"
 
 
 def _slot_errors(record) -> np.ndarray:
