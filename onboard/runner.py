@@ -48,8 +48,8 @@ from fleetmpc.protocol.messages import (
     MAX_SETPOINT_RATE_HZ,
     LearnedParams,
     NeighbourPlanAge,
-    TargetState,
     PlanStatus,
+    TargetState,
     VehicleMode,
     VehicleStatus,
 )

@@ -1,6 +1,6 @@
 """`fleetmpc up` following a recorded track live: the target process replays the walk with its
-5 s dropout (scenarios/tracks/walk-dropout.toml) to three agents on our SITL, and the ground station's
-recording meets the dropout's gates."""
+5 s dropout (scenarios/tracks/walk-dropout.toml) to three agents on our SITL, and the ground
+station's recording meets the dropout's gates."""
 
 import shutil
 import subprocess

@@ -1,6 +1,6 @@
 """A recorded track flown in lockstep: the walk with a 5 s dropout kept in the repository
-(scenarios/tracks/walk-dropout.toml, made by tools/make_walk_track.py), and a dropout longer than the
-agents fly a prediction for, so that the formation holds and then re-acquires."""
+(scenarios/tracks/walk-dropout.toml, made by tools/make_walk_track.py), and a dropout longer than
+the agents fly a prediction for, so that the formation holds and then re-acquires."""
 
 import dataclasses
 from pathlib import Path
