@@ -40,7 +40,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
         "the onboard agent of one vehicle: MAVLink autopilot + Zenoh plans",
     ),
     "target": (
-        "fleetmpc.sitl.target_process",
+        "fleetmpc.targets.process",
         "fly the scripted target and publish its observations",
     ),
     "zenoh-router": (

@@ -16,8 +16,10 @@ from fleetmpc.errors import ConfigError
 from fleetmpc.network import Network, check_ports
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.sitl.plant import TruthParams
-from fleetmpc.sitl.target import TargetScript
 from fleetmpc.sitl.wind import Gust, Turbulence, Wind
+from fleetmpc.targets.script import TargetScript
+from fleetmpc.targets.track import RecordedTrack
+from fleetmpc.targets.track_file import load_track
 from fleetmpc.validate import finite, in_range, positive, vector
 
 __all__ = [
@@ -118,7 +120,7 @@ class Scenario:
     controller: ControllerSettings
     learning: LearningSettings
     formation: FormationSettings
-    target: TargetScript
+    target: TargetScript | RecordedTrack
     vehicles: tuple[VehicleSpec, ...]
     site: Site
     network: Network
@@ -323,6 +325,39 @@ def _pattern_vehicles(pattern: Any, formation: dict[str, Any], target: TargetScr
     return vehicles
 
 
+_TRACK_KEYS = {"kind", "file", "system_id", "observation_noise_m"}
+
+
+def _target(table: Any, site: "Site", source: str) -> TargetScript | RecordedTrack:
+    """The scenario's target: a script, or a recorded track (`kind = "track"`, its `file` relative
+    to the scenario's folder, the `system_id` to follow in a .tlog, the fixes'
+    `observation_noise_m` if not estimated)."""
+    if not isinstance(table, dict) or table.get("kind") != "track":
+        return _build(TargetScript, table, "target")
+    unknown = sorted(set(table) - _TRACK_KEYS)
+    if unknown:
+        raise ConfigError(
+            f"target.{unknown[0]}",
+            f"unknown key for a track (known: {', '.join(sorted(_TRACK_KEYS))})",
+        )
+    file = table.get("file")
+    if not isinstance(file, str) or not file:
+        raise ConfigError("target.file", f"a track needs its file, got {file!r}")
+    path = Path(file)
+    if not path.is_absolute() and source != "<memory>":
+        path = Path(source).parent / path
+    noise = table.get("observation_noise_m")
+    if noise is not None:
+        positive("target.observation_noise_m", noise)
+    return load_track(
+        path,
+        home_lat_deg=site.home_lat_deg,
+        home_lon_deg=site.home_lon_deg,
+        system_id=table.get("system_id"),
+        noise_m=noise,
+    )
+
+
 def parse_scenario(
     doc: dict[str, Any], *, source: str = "<memory>", live: bool = False
 ) -> Scenario:
@@ -352,7 +387,8 @@ def parse_scenario(
             f"must divide the control period ({controller.period_ns} ns) exactly",
         )
     learning = _build(LearningSettings, doc.get("learning", {}), "learning")
-    target = _build(TargetScript, doc.get("target", {}), "target")
+    site = _build(Site, doc.get("site", {}), "site")
+    target = _target(doc.get("target", {}), site, source)
     truth_default = doc.get("truth", {})
     if not isinstance(truth_default, dict):
         raise ConfigError("truth", "must be a table")
@@ -432,7 +468,6 @@ def parse_scenario(
                     f"vehicles[{b}].slot_m",
                     f"slot is closer than d_safe_m to vehicle {vehicles[a].id}'s",
                 )
-    site = _build(Site, doc.get("site", {}), "site")
     network = _build(Network, doc.get("network", {}), "network")
     for v in vehicles:  # every vehicle's default ports exist (either profile can fly it)
         network.offboard_port(v.id)

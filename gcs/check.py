@@ -23,6 +23,7 @@ import numpy as np
 
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
+from fleetmpc.gcs.track_report import track_lines
 from fleetmpc.gcs.wind_report import wind_lines
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
 from fleetmpc.onboard.core.formation import CourseRateLimit, Formation, true_reference
@@ -30,6 +31,7 @@ from fleetmpc.onboard.core.neighbourhood import safety_radius
 from fleetmpc.onboard.core.target_path import CHORD_HALF_M
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.targets.track import RecordedTrack
 
 __all__ = ["FeasibilityReport", "add_arguments", "check_scenario", "run"]
 
@@ -264,6 +266,12 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
     lines += wind_lines(sc)
     course_limit = reference_course_limit(sc.controller, sc.formation)
+    if isinstance(sc.target, RecordedTrack):
+        more, trouble = track_lines(
+            sc, sc.target, speed_bound_m_s=v_bound, course_limit=course_limit
+        )
+        lines += more
+        problems += trouble
     needs = _slot_requirements(sc, course_limit)
     speeds, rates, lags = needs.speeds_m_s, needs.yaw_rates_rad_s, needs.turn_lags_m
     for v, sp, wr, lag in zip(sc.vehicles, speeds, rates, lags, strict=True):

@@ -27,7 +27,12 @@ from fleetmpc.protocol.mavlink_map import (
     custom_mode_name,
     mode_from_custom,
 )
-from fleetmpc.protocol.messages import PlanMessage, StatusMessage, TargetObservation
+from fleetmpc.protocol.messages import (
+    PlanMessage,
+    StatusMessage,
+    TargetObservation,
+    TargetState,
+)
 from fleetmpc.scenario import Scenario
 
 __all__ = ["GroundStation", "VehicleLink", "gate_failures"]
@@ -246,9 +251,21 @@ class GroundStation:
                     text = f"UAV {message.sender_id}: QP fallback"
                     self._events.append((message.stamp_ns, time.time_ns(), "WARN", text))
             elif isinstance(message, StatusMessage):
+                self._target_event(message)
                 self.live.add_status(message)
             elif isinstance(message, TargetObservation):
                 self.live.add_target(message)
+
+    def _target_event(self, message: StatusMessage) -> None:
+        """An event when a vehicle's formation starts following something else than before: the
+        target lost (its prediction), held, being re-acquired, tracked again."""
+        before = self.live.latest_status(message.sender_id)
+        state = message.status.target_state
+        was = TargetState.TRACKING if before is None else before.status.target_state
+        if state != was and (before is None or message.stamp_ns > before.stamp_ns):
+            level = "INFO" if state in (TargetState.TRACKING, TargetState.REACQUIRING) else "WARN"
+            text = f"UAV {message.sender_id}: target {state.name.lower()}"
+            self._events.append((message.stamp_ns, time.time_ns(), level, text))
 
     # -- telemetry --------------------------------------------------------------------------------
     def open_sinks(self, sinks: list[TelemetrySink]) -> None:
@@ -319,6 +336,7 @@ class GroundStation:
                 "setpoint_rate_hz": st.status.setpoint_rate_hz if st else None,
                 "link_age_s": None if link.last_wall_s is None else now - link.last_wall_s,
                 "qp_fallbacks": st.status.qp_fallbacks if st else 0,
+                "target": st.status.target_state.name.lower() if st else None,
             }
         return {
             "phase": phase,

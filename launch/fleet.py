@@ -88,6 +88,11 @@ class FleetOptions:
     wind_epoch_ns: int | None = None
     """Host time.time_ns() at which the fleet's wind clock reads 0, given to every SITL process
     (``fleetmpc sitl --wind-epoch-ns``) so that they fly one wind; None: each its own start."""
+    target_source: str = "script"
+    """The target process's source (``fleetmpc target --source``: ``script``,
+    ``mavlink:CONNECTION``, ``track:FILE``)."""
+    target_sysid: int | None = None
+    """The MAVLink system the target process follows (``--sysid``)."""
     vehicles_per_sitl: int = 1
     """Simulated vehicles one SITL process serves at most (vehicles next to each other in the
     scenario, on one host): fewer processes wake the host less often
@@ -143,6 +148,10 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
     if secrets is not None:
         router += ("--security", str(secrets))
     target = ("target", *common, *bus_of(TARGET_ID), *speed, "--wait-epoch")
+    if options.target_source != "script":
+        target += ("--source", options.target_source)
+    if options.target_sysid is not None:
+        target += ("--sysid", str(options.target_sysid))
     procs = [
         ProcessSpec("zenoh-router", router, "router", net.router_address),
         ProcessSpec(

@@ -32,6 +32,7 @@ _COLUMNS = (
     ("setpoints", ">", 10),
     ("link", ">", 7),
     ("fallbk", ">", 6),
+    ("target", "<", 11),
 )
 """The status table's columns: heading, alignment and width of its plain-text form."""
 
@@ -58,6 +59,7 @@ def _status_cells(status: dict) -> list[list[str]]:
                 _fmt(v.get("setpoint_rate_hz"), "6.1f", " Hz"),
                 health,
                 str(v.get("qp_fallbacks", 0)),
+                v.get("target") or "-",
             ]
         )
     return rows

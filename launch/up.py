@@ -144,6 +144,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " docs/real-autopilots.md) instead of starting its simulated vehicle; repeatable",
     )
     parser.add_argument(
+        "--target",
+        default="script",
+        metavar="URL",
+        help="where the target's observations come from (`fleetmpc target --source`): script"
+        " (the scenario's, default), mavlink:CONNECTION (another autopilot, a ground station's"
+        " follow-me stream) or track:FILE (a recorded CSV or .tlog): docs/targets.md",
+    )
+    parser.add_argument(
+        "--target-sysid",
+        type=int,
+        metavar="ID",
+        help="the MAVLink system id of the target (--target mavlink:...; a .tlog's system)",
+    )
+    parser.add_argument(
         "--vehicles-per-sitl",
         type=int,
         metavar="K",
@@ -398,6 +412,8 @@ def run(args: argparse.Namespace) -> int:
             viewer=viewer,
             agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
             external_autopilots=external,
+            target_source=args.target,
+            target_sysid=args.target_sysid,
             connect_timeout_s=args.connect_timeout,
             engage_timeout_s=args.engage_timeout,
             secrets_dir=None if secrets is None else str(secrets),

@@ -49,6 +49,7 @@ from fleetmpc.protocol.messages import (
     LearnedParams,
     NeighbourPlanAge,
     PlanStatus,
+    TargetState,
     VehicleMode,
     VehicleStatus,
 )
@@ -334,6 +335,7 @@ class FleetRunner:
                     qp_fallbacks=self.agent.fallbacks % 2**32,
                     rejected_messages=self.bus.counters().rejected_total % 2**32,
                     setpoint_rate_hz=self.setpoint_rate_hz(),
+                    target_state=TargetState[out.target_state.upper()],
                 ),
                 stamp_ns=stamp_ns,
             )
@@ -355,6 +357,7 @@ class FleetRunner:
             "beta": clean(out.beta),
             "qp_ok": bool(out.qp_ok),
             "status": out.status,
+            "target_state": out.target_state,
             "neighbour_ages_s": {
                 str(k): (v if math.isfinite(v) else None) for k, v in out.neighbour_ages_s.items()
             },

@@ -27,7 +27,8 @@ PlanMessage (kind 1), 18 + 24 + 40 M + 24 bytes (266 bytes at M = 5)::
 StatusMessage (kind 2), 149 bytes::
 
     18     1    u8    mode (VehicleMode)
-    19     1    u8    flags: bit 0 armed, bit 1 learning_on, bit 2 learning_frozen; other bits 0
+    19     1    u8    flags: bit 0 armed, bit 1 learning_on, bit 2 learning_frozen, bits 3-4
+                      target_state (TargetState); other bits 0
     20     1    u8    number of neighbour entries used (0..8)
     21     32   4 f64 beta: speed effectiveness, yaw-rate effectiveness, drift North m/s,
                       drift East m/s
@@ -81,6 +82,7 @@ from fleetmpc.protocol.messages import (
     RejectReason,
     StatusMessage,
     TargetObservation,
+    TargetState,
     VehicleStatus,
     vehicle_mode,
 )
@@ -140,6 +142,7 @@ def encode(message: Message) -> bytes:
     if isinstance(message, StatusMessage):
         st = message.status
         flags = int(st.armed) | int(st.learning_on) << 1 | int(st.learning_frozen) << 2
+        flags |= int(st.target_state) << 3
         ages = list(st.neighbour_plan_ages)
         table = b"".join(_NEIGHBOUR.pack(a.vehicle_id, a.age_ns) for a in ages)
         table += bytes(_NEIGHBOUR.size * (MAX_NEIGHBOURS - len(ages)))
@@ -218,7 +221,7 @@ def _decode_status(data: bytes, sender: int, seq: int, stamp: int) -> StatusMess
         raise _reject(RejectReason.SIZE, f"status is {_STATUS_SIZE} bytes, got {len(data)}")
     mode, flags, count, *rest = _STATUS_FIXED.unpack_from(data, _HEADER.size)
     beta, (slot_error, fallbacks, rejected, setpoint_rate) = rest[:4], rest[4:]
-    if flags & ~0b111:
+    if flags & ~0b11111:
         raise _reject(RejectReason.RANGE, f"reserved status flag bits set: {flags:#04x}")
     if count > MAX_NEIGHBOURS:
         raise _reject(RejectReason.RANGE, f"at most {MAX_NEIGHBOURS} neighbours, got {count}")
@@ -237,6 +240,7 @@ def _decode_status(data: bytes, sender: int, seq: int, stamp: int) -> StatusMess
         qp_fallbacks=fallbacks,
         rejected_messages=rejected,
         setpoint_rate_hz=setpoint_rate,
+        target_state=TargetState(flags >> 3 & 0b11),
     )
     return StatusMessage(sender_id=sender, seq=seq, stamp_ns=stamp, status=status)
 

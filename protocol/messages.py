@@ -84,6 +84,19 @@ class VehicleMode(IntEnum):
     FAILSAFE = 6
 
 
+class TargetState(IntEnum):
+    """What a vehicle's formation follows (`fleetmpc.onboard.core.target_watch`)."""
+
+    TRACKING = 0
+    """The target's observations come; its estimate."""
+    PREDICTING = 1
+    """Lost: its prediction, for a bounded time."""
+    HOLDING = 2
+    """Lost for longer: the formation holds where it is."""
+    REACQUIRING = 3
+    """Back: the reference glides onto the new estimate."""
+
+
 class RejectReason(StrEnum):
     """Why a received message was rejected; the key of the rejection counters."""
 
@@ -296,9 +309,13 @@ class VehicleStatus:
     """Received messages so far rejected by the vehicle's bus (u32)."""
     setpoint_rate_hz: float = 0.0
     """Setpoints sent to the autopilot per simulated second, over the last period."""
+    target_state: TargetState = TargetState.TRACKING
+    """What the vehicle's formation follows: the target, its prediction, a hold, a glide back."""
 
     def __post_init__(self) -> None:
         vehicle_mode("status.mode", self.mode)
+        if not isinstance(self.target_state, TargetState):
+            raise FieldError("status.target_state", RejectReason.RANGE, "must be a TargetState")
         for name in ("armed", "learning_on", "learning_frozen"):
             _bool(f"status.{name}", getattr(self, name))
         if not isinstance(self.beta, LearnedParams):

@@ -102,8 +102,8 @@ def _fly(
     agents place it along their estimates'."""
     n = len(plants)
     ids = sc.vehicle_ids
-    obs_period_ns = round(1e9 / sc.target.observation_rate_hz)
-    next_obs_ns = 0
+    feed = sc.target.feed(target_rng)
+    """The target's observations: a script's at its rate, a recorded track's as recorded."""
     constants = RunConstants(
         scenario=sc.name,
         vehicle_ids=ids,
@@ -133,18 +133,17 @@ def _fly(
         t_ns = k * period_ns
         t_s = t_ns * 1e-9
         tgt_pos, tgt_vel = sc.target.state_at(t_s)
-        obs = None
-        if t_ns >= next_obs_ns:
-            obs = sc.target.observe(t_s, target_rng)
-            next_obs_ns += obs_period_ns
+        observations = feed.due(t_ns)
+        for stamp_ns, obs in observations:
             if ground_target is not None:
-                ground_target.observe(t_ns, obs)
+                ground_target.observe(stamp_ns, obs)
             target_bus.publish_target(
-                stamp_ns=t_ns,
+                stamp_ns=stamp_ns,
                 north_m=float(obs[0]),
                 east_m=float(obs[1]),
                 noise_std_m=float(sc.target.observation_noise_m),
             )
+        if observations:
             pool.deliver(t_ns, [(key, payload, None) for key, payload, _ in hub.take()])
         measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants)]
         truths = np.array([_truth(p) for p in plants])

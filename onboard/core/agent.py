@@ -37,6 +37,7 @@ from fleetmpc.onboard.core.neighbourhood import Neighbourhood
 from fleetmpc.onboard.core.seeding import Seeder
 from fleetmpc.onboard.core.separation import Plane, plane_slack
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
+from fleetmpc.onboard.core.target_watch import TRACKING, TargetWatch
 from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
 from fleetmpc.protocol.plan import Plan
 
@@ -123,6 +124,9 @@ class AgentOutput:
     """Neighbours whose formation term entered the cost."""
     target_prediction_m: np.ndarray
     """Where the target is predicted at the end of the horizon (2,) [m], nan while unknown."""
+    target_state: str = TRACKING
+    """What the formation follows: "tracking", "predicting", "holding" or "reacquiring"
+    (`fleetmpc.onboard.core.target_watch`)."""
 
 
 class Agent:
@@ -151,6 +155,13 @@ class Agent:
         self.learning = learning
         self.dekf = DualEkf(learning, tau=controller.period_s)
         self.target = TargetEstimator(observation_std_m=target_observation_std_m)
+        self.target_watch = TargetWatch(
+            lost_s=controller.target_lost_s,
+            predict_s=controller.target_predict_s,
+            reacquire_s=controller.target_reacquire_s,
+            glide_speed_m_s=0.5 * controller.speed_max_m_s,
+            brake_m_s2=0.25 * controller.speed_rate_max_m_s2,
+        )
         self.formation = Formation(formation)
         self.mpc = vehicle_mpc(controller, self.formation)
         self.reference = FormationReference(self.formation, _course_limit(self.mpc, self.formation))
@@ -286,7 +297,7 @@ class Agent:
             self.dekf.propagate(applied)
         if inp.target_observation is not None:
             t_obs = inp.stamp_ns if inp.target_stamp_ns is None else inp.target_stamp_ns
-            self.target.observe(t_obs, inp.target_observation)
+            self.target_watch.observe(self.target, t_obs, inp.target_observation)
         ages = {
             k: (inp.stamp_ns - p.stamp_ns) * 1e-9
             for k, p in inp.neighbour_plans.items()
@@ -308,7 +319,7 @@ class Agent:
         z0_f, beta_f = z0.tolist(), beta.tolist()
         # The target, the formation's centre and reference course, and the slots over
         # j = 0..M+1: at each step, slot i = centre + offset i turned to the reference course.
-        track, velocities = self.target.predicted_track(start_ns, s.period_ns, M + 2)
+        track, velocities = self.target_watch.track(self.target, start_ns, s.period_ns, M + 2)
         placed = self._placement(start_ns, track, velocities)
         centres = [centre for centre, _ in placed]
         offsets = [self.formation.offsets(course) for _, course in placed]
@@ -402,6 +413,7 @@ class Agent:
             neighbours=tuple(neighbours),
             formation_terms=n_terms,
             target_prediction_m=np.array(track[M]),
+            target_state=self.target_watch.state,
         )
 
     def _hold(self, inp: AgentInput, why: str, ages: dict[int, float]) -> AgentOutput:

@@ -68,6 +68,14 @@ class ControllerSettings:
     seed_switch_ratio: float = 0.7
     """The linearization keeps following its previous plan unless another seed's rollout scores
     at most this fraction of the plan's (hysteresis against alternating seeds)."""
+    target_lost_s: float = 2.0
+    """No target observation for this long: the target is lost and its prediction flown on
+    (`fleetmpc.onboard.core.target_watch`) [s]."""
+    target_predict_s: float = 8.0
+    """How long after its last observation a lost target's prediction is flown before the
+    formation holds where it is [s]."""
+    target_reacquire_s: float = 3.0
+    """After a hold, the followed target glides to the new estimate over at least this long [s]."""
     solver_eps: float = 1e-6
     """OSQP eps_abs and eps_rel."""
     solver_max_iter: int = 4000
@@ -92,6 +100,9 @@ class ControllerSettings:
             "plan_forget_s",
             "yaw_rate_trust_rad_s",
             "speed_rate_max_m_s2",
+            "target_lost_s",
+            "target_predict_s",
+            "target_reacquire_s",
         ):
             positive(f"controller.{name}", getattr(self, name))
         for name in (

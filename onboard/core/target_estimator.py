@@ -261,6 +261,11 @@ class TargetEstimator:
         self.observations += 1
         return True
 
+    def forget(self) -> None:
+        """Drop the track: the next observation starts it afresh (a target back after long)."""
+        self._stamp_ns = None
+        self._nis = 2.0
+
     def predicted_track(
         self, stamp_ns: int, period_ns: int, count: int
     ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:

@@ -30,6 +30,7 @@ STATUS = {
             "setpoint_rate_hz": 5.0,
             "link_age_s": 0.1,
             "qp_fallbacks": 2,
+            "target": "holding",
         },
         "12": {"mode": None, "armed": False, "link_age_s": 3.25},
     },
@@ -37,9 +38,9 @@ STATUS = {
 
 STATUS_LINES = [
     "phase flying, fleet time   12.3 s",
-    " UAV mode      armed  slot err    solve  plan age  setpoints    link fallbk",
-    "   1 OFFBOARD  yes     0.012 m  1.50 ms    0.20 s     5.0 Hz      ok      2",
-    "  12 -         no            -        -         -          -   3.2s!      0",
+    " UAV mode      armed  slot err    solve  plan age  setpoints    link fallbk target     ",
+    "   1 OFFBOARD  yes     0.012 m  1.50 ms    0.20 s     5.0 Hz      ok      2 holding    ",
+    "  12 -         no            -        -         -          -   3.2s!      0 -          ",
 ]
 
 

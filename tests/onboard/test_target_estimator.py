@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fleetmpc.onboard.core.target_estimator import TargetEstimator, turn_motion
-from fleetmpc.sitl.target import TargetScript
+from fleetmpc.targets.script import TargetScript
 
 PERIOD_NS = 200_000_000
 

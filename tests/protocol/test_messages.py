@@ -21,6 +21,7 @@ from fleetmpc.protocol.messages import (
     RejectReason,
     StatusMessage,
     TargetObservation,
+    TargetState,
     VehicleMode,
     VehicleStatus,
 )
@@ -74,6 +75,7 @@ vehicle_statuses = st.builds(
     ).map(tuple),
     qp_fallbacks=U32,
     rejected_messages=U32,
+    target_state=st.sampled_from(TargetState),
 )
 status_messages = st.builds(
     StatusMessage, sender_id=SENDER, seq=U32, stamp_ns=STAMP, status=vehicle_statuses
@@ -271,7 +273,7 @@ REJECTIONS = {
     "reserved plan flags": (patched(plan_bytes(), 29, "<B", 0x80), RejectReason.RANGE),
     "negative c norm": (patched(plan_bytes(), 30, "<d", -1.0), RejectReason.RANGE),
     "unknown status mode": (patched(status_bytes(), 18, "<B", 7), RejectReason.RANGE),
-    "reserved status flags": (patched(status_bytes(), 19, "<B", 0x08), RejectReason.RANGE),
+    "reserved status flags": (patched(status_bytes(), 19, "<B", 0x20), RejectReason.RANGE),
     "nine neighbours": (patched(status_bytes(), 20, "<B", 9), RejectReason.RANGE),
     "stale neighbour entry": (patched(status_bytes(), 20, "<B", 1), RejectReason.RANGE),
     "neighbour id zero": (patched(status_bytes(), 77, "<B", 0), RejectReason.RANGE),
@@ -362,6 +364,7 @@ def test_corrupted_messages_never_raise(base: bytes, edits: list, cut: int) -> N
         (lambda: VehicleStatus(neighbour_plan_ages=tuple(
             NeighbourPlanAge(i, 0) for i in range(1, 10))), "status.neighbour_plan_ages"),
         (lambda: VehicleStatus(armed=1), "status.armed"),
+        (lambda: VehicleStatus(target_state=2), "status.target_state"),
         (lambda: StatusMessage(sender_id=0, seq=0, stamp_ns=0, status=VehicleStatus()),
          "sender_id"),
         (lambda: TargetObservation(sender_id=1, seq=0, stamp_ns=0, north_m=2e6, east_m=0.0),

@@ -1,6 +1,7 @@
 """Scripted aerial target: a point moving on a line, a circle, a figure eight or through waypoints.
 
 Positions are pure functions of time, so every process that flies or watches the target agrees.
+The default target source (`fleetmpc.targets`).
 """
 
 import math
@@ -11,7 +12,7 @@ import numpy as np
 from fleetmpc.errors import ConfigError
 from fleetmpc.validate import finite, positive, vector
 
-__all__ = ["TargetScript"]
+__all__ = ["ScriptFeed", "TargetScript"]
 
 _KINDS = ("line", "circle", "figure_eight", "waypoints")
 
@@ -125,3 +126,25 @@ class TargetScript:
         )
         sigma = self.observation_noise_m
         return np.array((x + sigma * nx, y + sigma * ny))
+
+    def feed(self, rng: np.random.Generator) -> "ScriptFeed":
+        """The observations a lockstep run publishes: one at every observation period."""
+        return ScriptFeed(self, rng)
+
+
+class ScriptFeed:
+    """A scripted target's observations in a lockstep run: at the first period at or after each
+    observation's due time, one noisy position stamped with that period's time."""
+
+    def __init__(self, script: TargetScript, rng: np.random.Generator) -> None:
+        self._script = script
+        self._rng = rng
+        self._period_ns = round(1e9 / script.observation_rate_hz)
+        self._next_ns = 0
+
+    def due(self, t_ns: int) -> list[tuple[int, np.ndarray]]:
+        """The observations due by t_ns [ns] not handed out yet, as (stamp_ns, (North, East))."""
+        if t_ns < self._next_ns:
+            return []
+        self._next_ns += self._period_ns
+        return [(t_ns, self._script.observe(t_ns * 1e-9, self._rng))]

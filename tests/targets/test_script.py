@@ -7,7 +7,7 @@ import pytest
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.scenario import parse_scenario
-from fleetmpc.sitl.target import TargetScript
+from fleetmpc.targets.script import TargetScript
 
 EIGHT = TargetScript(
     kind="figure_eight", center_m=(10.0, -20.0), radius_m=60.0, period_s=410.0, start_angle_rad=0.3
