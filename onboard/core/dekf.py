@@ -30,15 +30,16 @@ value, so beta stays bounded and does not wander when excitation vanishes; a non
 an innovation beyond the gate resets the state to the measurement (beta is kept if finite) and is
 counted.
 
-filterpy's `predict` and `update` do the standard steps (the parameters' linear prediction, the
-state's correction); the consider update, which filterpy lacks, is written here.
+filterpy's `predict` does the parameters' linear prediction. The corrections are written out:
+the parameters' is a consider update over both measurements at once, which filterpy lacks, and
+the state's reuses the inverse of its innovation covariance for the gate.
 """
 
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import predict, update
+from filterpy.kalman import predict
 
 from fleetmpc.onboard.core.config import LearningSettings
 from fleetmpc.onboard.core.unicycle import step_with_jacobians, wrap
@@ -107,20 +108,21 @@ def _with_gust(G: np.ndarray) -> np.ndarray:
 
 def _bound(theta: np.ndarray, P_p: np.ndarray, noise: _Noise) -> tuple[np.ndarray, np.ndarray]:
     """theta with beta inside its bounds (the mean moved so that the drift is) and P_p with its
-    diagonal capped, symmetrized."""
-    beta = beta_of(theta).tolist()
-    if any(
-        b < lo or b > hi for b, lo, hi in zip(beta, noise.beta_min, noise.beta_max, strict=True)
-    ):
-        clipped = np.clip(beta, noise.beta_min, noise.beta_max)
-        theta = theta.copy()
-        theta[:2] = clipped[:2]
-        theta[2:4] = clipped[2:] - theta[4:]
-    d = P_p.diagonal()
-    if np.any(d > noise.P_p_cap):
-        scale = np.sqrt(np.minimum(1.0, noise.P_p_cap / np.maximum(d, 1e-300)))
+    diagonal capped, symmetrized. (Plain floats: in bounds, the usual case, it costs little.)"""
+    a_v, a_w, m_x, m_y, g_x, g_y = theta.tolist()
+    beta = (a_v, a_w, m_x + g_x, m_y + g_y)
+    bounds = zip(beta, noise.beta_min, noise.beta_max, strict=True)
+    if not all(lo <= b <= hi for b, lo, hi in bounds):
+        a_v, a_w, d_x, d_y = np.clip(beta, noise.beta_min, noise.beta_max).tolist()
+        theta = np.array((a_v, a_w, d_x - g_x, d_y - g_y, g_x, g_y))
+    caps = zip(P_p.diagonal().tolist(), noise.P_p_cap.tolist(), strict=True)
+    if any(v > cap for v, cap in caps):
+        scale = np.sqrt(np.minimum(1.0, noise.P_p_cap / np.maximum(P_p.diagonal(), 1e-300)))
         P_p = P_p * np.outer(scale, scale)
-    return theta, 0.5 * (P_p + P_p.T)
+    sym = P_p.T.copy()  # (a contiguous copy: numpy adds a transposed operand slowly)
+    sym += P_p
+    sym *= 0.5
+    return theta, sym
 
 
 def _unexcited(H_p: np.ndarray, noise: _Noise, velocity_means: np.ndarray) -> list[int]:
@@ -164,6 +166,26 @@ def _velocity_means(means: np.ndarray, velocity: np.ndarray, tau: float) -> np.n
     return means + weights * (velocity - means)
 
 
+_EYE3 = np.eye(3)
+_EYE6 = np.eye(6)
+
+
+def _inverse_3x3(S: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of a 3 x 3 innovation covariance: the adjugate over the determinant,
+    in plain floats (a third of numpy.linalg.inv's time on a 3 x 3). S is a covariance plus the
+    sensor noise, well conditioned, so the cofactors lose nothing to cancellation."""
+    (a, b, c), (d, e, f), (g, h, i) = S.tolist()
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * A + b * B + c * C
+    return np.array(
+        (
+            A / det, (c * h - b * i) / det, (b * f - c * e) / det,
+            B / det, (a * i - c * g) / det, (c * d - a * f) / det,
+            C / det, (b * g - a * h) / det, (a * e - b * d) / det,
+        )
+    ).reshape(3, 3)  # fmt: skip
+
+
 def _consider_update(
     theta: np.ndarray,
     P: np.ndarray,
@@ -176,7 +198,7 @@ def _consider_update(
     S = H.dot(P).dot(H.T) + R
     K = P.dot(H.T).dot(np.linalg.inv(S))
     K[hold] = 0.0
-    I_K = np.eye(len(theta)) - K.dot(H)
+    I_K = _EYE6 - K.dot(H)
     return theta + K.dot(innovation), I_K.dot(P).dot(I_K.T) + K.dot(R).dot(K.T)
 
 
@@ -262,27 +284,42 @@ class DualEkf:
         self._velocity_means = _velocity_means(self._velocity_means, G[:2, 0] / self.tau, self.tau)
         innovation = y[:3] - z_m
         innovation[2] = wrap(innovation.item(2))
-        self.z, self.P_s = update(z_m, P_s_m, z_m + innovation, n.R_s, H=np.eye(3))
-        self.z[2] = wrap(self.z.item(2))
+        S_inv = _inverse_3x3(P_s_m + n.R_s)
+        self._correct_state(z_m, P_s_m, innovation, S_inv)
         if learn:
             self._learn(innovation, H_p, P_own + n.R_s, y[3:])
-        nis = float(innovation.dot(np.linalg.solve(P_s_m + n.R_s, innovation)))
+        nis = float(innovation.dot(S_inv).dot(innovation))
         if not (_finite(self.z, self.P_s) and nis <= n.gate**2):
             self.resets += 1
             self.reset(y, keep_beta=_finite(self.theta, self.P_p))
+
+    def _correct_state(
+        self, z_m: np.ndarray, P_m: np.ndarray, innovation: np.ndarray, S_inv: np.ndarray
+    ) -> None:
+        """The state's Kalman correction (H_s = I, Joseph form), heading wrapped."""
+        K = P_m.dot(S_inv)
+        self.z = z_m + K.dot(innovation)
+        self.z[2] = wrap(self.z.item(2))
+        I_K = _EYE3 - K
+        self.P_s = I_K.dot(P_m).dot(I_K.T) + K.dot(self._noise.R_s).dot(K.T)
 
     def _learn(
         self, innovation: np.ndarray, H_p: np.ndarray, R_p: np.ndarray, velocity: np.ndarray
     ) -> None:
         """The parameters' correction on the position innovation and, when measured, the
-        ground velocity; both consider-updates hold the unexcited parameters."""
+        ground velocity, in one consider update that holds the unexcited parameters."""
         n = self._noise
         hold = _unexcited(H_p, n, self._velocity_means)
-        theta, P_p = _consider_update(self.theta, self.P_p, innovation, H_p, R_p, hold)
+        H, R = H_p, R_p
         if len(velocity) == 2:
             heading, heading_var = self.z.item(2), self.P_s.item(2, 2)
-            v_m, H_v, R_v = _velocity_model(theta, self._lag_end.item(0), heading, heading_var, n)
-            theta, P_p = _consider_update(theta, P_p, velocity - v_m, H_v, R_v, hold)
+            speed = self._lag_end.item(0)
+            v_m, H_v, R_v = _velocity_model(self.theta, speed, heading, heading_var, n)
+            H = np.concatenate((H_p, H_v))
+            R = np.zeros((5, 5))
+            R[:3, :3], R[3:, 3:] = R_p, R_v
+            innovation = np.concatenate((innovation, velocity - v_m))
+        theta, P_p = _consider_update(self.theta, self.P_p, innovation, H, R, hold)
         self.theta, self.P_p = _bound(theta, P_p, n)
 
     def _fly(self, u: np.ndarray) -> np.ndarray:
