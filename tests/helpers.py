@@ -127,6 +127,16 @@ def live_processes_naming(text: str) -> list[tuple[int, str]]:
     return found
 
 
+def fly_up(scenario: Path, run_dir: Path, *, speed: float, timeout_s: float, cwd: Path):
+    """`fleetmpc up SCENARIO` headless and quiet into `run_dir`, to its end: the finished
+    process (its output captured)."""
+    argv = [
+        sys.executable, "-m", "fleetmpc.cli", "up", str(scenario), "--speed", f"{speed:g}",
+        "--viewer", "none", "--quiet", "--run-dir", str(run_dir),
+    ]  # fmt: skip
+    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=timeout_s)
+
+
 def scenario_on_free_ports(source: Path, dest: Path) -> Path:
     """Write `source` (a scenario without a [network] table) to `dest` with free loopback ports.
 

@@ -3,14 +3,12 @@
 station's recording meets the dropout's gates."""
 
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import rerun as rr
-from helpers import live_processes_naming, scenario_on_free_ports
+from helpers import fly_up, live_processes_naming, scenario_on_free_ports
 
 from fleetmpc.gcs.rrd_reader import read_recording
 
@@ -35,11 +33,7 @@ def test_up_follows_a_replayed_track_through_its_dropout(tmp_path):
     scenario = scenario_on_free_ports(tracks / "walk-dropout.toml", tmp_path / "w.toml")
     shutil.copy(tracks / "walk-dropout.csv", tmp_path)
     run_dir = tmp_path / "run"
-    argv = [
-        sys.executable, "-m", "fleetmpc.cli", "up", str(scenario), "--speed", "4",
-        "--viewer", "none", "--quiet", "--run-dir", str(run_dir),
-    ]  # fmt: skip
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    done = fly_up(scenario, run_dir, speed=4, timeout_s=300, cwd=ROOT)
     assert done.returncode == 0, done.stdout + done.stderr
     assert live_processes_naming(str(scenario)) == []
     log = (run_dir / "logs" / "target.log").read_text()

@@ -2,13 +2,11 @@
 lockstep's gates within 1.5 times its formation RMS, and its recording carries each simulated
 vehicle's true wind (WIND_COV) beside the learned drift."""
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import live_processes_naming, scenario_on_free_ports
+from helpers import fly_up, live_processes_naming, scenario_on_free_ports
 
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
@@ -24,11 +22,7 @@ def test_a_live_fleet_in_turbulence_flies_as_the_lockstep_and_records_the_true_w
         ROOT / "scenarios" / "turbulence-light.toml", tmp_path / "t.toml"
     )
     run_dir = tmp_path / "run"
-    argv = [
-        sys.executable, "-m", "fleetmpc.cli", "up", str(scenario), "--speed", "1",
-        "--viewer", "none", "--quiet", "--run-dir", str(run_dir),
-    ]  # fmt: skip
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=400)
+    done = fly_up(scenario, run_dir, speed=1, timeout_s=400, cwd=ROOT)
     assert done.returncode == 0, done.stdout + done.stderr
     assert live_processes_naming(str(scenario)) == []
     live = read_recording(run_dir / "run.rrd").record
