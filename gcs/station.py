@@ -166,13 +166,17 @@ class GroundStation:
         elif kind == "WIND_COV" and link.ground_truth:
             # A simulator that sends its ground truth sends its true wind here; a real
             # autopilot's WIND_COV is its estimate, not a truth to judge the learner by.
-            self._true_wind(vid, link, msg)
+            self._true_wind(vid, link, msg, received_ns)
 
-    def _true_wind(self, vid: int, link: VehicleLink, msg) -> None:
+    def _true_wind(self, vid: int, link: VehicleLink, msg, received_ns: int) -> None:
         """A simulator's true wind (WIND_COV, NED) at its boot time, into the live record."""
-        if link.clock is not None and 0 < msg.time_usec <= MAX_BOOT_MS * 1000:
-            t_s = link.clock.fleet_ns(msg.time_usec * 1000) * 1e-9
-            self.live.add_wind(vid, t_s, float(msg.wind_x), float(msg.wind_y))
+        if link.clock is None or not 0 < msg.time_usec <= MAX_BOOT_MS * 1000:
+            return  # (before the epoch, or a time this cannot place)
+        boot_ns = msg.time_usec * 1000
+        link.clock.update(time_boot_ns=boot_ns, received_wall_ns=received_ns)
+        t_ns = link.clock.fleet_ns(boot_ns)
+        if t_ns is not None:  # (None: the clock has no epoch yet)
+            self.live.add_wind(vid, t_ns * 1e-9, msg.wind_x, msg.wind_y)
 
     def _pose(self, vid: int, link: VehicleLink, boot_ns: int, received_ns: int, msg, yaw: float):
         """A position of vehicle `vid` (`msg.lat`, `msg.lon` in degE7) at its boot time
