@@ -11,6 +11,11 @@ error too. Either way the worker itself is unharmed, and its next run gets a new
 
 A run process lives as long as its worker's thread and flies that thread's runs one after the
 other, as the worker would; its only cost per run is the pipe (the spec there, the row back).
+It stops with its worker: terminated when the worker exits, or, when the worker is killed, at
+the end of the pipe (idle) or of its run. Forked, it holds copies of the worker's sockets until
+then, so a scheduler sees a killed worker gone once its run process has ended; a run that hangs
+in a worker killed from outside outlives it (the scheduler's heartbeat timeout still drops the
+worker).
 """
 
 import multiprocessing

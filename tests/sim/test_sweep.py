@@ -4,6 +4,7 @@ figures; and a real Dask scheduler with two workers as separate processes on loo
 them killed mid-sweep, against the local process pool."""
 
 import json
+import multiprocessing
 import os
 import socket
 import sys
@@ -19,7 +20,9 @@ from fleetmpc.cli import main
 from fleetmpc.errors import ConfigError
 from fleetmpc.sim import sweep_figures
 from fleetmpc.sim.agent_pool import AgentPool
+from fleetmpc.sim.run_process import fly_within
 from fleetmpc.sim.sweep_grid import RunSpec, build_run, parse_vary, plan_runs, set_path
+from fleetmpc.sim.sweep_run import fly_spec
 from fleetmpc.sim.sweep_store import CONTEXT_COLUMNS, METRIC_COLUMNS
 
 PAPER = str(ROOT / "scenarios" / "paper.toml")
@@ -249,6 +252,26 @@ def test_a_run_that_hangs_inside_a_period_is_killed_at_its_time_limit(
     # and nothing the sweep started is left: workers, run processes
     left = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
     assert not left, left
+
+
+def _attempt_as_a_daemon(conn) -> None:
+    conn.send(fly_within(fly_spec, _plan()[0], limit_s=60.0))
+
+
+def test_a_daemon_worker_refuses_runs_saying_how_to_start_workers():
+    # Dask's nannies make their workers daemons unless told otherwise: such a worker may not
+    # start a run process, and says how to start workers that may
+    context = multiprocessing.get_context()
+    ours, theirs = context.Pipe()
+    worker = context.Process(target=_attempt_as_a_daemon, args=(theirs,), daemon=True)
+    worker.start()
+    try:
+        assert ours.poll(60.0)
+        row, error = ours.recv()
+    finally:
+        worker.join(10.0)
+    assert row is None
+    assert "daemon process" in error and "DASK_DISTRIBUTED__WORKER__DAEMON=False" in error
 
 
 def test_without_dask_the_sweep_flies_on_the_process_pool(tmp_path, capsys, monkeypatch):
