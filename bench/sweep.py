@@ -65,8 +65,7 @@ def _throughput(scenario: str, *, jobs: int, repeats: int, tmp: Path) -> dict:
     axes = [Axis("controller.horizon", (4, 5, 6))]
     specs = plan_runs([scenario], axes, seeds=THROUGHPUT_RUNS // 3)
     times: dict[str, list[float]] = {"local": [], "dask": [], "dask_running": []}
-    cluster = local_cluster(jobs)  # as the sweep starts one
-    try:
+    with local_cluster(jobs) as cluster:  # as the sweep starts one
         for k in range(repeats):
             order = ["local", "dask", "dask_running"]
             for name in order if k % 2 == 0 else order[::-1]:
@@ -75,8 +74,6 @@ def _throughput(scenario: str, *, jobs: int, repeats: int, tmp: Path) -> dict:
                 wall_s = _timed_sweep(specs, axes, tmp / f"{name}-{k}", **engine)
                 times[name].append(wall_s)
                 print(f"  round {k + 1}: {name:<13} {wall_s:6.2f} s", flush=True)
-    finally:
-        cluster.close()
     med = {name: statistics.median(v) for name, v in times.items()}
     return {
         "runs": len(specs),

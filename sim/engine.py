@@ -1,10 +1,10 @@
 """Where the runs of a sweep (or suite) fly: Dask's distributed scheduler, or a process pool.
 
 - ``dask``: a `distributed.LocalCluster` of this machine's cores (one single-threaded worker
-  process per core), or, given a scheduler address, the cluster the user runs (``dask
-  scheduler`` and ``dask worker`` on any hosts). Dask moves the runs of a worker that dies to
-  the others by itself (docs/sweeps.md). Needs the ``cluster`` extra
-  (``pip install fleetmpc[cluster]``).
+  process per core, started as the pool's are: `local_cluster`), or, given a scheduler
+  address, the cluster the user runs (``dask scheduler`` and ``dask worker`` on any hosts).
+  Dask moves the runs of a worker that dies to the others by itself (docs/sweeps.md). Needs
+  the ``cluster`` extra (``pip install fleetmpc[cluster]``).
 - ``local``: `concurrent.futures.ProcessPoolExecutor` on this machine, always there.
 
 Either way at most a few runs per worker are handed out ahead (`AHEAD_PER_WORKER`), the rest
@@ -12,23 +12,28 @@ wait here, so the number of runs does not weigh on the scheduler or on memory, a
 handed back (`on_finished`) as soon as it ends, in the order runs end. A run whose row says it
 failed (`failed`), or whose worker died under it, is flown once more (`MAX_ATTEMPTS`), on another
 worker where the engine lets us choose (Dask: yes; the pool: whichever is free); after that its
-failed row is handed back with its error.
+failed row is handed back with its error. With a time limit, a worker flies each run in its run
+process (`fleetmpc.sim.run_process`), killed when the run outlives the limit: a run that hangs
+anywhere, inside one control period too, fails with "time limit N s exceeded" and its worker
+goes on.
 """
 
 import argparse
+import contextlib
 import logging
+import multiprocessing
 import os
 import socket
-import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
 from fleetmpc.errors import ConfigError, FleetMpcError
+from fleetmpc.sim.run_process import fly_within
 
 __all__ = [
     "AHEAD_PER_WORKER",
@@ -36,13 +41,11 @@ __all__ = [
     "MAX_ATTEMPTS",
     "EngineLost",
     "Finished",
-    "TimeLimitError",
     "add_engine_arguments",
     "dask_available",
     "engine_of",
     "local_cluster",
     "run_tasks",
-    "time_limit",
 ]
 
 ENGINES = ("dask", "local")
@@ -83,27 +86,6 @@ class _Attempt:
     avoid: str | None = None
 
 
-class TimeLimitError(FleetMpcError):
-    """A run still flying when its time limit passed."""
-
-
-def time_limit(limit_s: float | None) -> Callable[[float, float], None] | None:
-    """A lockstep progress callback that stops the run (TimeLimitError) once `limit_s` of wall
-    time have passed; None without a limit."""
-    if limit_s is None:
-        return None
-    t0 = time.monotonic()
-
-    def check(done_s: float, total_s: float) -> None:
-        if time.monotonic() - t0 > limit_s:
-            raise TimeLimitError(
-                f"still flying after {limit_s:g} s of wall time ({done_s:.1f} of {total_s:g} s "
-                "simulated)"
-            )
-
-    return check
-
-
 def add_engine_arguments(parser: argparse.ArgumentParser, *, default: str) -> None:
     """--engine and --scheduler, as `fleetmpc suite` and `fleetmpc sweep` take them."""
     parser.add_argument(
@@ -138,41 +120,74 @@ def dask_available() -> bool:
 
 WORKER_CONFIG = {
     "distributed.worker.profile.enabled": False,
+    "distributed.worker.daemon": False,
     "distributed.admin.log-length": 100,
     "distributed.admin.low-level-log-length": 100,
 }
 """Dask settings of the cluster a sweep starts: no statistical profiler (a thread that samples
 the running run's stack every 10 ms and keeps an hour of it: time and memory a lockstep run
-needs for itself), and logs of a hundred entries where Dask keeps ten thousand and a thousand
-(its scheduler, in this process, kept about 12 kB a run until they filled; with these, the
-coordinator is flat from about 700 runs on). Workers started by hand take them from the
-environment: ``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` (docs/sweeps.md)."""
+needs for itself); worker processes that are not daemons, so that they may start their run
+processes (`fleetmpc.sim.run_process`; they still stop with their nanny); and logs of a hundred
+entries where Dask keeps ten thousand and a thousand (its scheduler, in this process, kept about
+12 kB a run until they filled; with these, the coordinator is flat from about 700 runs on).
+Workers started by hand take them from the environment:
+``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False DASK_DISTRIBUTED__WORKER__DAEMON=False``
+(docs/sweeps.md)."""
 
 
-def local_cluster(jobs: int) -> Any:
-    """A Dask `LocalCluster` of `jobs` single-threaded worker processes on loopback."""
+@contextlib.contextmanager
+def local_cluster(jobs: int) -> Iterator[Any]:
+    """A Dask `LocalCluster` of `jobs` single-threaded worker processes on loopback, closed on
+    leaving.
+
+    Its nannies start (and restart) the workers with `WORKER_CONFIG` and the start method of
+    the process pool (this platform's multiprocessing default: fork on Linux), so a worker
+    begins with what this process has imported, the flight code included, as the pool's
+    processes do: spawned afresh, each worker imported it again before its first run, some 2 s
+    of a sweep's start on two cores (docs/benchmarks.md, "Sweeps")."""
     import dask
     from distributed import LocalCluster
 
-    with dask.config.set(WORKER_CONFIG):
-        return LocalCluster(
+    method = multiprocessing.get_start_method()
+    config = {**WORKER_CONFIG, "distributed.worker.multiprocessing-method": method}
+    with (
+        dask.config.set(config),
+        LocalCluster(
             n_workers=jobs,
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
             dashboard_address=":0",
             silence_logs=logging.ERROR,
-        )
+        ) as cluster,
+    ):
+        yield cluster
 
 
-def _pool_attempt(fly: Callable[[Any], dict], task: Any) -> tuple[dict, str]:
-    return fly(task), f"{socket.gethostname()}:{os.getpid()}"
+@dataclass(frozen=True)
+class _Flight:
+    """What a worker is handed with each task: how to fly it, and for how long at most."""
+
+    fly: Callable[[Any], dict]
+    limit_s: float | None
 
 
-def _dask_attempt(fly: Callable[[Any], dict], task: Any) -> tuple[dict, str]:
+def _attempt(flight: _Flight, task: Any) -> tuple[dict | None, str | None]:
+    """One flight of a task in a worker: (its row, None), or (None, the error) when it
+    outlived its time limit or lost its run process (`fleetmpc.sim.run_process`)."""
+    if flight.limit_s is None:
+        return flight.fly(task), None
+    return fly_within(flight.fly, task, limit_s=flight.limit_s)
+
+
+def _pool_attempt(flight: _Flight, task: Any) -> tuple[dict | None, str | None, str]:
+    return *_attempt(flight, task), f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _dask_attempt(flight: _Flight, task: Any) -> tuple[dict | None, str | None, str]:
     from distributed import get_worker
 
-    return fly(task), get_worker().address
+    return *_attempt(flight, task), get_worker().address
 
 
 def _error_text(error: BaseException) -> str:
@@ -222,13 +237,16 @@ def run_tasks(
     engine: str = "local",
     jobs: int | None = None,
     scheduler: str | None = None,
+    time_limit_s: float | None = None,
     on_start: Callable[[str], None] | None = None,
 ) -> None:
     """Fly every task (``fly(task) -> row``, a module-level function: it is pickled by name)
     on the engine; `failed(row)` is the error of a failed row (None when it flew);
-    `error_row(task, error)` the row of a run whose worker died. `jobs`: workers of the local
-    pool or cluster (default: this machine's cores); `scheduler`: a running Dask scheduler's
-    address (engine dask). `on_start` gets a line saying where the runs fly."""
+    `error_row(task, error)` the row of a run whose worker died or that outlived
+    `time_limit_s` of wall time (None: no limit, the runs fly in the workers themselves).
+    `jobs`: workers of the local pool or cluster (default: this machine's cores); `scheduler`:
+    a running Dask scheduler's address (engine dask). `on_start` gets a line saying where the
+    runs fly."""
     jobs = (os.cpu_count() or 1) if jobs is None else jobs
     if jobs < 1:
         raise ConfigError("--jobs", f"must be >= 1, got {jobs}")
@@ -242,19 +260,22 @@ def run_tasks(
             "dask needs Dask's distributed scheduler: pip install 'fleetmpc[cluster]'"
             " (or --engine local, the process pool)",
         )
+    if time_limit_s is not None and not time_limit_s > 0:
+        raise ConfigError("--time-limit", f"must be > 0, got {time_limit_s}")
     book = _Book(
         tasks, failed=failed, error_row=error_row, on_finished=on_finished, on_retry=on_retry
     )
     if not book.pending:
         return
+    flight = _Flight(fly, time_limit_s)
     if engine == "local":
-        _run_pool(fly, book, jobs=min(jobs, len(book.pending)), on_start=on_start)
+        _run_pool(flight, book, jobs=min(jobs, len(book.pending)), on_start=on_start)
     else:
-        _run_dask(fly, book, jobs=jobs, scheduler=scheduler, on_start=on_start)
+        _run_dask(flight, book, jobs=jobs, scheduler=scheduler, on_start=on_start)
 
 
 def _run_pool(
-    fly: Callable[[Any], dict],
+    flight: _Flight,
     book: _Book,
     *,
     jobs: int,
@@ -268,14 +289,14 @@ def _run_pool(
         while book.pending or inflight:
             while book.pending and len(inflight) < AHEAD_PER_WORKER * jobs:
                 a = book.pending.popleft()
-                inflight[pool.submit(_pool_attempt, fly, a.task)] = a
+                inflight[pool.submit(_pool_attempt, flight, a.task)] = a
             done, _ = wait(inflight, return_when=FIRST_COMPLETED)
             broken = False
             for future in sorted(done, key=lambda f: inflight[f].index):
                 a = inflight.pop(future)
                 try:
-                    row, worker = future.result()
-                    book.settle(a, row, worker, book.failed(row))
+                    row, error, worker = future.result()
+                    book.settle(a, row, worker, error or book.failed(row))
                 except BrokenProcessPool:  # a worker died: every run in flight is suspect
                     broken = True
                     book.settle(a, None, "", "its worker process died (BrokenProcessPool)")
@@ -290,22 +311,38 @@ def _run_pool(
         pool.shutdown(wait=True, cancel_futures=True)
         for future, a in sorted(inflight.items(), key=lambda item: item[1].index):
             if future.done() and not future.cancelled() and future.exception() is None:
-                row, worker = future.result()
-                if book.failed(row) is None:
+                row, error, worker = future.result()
+                if error is None and book.failed(row) is None:
                     book.on_finished(Finished(a.task, row, worker, a.attempts + 1, a.first_error))
         raise
     pool.shutdown(wait=True)
 
 
+def _dask_client(jobs: int, scheduler: str | None, stack: contextlib.ExitStack) -> tuple[Any, str]:
+    """A client of a local cluster of `jobs` workers (closed with `stack`), or of the running
+    scheduler at `scheduler`; and where the runs fly, in words."""
+    from distributed import Client
+
+    if scheduler is None:
+        cluster = stack.enter_context(local_cluster(jobs))
+        client = stack.enter_context(Client(cluster))
+        return client, f"a local Dask cluster of {jobs} workers at {cluster.scheduler_address}"
+    try:
+        client = stack.enter_context(Client(scheduler, timeout="20s"))
+    except OSError as e:
+        raise ConfigError("--scheduler", f"no Dask scheduler answers at {scheduler}: {e}") from None
+    return client, f"the Dask scheduler at {scheduler}"
+
+
 def _run_dask(
-    fly: Callable[[Any], dict],
+    flight: _Flight,
     book: _Book,
     *,
     jobs: int,
     scheduler: str | None,
     on_start: Callable[[str], None] | None,
 ) -> None:
-    from distributed import Client, as_completed
+    from distributed import as_completed
     from distributed.client import FutureCancelledError
 
     try:
@@ -313,21 +350,8 @@ def _run_dask(
     except ImportError:  # pragma: no cover - older layout
         from distributed import KilledWorker
 
-    cluster = None
-    if scheduler is None:
-        cluster = local_cluster(jobs)
-        client = Client(cluster)
-        where = f"a local Dask cluster of {jobs} workers at {cluster.scheduler_address}"
-    else:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except OSError as e:
-            raise ConfigError(
-                "--scheduler", f"no Dask scheduler answers at {scheduler}: {e}"
-            ) from None
-        where = f"the Dask scheduler at {scheduler}"
-    inflight: dict[str, tuple[Any, _Attempt]] = {}
-    try:
+    with contextlib.ExitStack() as stack:
+        client, where = _dask_client(jobs, scheduler, stack)
         try:
             client.wait_for_workers(1, timeout=WORKERS_WAIT_S)
         except TimeoutError:
@@ -340,6 +364,7 @@ def _run_dask(
             on_start(f"{where}, {len(info['workers'])} workers, {slots} threads")
         ahead = AHEAD_PER_WORKER * max(1, slots)
         running = as_completed(with_results=False)
+        inflight: dict[str, tuple[Any, _Attempt]] = {}
 
         def submit(a: _Attempt) -> None:
             workers = None
@@ -348,7 +373,7 @@ def _run_dask(
                 workers = others or None
             future = client.submit(
                 _dask_attempt,
-                fly,
+                flight,
                 a.task,
                 key=f"fleetmpc-run-{a.index}-{a.attempts}",
                 pure=False,
@@ -358,28 +383,25 @@ def _run_dask(
             inflight[future.key] = (future, a)
             running.add(future)
 
-        while book.pending and len(inflight) < ahead:
-            submit(book.pending.popleft())
-        for future in running:
-            _, a = inflight.pop(future.key)
-            try:
-                row, worker = future.result()
-                error = book.failed(row)
-            except KilledWorker as e:  # its workers died under it, more than Dask allows
-                row, worker, error = None, "", f"its workers died under it ({_error_text(e)})"
-            except (FutureCancelledError, OSError) as e:
-                raise EngineLost(f"{where} stopped answering ({_error_text(e)})") from None
-            except Exception as e:  # the task itself raised (it should return a row)
-                row, worker, error = None, "", _error_text(e)
-            future.release()
-            book.settle(a, row, worker, error)
+        try:
             while book.pending and len(inflight) < ahead:
                 submit(book.pending.popleft())
-    except BaseException:
-        if inflight:
-            client.cancel([future for future, _ in inflight.values()], force=True)
-        raise
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+            for future in running:
+                _, a = inflight.pop(future.key)
+                try:
+                    row, error, worker = future.result()
+                    error = error or book.failed(row)
+                except KilledWorker as e:  # its workers died under it, more than Dask allows
+                    row, worker, error = None, "", f"its workers died under it ({_error_text(e)})"
+                except (FutureCancelledError, OSError) as e:
+                    raise EngineLost(f"{where} stopped answering ({_error_text(e)})") from None
+                except Exception as e:  # the task itself raised (it should return a row)
+                    row, worker, error = None, "", _error_text(e)
+                future.release()
+                book.settle(a, row, worker, error)
+                while book.pending and len(inflight) < ahead:
+                    submit(book.pending.popleft())
+        except BaseException:
+            if inflight:
+                client.cancel([future for future, _ in inflight.values()], force=True)
+            raise

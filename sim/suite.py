@@ -54,7 +54,7 @@ from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.onboard.faults import FaultSchedule
 from fleetmpc.scenario import Scenario, load_scenario, toml_files
 from fleetmpc.sim import engine, fault_matrix
-from fleetmpc.sim.engine import Finished, run_tasks, time_limit
+from fleetmpc.sim.engine import Finished, run_tasks
 from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = [
@@ -223,13 +223,12 @@ def fly_row(
     file: str,
     seed: int,
     learning: bool,
-    time_limit_s: float | None = None,
     known_model: bool = False,
 ) -> dict:
     """Fly the scenario (and faults) `load` gives: the run's row of plain numbers, or
-    the row of its error (no numbers); a run past `time_limit_s` of wall time is stopped and
-    is an error; `known_model`: the known-model run. `fleetmpc suite` and `fleetmpc sweep` fly
-    every run through here."""
+    the row of its error (no numbers); `known_model`: the known-model run. `fleetmpc suite` and
+    `fleetmpc sweep` fly every run through here (a run's time limit is the engine's:
+    `fleetmpc.sim.run_process`)."""
     t0 = time.monotonic()
     check_error = None
     try:
@@ -238,14 +237,7 @@ def fly_row(
             feasible = check_scenario(sc).feasible
         except Exception as e:  # feasibility unknown; the run still flies
             feasible, check_error = None, f"check: {_error_text(e)}"
-        rec = run_lockstep(
-            sc,
-            learning=learning,
-            seed=seed,
-            faults=faults,
-            progress=time_limit(time_limit_s),
-            known_model=known_model,
-        )
+        rec = run_lockstep(sc, learning=learning, seed=seed, faults=faults, known_model=known_model)
         m = compute_metrics(rec)
     except Exception as e:  # a crash is reported as a row; the other runs go on
         wall_s = time.monotonic() - t0

@@ -90,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=TIME_LIMIT_S,
         metavar="S",
-        help="wall time after which a run is stopped as failed (default: %(default)g s)",
+        help="wall time after which a run's process is killed, whatever it is doing, and the run"
+        " recorded as failed (default: %(default)g s)",
     )
     parser.add_argument(
         "--out", type=Path, default=DEFAULT_OUT, help="results folder (default: %(default)s)"
@@ -211,10 +212,12 @@ def sweep(
     engine: str,
     jobs: int | None,
     scheduler: str | None,
+    time_limit_s: float | None = TIME_LIMIT_S,
     quiet: bool,
     on_row=None,
 ) -> tuple[int, int]:
-    """Fly the specs, writing each run's row as it finishes; (runs flown, runs failed)."""
+    """Fly the specs, writing each run's row as it finishes, a run stopped as failed after
+    `time_limit_s` of wall time; (runs flown, runs failed)."""
     bar = _Bar(len(specs), quiet=quiet)
 
     def finished(done: Finished) -> None:
@@ -249,6 +252,7 @@ def sweep(
             engine=engine,
             jobs=jobs,
             scheduler=scheduler,
+            time_limit_s=time_limit_s,
             on_start=started,
         )
     finally:
@@ -275,7 +279,6 @@ def run(args: argparse.Namespace) -> int:
         seeds=args.seeds,
         learning=_learning(args.learning),
         fault_files=_fault_files(args.faults),
-        time_limit_s=args.time_limit,
     )
     store = ResultStore(args.out, axes)
     store.open(resume=args.resume)
@@ -305,6 +308,7 @@ def run(args: argparse.Namespace) -> int:
             engine=engine,
             jobs=args.jobs,
             scheduler=args.scheduler,
+            time_limit_s=args.time_limit,
             quiet=args.quiet,
         )
     except (KeyboardInterrupt, EngineLost) as e:

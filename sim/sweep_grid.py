@@ -29,7 +29,7 @@ import json
 import re
 import tomllib
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -184,8 +184,6 @@ class RunSpec:
     """The fault file, as given (None: no faults)."""
     fault_text: str | None = None
     """The fault file's text."""
-    time_limit_s: float | None = field(default=None, compare=False)
-    """Wall time after which the run is stopped and recorded as failed [s] (not an input)."""
 
     @property
     def run_id(self) -> str:
@@ -337,7 +335,6 @@ def plan_runs(
     seeds: int,
     learning: Sequence[bool] = (True,),
     fault_files: Sequence[str | Path | None] = (None,),
-    time_limit_s: float | None = None,
 ) -> list[RunSpec]:
     """Every run of the grid, in table order: file, fault file, the axes' values (the first
     axis slowest), learning, seed (s, s + 1, ..., s + seeds - 1, s the file's seed); each axis
@@ -379,16 +376,7 @@ def plan_runs(
                 for on in learning:
                     for seed in range(sc.seed, sc.seed + seeds):
                         runs.append(
-                            RunSpec(
-                                str(file),
-                                text,
-                                overrides,
-                                seed,
-                                on,
-                                fault_file,
-                                fault_text,
-                                time_limit_s=time_limit_s,
-                            )
+                            RunSpec(str(file), text, overrides, seed, on, fault_file, fault_text)
                         )
     seen: set[str] = set()
     unique = []

@@ -63,7 +63,6 @@ def fly_spec(spec: RunSpec) -> dict:
         file=spec.file,
         seed=spec.seed,
         learning=spec.learning,
-        time_limit_s=spec.time_limit_s,
     )
     status = "ok" if flew(row) else "failed"
     return {**row, **spec_row(spec), "status": status, "version": code_version()}

@@ -1,12 +1,17 @@
 """`fleetmpc sweep`: the grid's paths checked up front, run identities, rows written as runs
-finish, --resume, time limits, the figures; and a real Dask scheduler with two workers as
-separate processes on loopback, one of them killed mid-sweep, against the local process pool."""
+finish, --resume, time limits (a run hung inside a period killed, on the pool and on Dask), the
+figures; and a real Dask scheduler with two workers as separate processes on loopback, one of
+them killed mid-sweep, against the local process pool."""
 
 import json
+import multiprocessing
+import os
 import socket
 import sys
+import threading
 from pathlib import Path
 
+import psutil
 import pyarrow.parquet as pq
 import pytest
 from helpers import ROOT, free_port, wait_until
@@ -14,7 +19,10 @@ from helpers import ROOT, free_port, wait_until
 from fleetmpc.cli import main
 from fleetmpc.errors import ConfigError
 from fleetmpc.sim import sweep_figures
+from fleetmpc.sim.agent_pool import AgentPool
+from fleetmpc.sim.run_process import fly_within
 from fleetmpc.sim.sweep_grid import RunSpec, build_run, parse_vary, plan_runs, set_path
+from fleetmpc.sim.sweep_run import fly_spec
 from fleetmpc.sim.sweep_store import CONTEXT_COLUMNS, METRIC_COLUMNS
 
 PAPER = str(ROOT / "scenarios" / "paper.toml")
@@ -101,8 +109,6 @@ def test_a_runs_identity_is_its_inputs():
     a, b = _plan("controller.horizon=4,6")[:3:2]  # horizon 4 seed 7, horizon 6 seed 7
     assert a.run_id == _plan("controller.horizon=4,6")[0].run_id
     assert len({a.run_id, b.run_id}) == 2
-    limited = _plan("controller.horizon=4,6", time_limit_s=1.0)[0]
-    assert limited.run_id == a.run_id  # the time limit is not an input
     other_text = RunSpec(a.file, a.scenario_text + "\n", a.overrides, a.seed, a.learning)
     assert other_text.run_id != a.run_id
     # the same file given twice is flown once
@@ -176,10 +182,9 @@ def test_a_run_past_its_time_limit_fails_and_is_flown_once_more(tmp_path, capsys
     assert rc == 1
     (row,) = _table(out).to_pylist()
     assert row["status"] == "failed" and row["attempts"] == 2
-    assert "TimeLimitError: still flying after 1e-06 s of wall time" in row["error"]
-    assert "TimeLimitError" in row["first_error"]
+    assert row["error"] == row["first_error"] == "time limit 1e-06 s exceeded"
     assert row["formation_rms_m"] is None and row["gates_failed"] == ["error"]
-    assert "failed: fleetmpc.sim.engine.TimeLimitError: still flying" in text
+    assert "failed: time limit 1e-06 s exceeded" in text
     # --resume leaves it failed; --retry-failed flies it again
     assert _sweep(out, "--seeds", "1", "--duration", "3", "--resume", "--engine", "local") == 1
     assert "1 done already, 0 to fly" in capsys.readouterr().out
@@ -189,6 +194,84 @@ def test_a_run_past_its_time_limit_fails_and_is_flown_once_more(tmp_path, capsys
         *("--engine", "local", "--no-figures"),
     )
     assert rc == 0 and _table(out).column("status").to_pylist() == ["ok"]
+
+
+HANG_LIMIT_S = 6.0
+"""The time limit of the hang test: some 40 times what a run of 2 s takes here (0.15 s)."""
+HANG_S = 20 * HANG_LIMIT_S
+"""How long a hung step blocks: far beyond the limit, so that a limit not enforced fails the
+test (the run flies on after it) rather than hanging it."""
+
+
+def _hang_inside_a_period(monkeypatch, folder: Path) -> None:
+    """The agents of 5-vehicle runs (wedge-circle's) block for `HANG_S` inside their period at
+    1 s of flight, each hung process first leaving a file ``folder/<pid>`` holding its parent's pid;
+    3-vehicle runs (paper's) fly. The sweep's workers are forked from this process (the
+    platform's start method, as the engine's), and so are their run processes: they fly this
+    step."""
+    folder.mkdir()
+    step = AgentPool.step
+
+    def step_or_hang(self, t_ns, measurements, *args, **kwargs):
+        if len(measurements) == 5 and t_ns >= 1_000_000_000:
+            (folder / str(os.getpid())).write_text(str(os.getppid()))
+            threading.Event().wait(HANG_S)
+        return step(self, t_ns, measurements, *args, **kwargs)
+
+    monkeypatch.setattr(AgentPool, "step", step_or_hang)
+
+
+@pytest.mark.parametrize("engine", ["local", "dask"])
+def test_a_run_that_hangs_inside_a_period_is_killed_at_its_time_limit(
+    tmp_path, capsys, monkeypatch, engine
+):
+    hung = tmp_path / "hung"
+    _hang_inside_a_period(monkeypatch, hung)
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    out = tmp_path / "sweep"
+    rc = _sweep(
+        out,
+        *("--seeds", "1", "--duration", "2", "--time-limit", f"{HANG_LIMIT_S:g}"),
+        *("--engine", engine, "--jobs", "2", "--no-figures"),
+        scenarios=(PAPER, WEDGE),
+    )
+    text = capsys.readouterr().out
+    assert rc == 1, text
+    rows = {r["scenario"]: r for r in _table(out).to_pylist()}
+    assert rows["paper"]["status"] == "ok" and rows["paper"]["attempts"] == 1
+    wedge = rows["wedge-circle"]
+    assert wedge["status"] == "failed" and wedge["attempts"] == 2
+    assert wedge["error"] == wedge["first_error"] == "time limit 6 s exceeded"
+    assert wedge["formation_rms_m"] is None
+    # each flight hung in a run process of its own, killed; with Dask on the other worker
+    parents = {int(f.name): int(f.read_text()) for f in hung.iterdir()}
+    assert len(parents) == 2, parents
+    if engine == "dask":
+        assert len(set(parents.values())) == 2, parents
+    assert not [pid for pid in parents if psutil.pid_exists(pid)]
+    # and nothing the sweep started is left: workers, run processes
+    left = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+    assert not left, left
+
+
+def _attempt_as_a_daemon(conn) -> None:
+    conn.send(fly_within(fly_spec, _plan()[0], limit_s=60.0))
+
+
+def test_a_daemon_worker_refuses_runs_saying_how_to_start_workers():
+    # Dask's nannies make their workers daemons unless told otherwise: such a worker may not
+    # start a run process, and says how to start workers that may
+    context = multiprocessing.get_context()
+    ours, theirs = context.Pipe()
+    worker = context.Process(target=_attempt_as_a_daemon, args=(theirs,), daemon=True)
+    worker.start()
+    try:
+        assert ours.poll(60.0)
+        row, error = ours.recv()
+    finally:
+        worker.join(10.0)
+    assert row is None
+    assert "daemon process" in error and "DASK_DISTRIBUTED__WORKER__DAEMON=False" in error
 
 
 def test_without_dask_the_sweep_flies_on_the_process_pool(tmp_path, capsys, monkeypatch):
