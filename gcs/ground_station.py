@@ -104,6 +104,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, help="fleet time to record [s] (default: scenario)"
     )
+    parser.add_argument(
+        "--target-source",
+        default="script",
+        metavar="URL",
+        help="what the fleet's target process follows (its --source; default: script, the"
+        " scenario's own target): with another, the figures against the target are not judged",
+    )
     parser.add_argument("--rrd", type=Path, help="write the Rerun recording here")
     add_telemetry_argument(parser)
     parser.add_argument(
@@ -240,7 +247,9 @@ def run(args: argparse.Namespace) -> int:
         },
         report=lambda _reason, text: _log(text),
     )
-    gs = GroundStation(scenario, speed=args.speed, duration_s=duration)
+    gs = GroundStation(
+        scenario, speed=args.speed, duration_s=duration, target_source=args.target_source
+    )
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     mav = bus = None

@@ -213,8 +213,8 @@ def format_summary(metrics: dict) -> str:
     for (a, b), e in zip(metrics["separation_pairs"], metrics["separation_error_m"], strict=True):
         rows.append((f"separation error {a}-{b}", f"{e:.4f} m"))
     rows += [
-        ("centre distance error", f"{metrics['centre_distance_error_m']:.4f} m"),
-        ("formation RMS", f"{metrics['formation_rms_m']:.4f} m"),
+        ("centre distance error", _metres(metrics["centre_distance_error_m"])),
+        ("formation RMS", _metres(metrics["formation_rms_m"])),
         *_known_model_rows(metrics),
         ("||c|| final", f"{metrics['c_norm_final']:.4f}"),
         ("min separation", f"{metrics['min_separation_m']:.3f} m"),
@@ -242,6 +242,26 @@ def format_summary(metrics: dict) -> str:
         rows.append((f"beta error UAV {vid}", "unknown: no simulated truth (a real autopilot)"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+NOT_JUDGED = "not judged: the target is not the scenario's (fleetmpc up --target)"
+"""What the summary says of a figure against the target when the ground station does not know
+where the target was (`TARGET_FIGURES`)."""
+
+TARGET_FIGURES = (
+    "centre_distance_error_m",
+    "formation_rms_m",
+    "slot_rms_max_vehicle_m",
+    "target_prediction_rms_m",
+    "corners",
+    "corner_recovery_s",
+)
+"""The metrics measured against the scenario's target, which mean nothing when the fleet
+follows another (a MAVLink system): the ground station leaves them None then."""
+
+
+def _metres(x: float | None) -> str:
+    return NOT_JUDGED if x is None else f"{x:.4f} m"
 
 
 def _known_model_rows(metrics: dict) -> list[tuple[str, str]]:
@@ -301,7 +321,7 @@ def _manoeuvre_rows(metrics: dict) -> list[tuple[str, str]]:
     a metrics file written before they existed)."""
     rows = []
     if "slot_rms_max_vehicle_m" in metrics:
-        rows.append(("worst vehicle slot RMS", f"{metrics['slot_rms_max_vehicle_m']:.4f} m"))
+        rows.append(("worst vehicle slot RMS", _metres(metrics["slot_rms_max_vehicle_m"])))
     reversals = metrics.get("yaw_rate_reversals_per_vehicle_min")
     if reversals is not None:
         rows.append(("yaw-rate reversals", f"{reversals:.2f} per vehicle-minute"))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from fleetmpc.clock import ClockSync, FleetClock
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
-from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.gcs.metrics import TARGET_FIGURES, compute_metrics
 from fleetmpc.gcs.telemetry import TelemetrySink, samples_of
 from fleetmpc.onboard.telemetry_streams import MAX_BOOT_MS
 from fleetmpc.protocol.local_frame import ned_from_geodetic, quaternion_yaw
@@ -85,7 +85,12 @@ class VehicleLink:
 class GroundStation:
     """The ground station's state and loop; `run` drives it from the command line."""
 
-    def __init__(self, scenario: Scenario, *, speed: float, duration_s: float) -> None:
+    def __init__(
+        self, scenario: Scenario, *, speed: float, duration_s: float, target_source: str = "script"
+    ) -> None:
+        """`target_source`: what the fleet's target process follows (``fleetmpc target
+        --source``); other than "script" (the scenario's own target), the figures against the
+        target are not judged (`TARGET_FIGURES`)."""
         self.scenario = scenario
         self.speed = speed
         self.duration_s = duration_s
@@ -108,6 +113,7 @@ class GroundStation:
             "feasible": check_scenario(scenario).feasible,
             "seed": scenario.seed,
             "source": "live",
+            "target_source": target_source,
         }
 
     # -- clocks -----------------------------------------------------------------------------------
@@ -360,6 +366,8 @@ class GroundStation:
         # real autopilot, or its SITL) has no truth to compare with.
         untrue = [b["vehicle"] for b in metrics["beta_error"] if b["vehicle"] not in truth]
         metrics["beta_error"] = [b for b in metrics["beta_error"] if b["vehicle"] in truth]
+        if self.run_info["target_source"] != "script":  # (the scenario's target is not the one)
+            metrics |= dict.fromkeys(TARGET_FIGURES)
         return {
             "scenario": self.scenario.name,
             **self.run_info,
@@ -385,7 +393,9 @@ def gate_failures(metrics: dict, scenario: Scenario, *, formation_m: float | Non
         for (a, b), e in zip(pairs, metrics["separation_error_m"], strict=True):
             if not e <= formation_m:
                 broken.append(f"separation error {a}-{b} {e:.4f} m > {formation_m} m")
-        if not metrics["centre_distance_error_m"] <= formation_m:
+        if metrics["centre_distance_error_m"] is not None and not (
+            metrics["centre_distance_error_m"] <= formation_m
+        ):
             c = metrics["centre_distance_error_m"]
             broken.append(f"centre distance error {c:.4f} m > {formation_m} m")
     return broken

@@ -207,6 +207,8 @@ def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSp
         procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(net, v)))
     gcs = ["gcs", *common, *bus_of(GROUND_STATION_ID), *speed, "--duration", _num(duration)]
     gcs += ["--viewer", options.viewer]
+    if options.target_source != "script":
+        gcs += ["--target-source", options.target_source]
     for v in scenario.vehicles:
         if key_path(v.id) is not None:
             gcs += ["--mavlink-key", f"{v.id}={key_path(v.id)}"]

@@ -223,3 +223,38 @@ def test_the_true_wind_of_a_simulator_is_the_records_truth_and_a_real_autopilots
     assert wind[1:, 0, 0] == pytest.approx([0.1, 0.2, 0.3], abs=1e-6)
     assert wind[1:, 0, 1] == pytest.approx([-0.2] * 3, abs=1e-6)
     assert wind[:, 1:] == pytest.approx(scripted[:, 1:])  # vehicles 2 and 3: the scenario's
+
+
+def test_following_another_target_the_figures_against_the_scenarios_target_are_not_judged():
+    """A fleet that follows a MAVLink system (`up --target mavlink:...`) is not judged against
+    the scenario's script: the summary says so instead of printing a distance to a target that
+    was not there; the separation between the vehicles is still judged."""
+    from pathlib import Path
+
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from fleetmpc.gcs.metrics import NOT_JUDGED, TARGET_FIGURES, format_summary
+    from fleetmpc.gcs.station import GroundStation
+    from fleetmpc.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[2]
+    scenario = load_scenario(root / "scenarios" / "paper.toml")
+    summaries = []
+    for source in ("script", "mavlink:udpin:127.0.0.1:14590"):
+        gs = GroundStation(scenario, speed=1.0, duration_s=1.0, target_source=source)
+        gs.set_epoch(0)
+        for k in range(1, 7):
+            for vid in scenario.vehicle_ids:
+                mav = mavlink.MAVLink(None, srcSystem=vid, srcComponent=1)
+                fix = mav.global_position_int_encode(k * 200, 473977420 + 1000 * vid, 85455940, 0, 0, 0, 0, 0, 0)  # fmt: skip
+                fix.pack(mav)
+                gs.on_mavlink(fix, received_ns=k * 200_000_000)
+        metrics = gs.metrics()
+        summaries.append(format_summary({**metrics, "periods_recorded": 6, "periods_expected": 6}))
+        if source == "script":
+            assert metrics["formation_rms_m"] > 0 and metrics["centre_distance_error_m"] > 0
+        else:
+            assert all(metrics[k] is None for k in TARGET_FIGURES)
+        assert metrics["separation_error_m"] and metrics["min_separation_m"] > 0
+    assert NOT_JUDGED not in summaries[0]
+    assert f"formation RMS           {NOT_JUDGED}" in summaries[1]
