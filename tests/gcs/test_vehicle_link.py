@@ -246,7 +246,9 @@ def test_following_another_target_the_figures_against_the_scenarios_target_are_n
         for k in range(1, 7):
             for vid in scenario.vehicle_ids:
                 mav = mavlink.MAVLink(None, srcSystem=vid, srcComponent=1)
-                fix = mav.global_position_int_encode(k * 200, 473977420 + 1000 * vid, 85455940, 0, 0, 0, 0, 0, 0)  # fmt: skip
+                fix = mav.global_position_int_encode(
+                    k * 200, 473977420 + 1000 * vid, 85455940, 0, 0, 0, 0, 0, 0
+                )
                 fix.pack(mav)
                 gs.on_mavlink(fix, received_ns=k * 200_000_000)
         metrics = gs.metrics()
