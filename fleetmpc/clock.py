@@ -13,6 +13,7 @@ autopilot's boot time onto it (the agent runner and the ground station; see
 import math
 import threading
 import time
+from collections import deque
 from fractions import Fraction
 from typing import Protocol
 
@@ -180,20 +181,34 @@ class FleetClock:
 
 
 class ClockSync:
-    """Offset from the autopilot's boot time to fleet time, by a minimum filter.
+    """Offset from the autopilot's boot time to fleet time, by a moving minimum filter.
 
     Every telemetry sample gives ``fleet_ns(received) - time_boot_ns``; transport latency only
-    ever makes it larger, so the minimum is the best estimate. The filter keeps the minimum of
-    ``(received - first received) x speed - time_boot_ns``, which needs no epoch, so the samples
-    taken before a late epoch announcement count as well.
+    ever makes it larger, so the minimum is the best estimate. An autopilot's clock may run at
+    its own rate (PX4's SIH simulator runs about 1 % slower than the wall clock), so the minimum
+    is taken over the samples received in the last `WINDOW_NS` of wall time only: the offset
+    follows such a clock within its drift over the window. The filter keeps
+    ``(received - first received) x speed - time_boot_ns``, which needs no epoch, so the
+    samples taken before a late epoch announcement count as well.
     """
+
+    WINDOW_NS = 3_000_000_000
+    """Wall time over which the smallest sample is the offset [ns]: long enough to hold samples
+    that crossed an idle link, short enough that a 1 % drift moves it by 30 ms at most."""
 
     def __init__(self, clock: FleetClock) -> None:
         self.clock = clock
         self.samples = 0
         self._ref_wall_ns: int | None = None
-        self._min_ns: int | None = None
+        self._window: deque[tuple[int, int]] = deque()
+        """(received wall time, sample) of the window's candidates for its minimum, oldest
+        first; each sample is smaller than every later one (a larger older one can never be
+        the minimum again), so the first is the minimum."""
         self._last_ns = 0
+
+    @property
+    def _min_ns(self) -> int | None:
+        return self._window[0][1] if self._window else None
 
     def update(self, *, time_boot_ns: int, received_wall_ns: int) -> None:
         """Take one telemetry sample."""
@@ -204,8 +219,12 @@ class ClockSync:
         sample = round((received_wall_ns - self._ref_wall_ns) * self.clock.speed) - time_boot_ns
         self.samples += 1
         self._last_ns = sample
-        if self._min_ns is None or sample < self._min_ns:
-            self._min_ns = sample
+        window = self._window
+        while window and window[-1][1] >= sample:
+            window.pop()
+        window.append((received_wall_ns, sample))
+        while window[0][0] < received_wall_ns - self.WINDOW_NS:
+            window.popleft()
 
     def _shift(self) -> int | None:
         """Fleet time of the reference wall time (None before an epoch and a sample)."""

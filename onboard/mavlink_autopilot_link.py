@@ -448,7 +448,7 @@ class MavlinkAutopilotLink(AutopilotLink):
         deadline = time.monotonic() + timeout_s
         self._reason = None
         while not self._stop.is_set():
-            if self._engage_once(deadline):
+            if self._engage_once(deadline) and self._shows_engaged(deadline):
                 self._update(engaged=True, mode_lost=False)
                 if self._reason is not None:
                     self._log("engage: done")
@@ -458,6 +458,29 @@ class MavlinkAutopilotLink(AutopilotLink):
             self._stop.wait(_RETRY_PAUSE_S)
         self._log(
             f"engage: gave up after {timeout_s:g} s; last reason: {self._reason or 'none given'}"
+        )
+        return False
+
+    def _shows_engaged(self, deadline: float) -> bool:
+        """Wait for a HEARTBEAT that shows the vehicle armed in the agent's mode. PX4 and
+        ArduPilot send HEARTBEAT at a constant 1 Hz (PX4: `mavlink_main.cpp`), so the COMMAND_ACK
+        of a mode change comes up to a second before the state it set: taking the vehicle as
+        engaged at the ACK would read the last HEARTBEAT's old mode as a mode lost."""
+        texts_before = self._texts_seen
+        until = min(deadline, time.monotonic() + _CONFIRM_S)
+        with self._cond:
+            while not self._stop.is_set():
+                st = self._state
+                if st.armed and st.mode == FlightMode.OFFBOARD:
+                    return True
+                left = until - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(min(left, 0.1))
+        st = self.state()
+        shown = f"{st.mode_name or 'an unknown mode'}, {'armed' if st.armed else 'disarmed'}"
+        self._fail(
+            f"mode accepted, but the HEARTBEAT still shows {shown}", texts_before=texts_before
         )
         return False
 
@@ -493,9 +516,12 @@ class MavlinkAutopilotLink(AutopilotLink):
 
     def _take_off(self, altitude: float, *, deadline: float) -> bool:
         """MAV_CMD_NAV_TAKEOFF to `altitude` (param 7; NaN: the autopilot's own), retried until
-        accepted, then wait until the vehicle is airborne."""
+        accepted, then wait until the vehicle is airborne. Yaw, latitude and longitude (params
+        4-6) are NaN, "where it is": PX4 takes finite ones as the takeoff's position (0, 0 is
+        the Gulf of Guinea, and its copter never leaves the ground for it)."""
         texts_before = self._texts_seen
-        accepted = self._retry(22, (0,) * 6 + (altitude,), deadline=deadline)
+        here = (math.nan, math.nan, math.nan)
+        accepted = self._retry(22, (0.0, 0.0, 0.0, *here, altitude), deadline=deadline)
         return accepted and self._wait_airborne(deadline=deadline, texts_before=texts_before)
 
     def _wait_airborne(self, *, deadline: float, texts_before: int) -> bool:
@@ -559,6 +585,8 @@ _TAKEOFF_ALT_M = 10.0
 """ArduPilot takeoff altitude [m] (the horizontal plant flies at any altitude)."""
 _RETRY_PAUSE_S = 0.25
 """Wall seconds between a refused command and its next try, or between two engage passes."""
+_CONFIRM_S = 3.0
+"""Wall seconds a HEARTBEAT has to show the mode an accepted command set (three of PX4's)."""
 _KEPT_TEXTS = 8
 """The autopilot's newest STATUSTEXTs kept for the reasons of refusals."""
 _COMMAND_NAMES = {400: "arm", 176: "mode", 22: "takeoff", 511: "message interval"}

@@ -309,8 +309,11 @@ class Autopilot:
         self._enter(mode)
         return MavResult.ACCEPTED
 
-    def takeoff(self, now_ns: int, *, altitude_m: float | None = None) -> MavResult:
-        """Climb to `altitude_m` above home (None: the configured takeoff altitude)."""
+    def takeoff(
+        self, now_ns: int, *, altitude_m: float | None = None, stalled: bool = False
+    ) -> MavResult:
+        """Climb to `altitude_m` above home (None: the configured takeoff altitude); `stalled`
+        (PX4): accept, and never climb."""
         c = self.config
         target = c.takeoff_altitude_m if altitude_m is None else altitude_m
         if not (math.isfinite(target) and 0.5 <= target <= c.max_takeoff_altitude_m):
@@ -320,7 +323,7 @@ class Autopilot:
                 return self._refuse(Severity.WARNING, "Takeoff denied: landing")
             self._takeoff_target_m = target
             self._enter(FlightMode.TAKEOFF)
-            self._takeoff_stalled = now_ns < c.takeoff_stall_ns
+            self._takeoff_stalled = stalled or now_ns < c.takeoff_stall_ns
             return MavResult.ACCEPTED
         if self.mode != FlightMode.OFFBOARD or not self.armed or not self.landed:
             return self._refuse(Severity.WARNING, "Takeoff failed: needs GUIDED, armed, landed")

@@ -196,7 +196,12 @@ class MessageHandler:
         if cmd.command == M.MAV_CMD_DO_SET_MODE:
             return ap.set_mode(self._mode_of_command(p), now_ns)
         if cmd.command == M.MAV_CMD_NAV_TAKEOFF:
-            return ap.takeoff(now_ns, altitude_m=self._takeoff_altitude(p[6]))
+            # PX4 takes a finite latitude and longitude (params 5, 6) as the takeoff's position
+            # (navigator_main.cpp); given 0, 0 it accepted, never climbed, and disarmed itself.
+            # This plant's takeoff is vertical: a PX4 takeoff to a position stalls.
+            elsewhere = self._px4 and math.isfinite(p[4]) and math.isfinite(p[5])
+            altitude = self._takeoff_altitude(p[6])
+            return ap.takeoff(now_ns, altitude_m=altitude, stalled=elsewhere)
         if cmd.command == M.MAV_CMD_NAV_LAND:
             return ap.land(now_ns)
         if cmd.command == M.MAV_CMD_SET_MESSAGE_INTERVAL:

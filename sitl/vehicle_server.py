@@ -8,8 +8,8 @@ that finds the clock `LATE_TICKS` ticks or more ahead of the plant (the host kep
 from running) reads what arrived meanwhile first, so the catch-up flies the
 newest command: the autopilot's setpoint timeout then measures the gaps in what the agent sent,
 not this process's own stall (a SITL starved for 250 ms of wall time at x4 would otherwise leave
-OFFBOARD with setpoints waiting in its socket). Mode and arming changes are announced at once
-with a HEARTBEAT, events with STATUSTEXT.
+OFFBOARD with setpoints waiting in its socket). Events are announced at once with
+STATUSTEXT; mode and arming changes show in the next 1 Hz HEARTBEAT, as on PX4 and ArduPilot.
 A parked vehicle (on the ground and not flying) does not move: wind only drifts a flying one, and
 only while it flies a velocity demand; otherwise the autopilot holds or flies to a point.
 Nothing raises out of the loop: a failing handler is counted and the loop goes on.
@@ -56,7 +56,7 @@ from fleetmpc.sitl.mavlink_io import (
     mavlink,
 )
 from fleetmpc.sitl.plant import TruthPlant
-from fleetmpc.sitl.telemetry import Identity, Snapshot, StreamSchedule, build, heartbeat, statustext
+from fleetmpc.sitl.telemetry import Identity, Snapshot, StreamSchedule, build, statustext
 from fleetmpc.sitl.wind import WindField
 
 __all__ = ["ServerConfig", "UdpEndpoint", "VehicleServer"]
@@ -178,7 +178,6 @@ class VehicleServer:
         self._schedules: dict[UdpLink | TcpLink, StreamSchedule] = {}
         self._decoder = FrameDecoder(self.stats)
         self._selector = selectors.DefaultSelector()
-        self._announced: tuple | None = None
         self.signing: SigningGuard | None = None
         """Checks incoming frames while signing is on; None while it is off."""
         self.signing_rejected = 0
@@ -374,21 +373,15 @@ class VehicleServer:
                 self.counters.loop_errors += 1
                 self.counters.last_error = f"{inc.message.get_type()}: {type(e).__name__}: {e}"
                 continue
-            self._announce()  # the new state is on the wire before the COMMAND_ACK
+            self._announce()
             for reply in replies:
                 self._send(reply.message, reply.to.link, reply.to.peer)
 
     def _announce(self) -> None:
-        """HEARTBEAT at once on a mode/arming/status change; STATUSTEXT for every notice."""
-        ap = self.autopilot
-        state = (ap.mode, ap.armed, ap.system_status)
-        if state != self._announced:
-            self._announced = state
-            hb = heartbeat(
-                self.encoder.mav, self.ident, armed=ap.armed, mode=ap.mode, status=state[2]
-            )
-            self._broadcast(hb)
-        for notice in ap.take_notices():
+        """STATUSTEXT for every notice, at once. HEARTBEAT keeps its constant 1 Hz (PX4's
+        `mavlink_main.cpp`, ArduPilot's GCS_MAVLINK): a mode or arming change shows in the next
+        one, up to a second after the COMMAND_ACK of the command that made it."""
+        for notice in self.autopilot.take_notices():
             self._broadcast(statustext(self.encoder.mav, notice.severity, notice.text))
 
     # ----------------------------------------------------------------------------- signing

@@ -260,6 +260,24 @@ def test_clock_sync_takes_the_minimum_offset() -> None:
     assert ClockSync(FleetClock()).fleet_ns(5) == 5  # no epoch: fleet time = autopilot time
 
 
+def test_clock_sync_follows_an_autopilot_clock_that_runs_slow() -> None:
+    """PX4's SIH runs about 1 % slower than the wall clock: over a minute its boot time falls
+    0.6 s behind. The offset follows it within the drift over the filter's window, where an
+    all-time minimum would stay at the first sample's."""
+    clock = FleetClock(epoch_ns=EPOCH_NS, speed=1.0)
+    sync = ClockSync(clock)
+    rate = 0.99
+    for k in range(60 * 30):  # 30 Hz for 60 s; latency 1 ms, and 20 ms on every tenth
+        wall_since_ns = k * 1_000_000_000 // 30
+        latency_ns = 20_000_000 if k % 10 == 0 else 1_000_000
+        boot_ns = round(wall_since_ns * rate)
+        sync.update(time_boot_ns=boot_ns, received_wall_ns=EPOCH_NS + wall_since_ns + latency_ns)
+    true_offset_ns = wall_since_ns - boot_ns
+    drift_over_window_ns = (1 - rate) * ClockSync.WINDOW_NS
+    assert true_offset_ns == pytest.approx(600_000_000, rel=0.01)
+    assert true_offset_ns - drift_over_window_ns <= sync.offset_ns <= true_offset_ns + 1_000_000
+
+
 def test_settings_are_validated() -> None:
     with pytest.raises(ConfigError, match="period_ns"):
         RunnerSettings(period_ns=0)

@@ -42,6 +42,8 @@ class SimClient:
         self.target = target_system
         self.t_ms = -1
         self.heartbeat = None
+        self._heartbeat_stale = False
+        """A COMMAND_ACK came after the newest HEARTBEAT."""
         self.texts: list[tuple[int, str]] = []
         self.acks: list = []
         self._stream: SetpointFields | None = None
@@ -88,10 +90,12 @@ class SimClient:
         kind = m.get_type()
         if kind == "HEARTBEAT" and m.get_srcComponent() == 1:
             self.heartbeat = m
+            self._heartbeat_stale = False
         elif kind == "STATUSTEXT":
             self.texts.append((m.severity, m.text))
         elif kind == "COMMAND_ACK":
             self.acks.append(m)
+            self._heartbeat_stale = True
         return m
 
     def wait(self, predicate, *, what: str, wall_s: float = 30.0):
@@ -116,14 +120,19 @@ class SimClient:
         self.wait_until_ms(self.t_ms + round(duration_s * 1000))
 
     # ----------------------------------------------------------------------------- state
+    def _current_heartbeat(self):
+        """The newest HEARTBEAT, waiting for the next one when a COMMAND_ACK came after it: the
+        vehicle sends HEARTBEAT at 1 Hz, so the state a command set shows only in the next."""
+        if self._heartbeat_stale or self.heartbeat is None:
+            self.wait_type("HEARTBEAT")
+        return self.heartbeat
+
     def mode(self, autopilot: int = M.MAV_AUTOPILOT_PX4) -> FlightMode | None:
-        assert self.heartbeat is not None, "no heartbeat yet"
-        return mode_from_custom(self.heartbeat.custom_mode, autopilot)
+        return mode_from_custom(self._current_heartbeat().custom_mode, autopilot)
 
     @property
     def armed(self) -> bool:
-        assert self.heartbeat is not None, "no heartbeat yet"
-        return bool(self.heartbeat.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+        return bool(self._current_heartbeat().base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
 
     # ----------------------------------------------------------------------------- sending
     def command(self, command: int, *params: float, wall_s: float = 10.0) -> int:
@@ -201,12 +210,22 @@ def fly_offboard(client: SimClient, sp: SetpointFields) -> None:
 
 
 def wait_hold_after_stop(client: SimClient) -> float:
-    """Stop the stream; return the simulated seconds until HOLD shows (an upper bound)."""
+    """Stop the stream; return the simulated seconds until the vehicle says it lost offboard
+    (its STATUSTEXT comes at once: an upper bound), after checking its next HEARTBEAT shows
+    HOLD (HEARTBEAT comes at 1 Hz)."""
     client.stream(None)
     t_stop = client.last_setpoint_t_ms  # the vehicle received the last setpoint after this
+    after = wait_offboard_lost(client)
+    client.wait_type("HEARTBEAT")
+    assert client.mode() == FlightMode.HOLD
+    return (after - t_stop) / 1000.0
+
+
+def wait_offboard_lost(client: SimClient) -> int:
+    """The vehicle time [ms] of the first timestamped message after its "Offboard lost"."""
     client.wait(
-        lambda m: m.get_type() == "HEARTBEAT" and client.mode() == FlightMode.HOLD,
-        what="HOLD heartbeat",
+        lambda m: m.get_type() == "STATUSTEXT" and "Offboard lost" in m.text,
+        what="Offboard lost",
     )
     after = client.wait(lambda m: hasattr(m, "time_boot_ms"), what="a timestamped message")
-    return (after.time_boot_ms - t_stop) / 1000.0
+    return after.time_boot_ms

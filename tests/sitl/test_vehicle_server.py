@@ -209,18 +209,20 @@ def test_every_command_gets_exactly_one_ack(rig):
     assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, target=7) == []  # not for us
 
 
-def test_set_mode_message_is_acked_and_announced(rig):
+def test_set_mode_message_is_acked_and_shown_in_the_next_heartbeat(rig):
+    """As PX4 and ArduPilot do: the ACK at once, the new mode in the next 1 Hz HEARTBEAT."""
     rig.run(S)
     custom = PX4_CUSTOM_MODE_OF[FlightMode.POSITION]
     rig.client.send(lambda mav: mav.set_mode_encode(1, ModeFlag.CUSTOM_MODE_ENABLED, custom))
     rig.server.step()
     replies = rig.client.receive()
-    assert [m.get_type() for m in replies] == ["HEARTBEAT", "COMMAND_ACK"]
-    assert replies[0].custom_mode == custom
-    assert (replies[1].command, replies[1].result) == (
+    assert [m.get_type() for m in replies] == ["COMMAND_ACK"]
+    assert (replies[0].command, replies[0].result) == (
         M.MAVLINK_MSG_ID_SET_MODE,
         MavResult.ACCEPTED,
     )
+    heartbeats = of_type(rig.run(S), "HEARTBEAT")
+    assert len(heartbeats) == 1 and heartbeats[0].custom_mode == custom
 
 
 def test_ping_timesync_and_parameters(rig):
