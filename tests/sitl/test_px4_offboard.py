@@ -11,6 +11,7 @@ import time
 
 import pytest
 from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as M
 from sim_client import (
     SimClient,
     fly_offboard,
@@ -222,3 +223,24 @@ def test_engage_gives_up_at_its_timeout_naming_the_last_reason(start_sitl):
     # Each reason is logged once, not at every refusal.
     assert sum("trying again" in text for text in logs) == 1
     assert sitl.stop() == 0
+
+
+def test_a_px4_takeoff_given_a_position_stalls_and_one_without_climbs(start_sitl):
+    """PX4 takes a finite latitude and longitude of MAV_CMD_NAV_TAKEOFF as the takeoff's
+    position (a real PX4 SITL given 0, 0 never climbed and disarmed itself): the SITL's PX4
+    stalls on one, and a takeoff with NaN there (what the agent sends) climbs."""
+    client = SimClient.listen_udp(target_system=1)
+    try:
+        start_sitl(*px4_args(client, speed=4.0))
+        client.wait_type("HEARTBEAT")
+        assert client.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
+        takeoff = M.MAV_CMD_NAV_TAKEOFF
+        assert client.command(takeoff, 0, 0, 0, math.nan, 0, 0, math.nan) == MavResult.ACCEPTED
+        client.sleep_sim(3.0)
+        assert client.wait_type("LOCAL_POSITION_NED").z == 0.0
+        nan = math.nan
+        assert client.command(takeoff, 0, 0, 0, nan, nan, nan, nan) == MavResult.ACCEPTED
+        client.sleep_sim(3.0)
+        assert client.wait_type("LOCAL_POSITION_NED").z < -1.0
+    finally:
+        client.close()
