@@ -6,9 +6,10 @@ either given to every process (``--epoch-ns``) or announced on the bus by the gr
 every vehicle is engaged (a `FleetEpoch` on ``fleetmpc/<fleet>/epoch``, ``--wait-epoch``): the
 runner polls the bus and adopts the first announcement; an announced speed other than its own is a
 configuration error that stops the run. The runner does not step on the host clock: it steps on the
-autopilot's ``time_boot_ms`` (so the SITL's ``--speed`` works end to end) shifted by the boot offset
-`ClockSync` estimates — the minimum over all telemetry of ``fleet_ns(received) - time_boot_ns``
-(transport latency only ever makes a sample larger). Plans, statuses and the target's observations
+autopilot's ``time_boot_ms`` (so the SITL's ``--speed`` works end to end) shifted by the boot
+offset `ClockSync` estimates — the minimum of ``fleet_ns(received) - time_boot_ns`` over the last
+3 s of telemetry (transport latency only ever makes a sample larger; an autopilot's clock may
+drift). Plans, statuses and the target's observations
 are stamped in fleet time, so neighbours' ages and target stamps compare directly. Without an epoch,
 fleet time is the autopilot's boot time.
 
