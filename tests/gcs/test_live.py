@@ -235,10 +235,11 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     assert len(chunks["/map/vehicles"]) == flushes
     assert len(chunks["/flight_record"]) == len(chunks["/series/separation"])
     assert len(chunks["/flight_record"]) == (flushes - 1) // series_every + 1
-    plans = rows("/map/plans", "LineStrips2D:strips")
-    assert len(plans) == k and all(len(r) == 3 for r in plans)
+    # A plan is a bead per planned period after the first: 3 vehicles x horizon 5.
+    plans = rows("/map/plans", "Points2D:positions")
+    assert len(plans) == k and all(len(r) == 3 * 5 for r in plans)
     north, east = lockstep.truth[4, 1, :2]
-    assert plans[4][1] == [pytest.approx([east, -north], abs=1e-4)] * 6  # 6 = horizon + 1
+    assert plans[4][5:10] == [pytest.approx([east, -north], abs=1e-4)] * 5
     plan_age = rows("/series/plan_age", "Scalars:scalars")
     assert plan_age[-1] == pytest.approx([0.05] * 6)
     assert rows("/series/setpoint_rate", "Scalars:scalars")[-1] == [20.0] * 3

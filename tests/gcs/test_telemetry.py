@@ -101,7 +101,7 @@ def test_the_map_holds_every_period_at_its_own_time(recordings, which) -> None:
     for entity, component in (
         ("/map/vehicles", "Points2D:positions"),
         ("/map/target", "Points2D:positions"),
-        ("/map/plans", "LineStrips2D:strips"),
+        ("/map/plans", "Points2D:positions"),
         ("/map/target_prediction", "LineStrips2D:strips"),
     ):
         t_ns, _ = _temporal_rows(path, entity, component)
