@@ -70,6 +70,7 @@ __all__ = [
     "View",
     "Viewer",
     "ViewerError",
+    "blueprint_fields",
     "locate_views",
     "open_viewer",
     "panel_ink",
@@ -165,7 +166,7 @@ class Container:
         return out
 
 
-def _blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
+def blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
     """The blueprint stored in `rrd`: entity path (no leading /) -> component field -> the
     value its last row logged (a list: Rerun components are batches)."""
     reader = rr.chunk.RrdReader(Path(rrd))
@@ -187,7 +188,7 @@ def _blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
 def recorded_blueprint(rrd: Path) -> Container:
     """The root container of the blueprint stored in the recording `rrd`, the one its viewer
     starts with, down to its views."""
-    fields = _blueprint_fields(rrd)
+    fields = blueprint_fields(rrd)
 
     def one(path: str, field: str, default=None):
         value = fields.get(path, {}).get(field)
