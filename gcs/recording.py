@@ -14,15 +14,18 @@ a lockstep and a live run:
   strip per vehicle and period; the blueprint shows this entity over the last `trail_window_s`
   before the time cursor (a visible time range on it alone), so the steps join into trails
   while a period costs one segment per vehicle, not the whole window;
-- `map/formation_links` (every pair) as LineStrips2D; `map/target` and `map/slots` (one per
-  vehicle) as Points2D;
+- `map/formation_links` (each vehicle to the `LINK_NEAREST` slots nearest its own:
+  `link_pairs`) as LineStrips2D; `map/target` and `map/slots` (one per vehicle) as Points2D;
+- `series/fleet/<name>` (`fleetmpc.gcs.fleet_series.FLEET_SERIES`: a line or two for the whole
+  fleet, what the viewer shows by default);
 - `series/separation` (one line per pair), `series/centre_distance`,
   `series/formation_error`, `series/c_norm`, `series/solve_time_ms` (one line per vehicle),
   `series/beta/effectiveness` and `series/beta/drift_m_s` (`BETA_SERIES`: two parameters each,
   learned, then truth, per parameter and vehicle) as Scalars, the lines named and
   coloured by a static SeriesLines;
 - `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
-- `map/plans` (each agent's planned horizon, LineStrips2D), `map/target_prediction` (the
+- `map/plans` (each agent's planned horizon, a Points2D bead per planned period after the
+  first, coloured row by row), `map/target_prediction` (the
   ground side's prediction of the target over the horizon, made at each period's time from the
   observations stamped up to it), `series/plan_age` [s] (one line per vehicle and neighbour)
   and `series/setpoint_rate` [Hz];
@@ -57,6 +60,7 @@ from fleetmpc.gcs.viewer import spawn_viewer as spawn_viewer_process
 __all__ = [
     "APPLICATION_ID",
     "LEGACY_RECORD_ARRAYS",
+    "LINK_NEAREST",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
     "RECORD_COLUMN",
