@@ -18,7 +18,7 @@ FLEET_SERIES = {
     "min_separation": ("minimum separation, d_safe [m]", ("minimum separation", "d_safe")),
     "formation_error": ("formation error [m]: worst, median", ("worst", "median")),
     "step_time_ms": ("agent step [ms]: median, p99", ("median", "p99")),
-    "stale_plans": ("stale or missing neighbour plans", ("stale plans",)),
+    "stale_plans": ("stale neighbour plans", ("stale plans",)),
     "learning_error": (
         "learned vs truth, worst",
         ("effectiveness (relative)", "drift [m/s]"),
@@ -36,18 +36,21 @@ def _quiet(reduce, values: np.ndarray, **kwargs) -> np.ndarray:
 
 
 def stale_plan_count(plan_age_s: np.ndarray, *, plan_stale_s: float | None) -> np.ndarray:
-    """(K,) per period, the (vehicle, neighbour) whose neighbour plan is older than
-    `plan_stale_s` (the agents' own limit: past it they take the neighbour as silent) or
-    missing; NaN in periods where no vehicle reported an age (or with no limit known)."""
+    """(K,) per period, the (vehicle, neighbour) whose neighbour's plan, as the vehicle used it,
+    is older than `plan_stale_s` (the agents' own limit: past it they take the neighbour as
+    silent, until they forget its plan); NaN in periods where no vehicle reported an age, or
+    with no limit known. A vehicle reports no age for a neighbour it has no plan of, whether
+    that one is silent or beyond its neighbourhood (a large fleet's agents keep only their
+    neighbourhood's plans): such a pair is not counted."""
     ages = np.asarray(plan_age_s, dtype=np.float64)
     k = ages.shape[0]
     flat = ages.reshape(k, -1)
-    reported = np.isfinite(flat).any(axis=1)
     if plan_stale_s is None or flat.shape[1] == 0:
         return np.full(k, np.nan)
+    reported = np.isfinite(flat).any(axis=1)
     with np.errstate(invalid="ignore"):
-        stale = ~(flat <= plan_stale_s)  # (NaN: missing, counted)
-    return np.where(reported, stale.sum(axis=1), np.nan)
+        stale = (flat > plan_stale_s).sum(axis=1)
+    return np.where(reported, stale, np.nan)
 
 
 def _learning_error(rec: FlightRecord) -> np.ndarray:

@@ -25,12 +25,12 @@ def _separations(rec) -> np.ndarray:
     )
 
 
-def test_stale_plans_count_those_past_the_agents_limit_and_those_missing():
+def test_stale_plans_count_those_past_the_agents_limit():
     nan = np.nan
     ages = np.array(
         [
             [[nan, nan], [nan, nan], [nan, nan]],  # nobody reported: no count
-            [[0.2, 1.5], [nan, 0.1], [0.3, 0.3]],  # one too old, one missing
+            [[0.2, 1.5], [nan, 0.1], [3.0, 0.3]],  # two too old; one not reported (not counted)
             [[1.0, 1.0], [0.0, 0.0], [0.2, 0.2]],  # at the limit is not past it
         ]
     )
