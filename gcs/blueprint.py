@@ -9,8 +9,9 @@ legend (each view's title names its lines, and a line names itself on hover), an
 panels start collapsed, so the data has the screen. Each vehicle keeps one colour everywhere
 (its point, heading, trail, slot and plan on the map, its line in every per-vehicle series, and
 in the report's figures: `fleetmpc.gcs.palette`); a series of pairs takes the colours after the
-vehicles'. Vehicles are named on the map up to `LABELLED_VEHICLES_MAX` of them (a larger fleet's
-names show on hover); slots are never named (each sits under its vehicle).
+vehicles'. Vehicles are named on the map up to `LABELLED_VEHICLES_MAX` of them (a larger
+fleet's names are logged but not shown: `show_labels`); slots are never named (each sits under
+its vehicle).
 `fleetmpc.gcs.recording` logs the data on these entities.
 """
 

@@ -48,7 +48,7 @@ PALETTE_SIZE = 256
 """Colours given out before they repeat (vehicles and pairs together)."""
 LABELLED_VEHICLES_MAX = 12
 """Largest fleet whose vehicles are named on the map and in the figures' legends; a larger
-fleet's are told apart by colour (a name shows on hover in the viewer)."""
+fleet's are told apart by colour (its names are in the recording, not shown)."""
 
 _HUES = 72
 _LIGHTNESS = (0.3, 0.4, 0.5, 0.6, 0.7)

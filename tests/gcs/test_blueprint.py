@@ -97,7 +97,7 @@ def test_the_map_links_each_vehicle_to_its_nearest_slots_only(fleets):
 def test_vehicles_are_named_up_to_twelve_and_slots_never(fleets, n, shown):
     _, path = fleets[n]
     labels = _component(path, "/map/vehicles", "Points2D:labels", static=True)
-    assert labels == [[f"UAV {v}" for v in range(1, n + 1)]]  # (a hover names a vehicle)
+    assert labels == [[f"UAV {v}" for v in range(1, n + 1)]]  # (kept, shown or not)
     assert _component(path, "/map/vehicles", "Points2D:show_labels", static=True) == [[shown]]
     assert _component(path, "/map/slots", "Points2D:labels", static=True) == []
 
