@@ -1,24 +1,40 @@
 """How a fleet recording looks: the viewer's layout (the blueprint), and the colours, labels
 and line names logged once when a recording opens.
 
-Each vehicle keeps one colour everywhere (its point, heading, trail, slot and plan on the map,
-its line in every per-vehicle series, and in the report's figures: `fleetmpc.gcs.palette`); a
-series of pairs takes the colours after the vehicles'.
-The map takes two fifths of the width above the event log; the time series sit in two columns
-beside it, the legends of the many-line panels hidden so they do not cover the plot (a line
-names itself on hover). `fleetmpc.gcs.recording` logs the data on these entities.
+The map takes half the width above the event log; beside it two tabs of time series. The
+first, shown, holds the fleet-level series (`fleetmpc.gcs.fleet_series`: a line or two
+whatever the fleet's size); the second the per-vehicle and per-pair ones, which are in every
+recording but drawn only when asked for (a fleet of 50 has 1,225 separations). No plot shows a
+legend (each view's title names its lines, and a line names itself on hover), and the side
+panels start collapsed, so the data has the screen. Each vehicle keeps one colour everywhere
+(its point, heading, trail, slot and plan on the map, its line in every per-vehicle series, and
+in the report's figures: `fleetmpc.gcs.palette`); a series of pairs takes the colours after the
+vehicles'. Vehicles are named on the map up to `LABELLED_VEHICLES_MAX` of them (a larger
+fleet's names are logged but not shown: `show_labels`); slots are never named (each sits under
+its vehicle).
+`fleetmpc.gcs.recording` logs the data on these entities.
 """
 
 import rerun as rr
 import rerun.blueprint as rrb
 
+from fleetmpc.gcs.fleet_series import FLEET_SERIES
 from fleetmpc.gcs.metrics import pair_indices
-from fleetmpc.gcs.palette import CENTRE_RGB, pair_colour, vehicle_colour
+from fleetmpc.gcs.palette import (
+    CENTRE_RGB,
+    LABELLED_VEHICLES_MAX,
+    TARGET_RGB,
+    lighter,
+    pair_colour,
+    vehicle_colour,
+)
 
 __all__ = [
     "BETA_SERIES",
+    "FLEET_TAB",
     "TIMELINE",
     "TRAIL_WINDOW_S",
+    "VEHICLE_TAB",
     "fleet_blueprint",
     "log_statics",
 ]
@@ -31,40 +47,52 @@ of every vehicle, then the second, learned; then the same of the truth."""
 _BETA_LINE_NAMES = ("speed", "yaw rate", "drift North", "drift East")
 TRAIL_WINDOW_S = 20.0
 """Default length of the trail the map shows behind each vehicle [s]."""
+FLEET_TAB = "fleet"
+"""The tab of fleet-level series, shown when the viewer opens."""
+VEHICLE_TAB = "per vehicle and pair"
+"""The tab of per-vehicle and per-pair series."""
+_FLEET_LINE_RGB = (CENTRE_RGB, lighter(CENTRE_RGB))
+"""A fleet series' first line (the worst, or the only) and its second (a median): the
+formation centre's cyan, which no vehicle wears."""
+_LIMIT_RGB = (214, 39, 40)
+"""A limit drawn as a line (d_safe)."""
+
+
+def _series_view(origin: str, name: str) -> rrb.TimeSeriesView:
+    """A time-series view without a legend (its title names its lines)."""
+    return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=rrb.PlotLegend(visible=False))
+
+
+def _fleet_views() -> list[rrb.TimeSeriesView]:
+    views = [_series_view("series/centre_distance", "centre distance to the target [m]")]
+    views += [_series_view(f"series/fleet/{n}", title) for n, (title, _) in FLEET_SERIES.items()]
+    return views
+
+
+def _vehicle_views() -> list[rrb.TimeSeriesView]:
+    return [
+        _series_view("series/separation", "separation per pair [m]"),
+        _series_view("series/formation_error", "formation error [m]"),
+        _series_view("series/c_norm", "||c||"),
+        _series_view("series/solve_time_ms", "agent step [ms]"),
+        _series_view("series/beta/effectiveness", "effectiveness (learned, truth)"),
+        _series_view("series/beta/drift_m_s", "drift [m/s] (learned, truth)"),
+        _series_view("series/plan_age", "neighbour plan age [s]"),
+        _series_view("series/setpoint_rate", "setpoint rate [Hz]"),
+    ]
 
 
 def fleet_blueprint(
     *, vehicle_ids: tuple[int, ...], trail_window_s: float = TRAIL_WINDOW_S
 ) -> rrb.Blueprint:
-    """The viewer layout: the map on the left, the time series on the right; the map shows
-    `map/trails` over the last `trail_window_s` [s] before the time cursor."""
+    """The viewer layout: the map on the left, the time series on the right (the fleet's
+    shown, the per-vehicle ones a tab away); the map shows `map/trails` over the last
+    `trail_window_s` [s] before the time cursor; the side panels collapsed."""
     trail = rrb.VisibleTimeRanges(
         timeline=TIMELINE,
         start=rrb.TimeRangeBoundary.cursor_relative(seconds=-trail_window_s),
         end=rrb.TimeRangeBoundary.cursor_relative(),
     )
-    # Panels with many lines hide their legend (it would cover the plot); the lines keep their
-    # vehicles' map colours and name themselves on hover.
-    hidden = rrb.PlotLegend(visible=False)
-    series = [
-        rrb.TimeSeriesView(origin="series/separation", name="separation [m]"),
-        rrb.TimeSeriesView(origin="series/centre_distance", name="centre distance [m]"),
-        rrb.TimeSeriesView(origin="series/formation_error", name="formation error [m]"),
-        rrb.TimeSeriesView(origin="series/c_norm", name="||c||"),
-        rrb.TimeSeriesView(
-            origin="series/beta/effectiveness",
-            name="effectiveness (learned, truth)",
-            plot_legend=hidden,
-        ),
-        rrb.TimeSeriesView(
-            origin="series/beta/drift_m_s", name="drift [m/s] (learned, truth)", plot_legend=hidden
-        ),
-        rrb.TimeSeriesView(origin="series/solve_time_ms", name="agent step [ms]"),
-        rrb.TimeSeriesView(
-            origin="series/plan_age", name="neighbour plan age [s]", plot_legend=hidden
-        ),
-        rrb.TimeSeriesView(origin="series/setpoint_rate", name="setpoint rate [Hz]"),
-    ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -76,9 +104,14 @@ def fleet_blueprint(
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],
             ),
-            rrb.Grid(*series, grid_columns=2),
-            column_shares=[2, 3],
+            rrb.Tabs(
+                rrb.Grid(*_fleet_views(), grid_columns=2, name=FLEET_TAB),
+                rrb.Grid(*_vehicle_views(), grid_columns=2, name=VEHICLE_TAB),
+                active_tab=0,
+            ),
+            column_shares=[1, 1],
         ),
+        collapse_panels=True,
     )
 
 
@@ -104,9 +137,12 @@ def _series_names(ids: tuple[int, ...]) -> dict[str, tuple[list[str], list[tuple
     for name, entries in BETA_SERIES:
         # The second entry's lines a lighter shade of the vehicle's colour; the truth's faint.
         learned = [f"UAV {v} {_BETA_LINE_NAMES[e]}" for e in entries for v in ids]
-        shades = rgb + [tuple((x + 255) // 2 for x in c) for c in rgb]
+        shades = rgb + [lighter(c) for c in rgb]
         colours = shades + [(*c, 110) for c in shades]
         out[f"series/beta/{name}"] = (learned + [f"{line} truth" for line in learned], colours)
+    for name, (_, lines) in FLEET_SERIES.items():
+        colours = [_LIMIT_RGB] if name == "min_separation" else [_FLEET_LINE_RGB[1]]
+        out[f"series/fleet/{name}"] = (list(lines), [_FLEET_LINE_RGB[0], *colours][: len(lines)])
     return out
 
 
@@ -118,21 +154,30 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) -> Non
     rgb = [vehicle_colour(i) for i in range(len(ids))]
     stream.log(
         "map/vehicles",
-        rr.Points2D.from_fields(colors=rgb, labels=[f"UAV {v}" for v in ids], radii=[-4.0]),
+        rr.Points2D.from_fields(
+            colors=rgb,
+            labels=[f"UAV {v}" for v in ids],
+            show_labels=len(ids) <= LABELLED_VEHICLES_MAX,
+            radii=[-4.0],
+        ),
         static=True,
     )
     stream.log("map/vehicles", rr.Arrows2D.from_fields(colors=rgb), static=True)
     stream.log("map/trails", rr.LineStrips2D.from_fields(colors=rgb), static=True)
+    stream.log("map/slots", rr.Points2D.from_fields(colors=rgb, radii=[-3.0]), static=True)
     stream.log(
-        "map/slots",
-        rr.Points2D.from_fields(colors=rgb, radii=[-3.0], labels=[f"slot {v}" for v in ids]),
+        "map/formation_links",
+        rr.LineStrips2D.from_fields(colors=[(128, 128, 128, 90)], radii=[-0.75]),
         static=True,
     )
-    stream.log("map/target", rr.Points2D.from_fields(colors=[(0, 0, 0)], radii=[-5.0]), static=True)
-    stream.log("map/plans", rr.LineStrips2D.from_fields(colors=rgb), static=True)
+    stream.log(
+        "map/target", rr.Points2D.from_fields(colors=[TARGET_RGB], radii=[-5.0]), static=True
+    )
+    # A plan's beads (coloured row by row) over the heading arrows they lie along.
+    stream.log("map/plans", rr.Points2D.from_fields(radii=[-2.0], draw_order=40.0), static=True)
     stream.log(
         "map/target_prediction",
-        rr.LineStrips2D.from_fields(colors=[(0, 0, 0)], radii=[-1.0]),
+        rr.LineStrips2D.from_fields(colors=[TARGET_RGB], radii=[-1.0]),
         static=True,
     )
     for path, (names, colours) in _series_names(ids).items():

@@ -1,7 +1,8 @@
 """The paper's Figs. 1-4 (and the learned parameters) from a FlightRecord, as PNG files.
 
-Each vehicle, and each pair, wears the colour it has in the viewer (`fleetmpc.gcs.palette`); a
-legend is drawn only where its colours do not repeat."""
+Each vehicle, and each pair, wears the colour it has in the viewer (`fleetmpc.gcs.palette`). A
+legend names at most `LABELLED_VEHICLES_MAX` lines, as the viewer's map labels at most that many
+vehicles, and stands beside its plot, never on the data."""
 
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import numpy as np  # noqa: E402
 from fleetmpc.gcs.metrics import pair_indices  # noqa: E402
 from fleetmpc.gcs.palette import (  # noqa: E402
     CENTRE_RGB,
-    PALETTE_RGB,
+    LABELLED_VEHICLES_MAX,
     as_unit_rgb,
     pair_colour,
     vehicle_colour,
@@ -37,11 +38,12 @@ def _colour(i: int) -> tuple[float, float, float]:
     return as_unit_rgb(vehicle_colour(i))
 
 
-def _legend(ax, entries: int, **kwargs) -> None:
-    """A legend, unless its `entries` coloured lines would repeat a colour of the palette (a
-    large fleet: the lines are then told apart on the map, as the viewer hides such legends)."""
-    if entries <= len(PALETTE_RGB):
-        ax.legend(**kwargs)
+def _legend(ax, entries: int, *, fontsize: float = 8) -> None:
+    """A legend beside the plot (outside its axes, so it covers no data), unless it would name
+    more than `LABELLED_VEHICLES_MAX` coloured lines (a large fleet's lines are told apart by
+    their colours, as on the map)."""
+    if entries <= LABELLED_VEHICLES_MAX:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=fontsize)
 
 
 def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
@@ -65,7 +67,7 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
     ax.set_ylabel("North x [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_title(f"{rec.scenario}: paths")
-    _legend(ax, len(ids), loc="best", fontsize=8)
+    _legend(ax, len(ids))
     paths.append(_save(fig, out / FIGURE_FILES[0]))
 
     # Fig. 2: the MPC's decision variables c_i (first of the horizon).
@@ -76,7 +78,7 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
     axes[0].set_ylabel("c speed [m/s]")
     axes[1].set_ylabel("c yaw rate [rad/s]")
     axes[1].set_xlabel("t [s]")
-    _legend(axes[0], len(ids), fontsize=8)
+    _legend(axes[0], len(ids))
     axes[0].set_title("MPC inputs c_i (converge to 0 at steady state)")
     paths.append(_save(fig, out / FIGURE_FILES[1]))
 
@@ -92,7 +94,7 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
     ax.set_xlabel("t [s]")
     ax.set_ylabel("separation [m]")
     ax.set_title("separation between vehicles (dotted: desired)")
-    _legend(ax, len(pairs), fontsize=8)
+    _legend(ax, len(pairs))
     paths.append(_save(fig, out / FIGURE_FILES[2]))
 
     # Fig. 4: target to formation-centre distance.
@@ -103,7 +105,7 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
     ax.set_xlabel("t [s]")
     ax.set_ylabel("distance [m]")
     ax.set_title("target to formation centre")
-    ax.legend(fontsize=8)
+    _legend(ax, 2)
     paths.append(_save(fig, out / FIGURE_FILES[3]))
 
     # Learned parameters against truth.
@@ -121,7 +123,7 @@ def write_figures(rec: FlightRecord, out_dir: str | Path) -> list[Path]:
         ax.set_title(names[p], fontsize=9)
     for ax in axes[1]:
         ax.set_xlabel("t [s]")
-    _legend(axes[0, 0], len(ids), fontsize=7)
+    _legend(axes[0, 1], len(ids), fontsize=7)
     fig.suptitle("learned parameters (solid) against truth (dotted)")
     paths.append(_save(fig, out / FIGURE_FILES[4]))
     return paths

@@ -502,6 +502,7 @@ class LiveRecord:
             yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
             d_safe_m=sc.controller.d_safe_m,
             prediction_horizon_periods=sc.controller.horizon,
+            plan_stale_s=sc.controller.plan_stale_s,
         )
 
     def live_rows(self, start: int, periods: int, *, copy: bool = True) -> LiveRows:

@@ -8,6 +8,7 @@ from fleetmpc.gcs.record import FlightRecord
 
 __all__ = [
     "format_summary",
+    "judged_metrics",
     "CORNER_MIN_SPEED_M_S",
     "CORNER_RECOVERED_M",
     "CORNER_SPEED_STEP_M_S",
@@ -258,6 +259,27 @@ TARGET_FIGURES = (
 )
 """The metrics measured against the scenario's target, which mean nothing when the fleet
 follows another (a MAVLink system): the ground station leaves them None then."""
+
+
+def judged_metrics(
+    rec: FlightRecord, *, ground_truth: list[int] | None, target_source: str = "script"
+) -> dict:
+    """`compute_metrics` less what the run cannot judge, as the ground station and `fleetmpc
+    report` of its recording both give them: the learned model's error of a vehicle its
+    simulator sent no ground truth for (`ground_truth`: the vehicles that did; None: all, a
+    lockstep run) is left out and the vehicle listed in `beta_error_without_truth`; a fleet
+    that followed another target than the scenario's (`target_source` not "script") has
+    `TARGET_FIGURES` None."""
+    metrics = compute_metrics(rec)
+    if ground_truth is not None:
+        errors = metrics["beta_error"]
+        metrics["beta_error"] = [b for b in errors if b["vehicle"] in ground_truth]
+        untrue = [b["vehicle"] for b in errors if b["vehicle"] not in ground_truth]
+        if untrue:
+            metrics["beta_error_without_truth"] = untrue
+    if target_source != "script":
+        metrics |= dict.fromkeys(TARGET_FIGURES)
+    return metrics
 
 
 def _metres(x: float | None) -> str:

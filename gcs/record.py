@@ -129,15 +129,24 @@ class RunConstants:
     prediction_horizon_periods: int = 0
     """How many periods ahead the record's `target_prediction` looks (the controller's horizon
     M)."""
+    plan_stale_s: float | None = None
+    """The agents' plan age past which a neighbour counts as silent [s]: what the viewer counts
+    as a stale plan. Not in a FlightRecord (None in the constants of one)."""
 
     @classmethod
     def of(cls, rec: FlightRecord) -> "RunConstants":
         """The constants of a record."""
-        return cls(**{f.name: getattr(rec, f.name) for f in fields(cls)})
+        return cls(**{name: getattr(rec, name) for name in _record_constants()})
 
     def as_fields(self) -> dict:
-        """The constants by FlightRecord field name."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """The constants a FlightRecord holds, by field name."""
+        return {name: getattr(self, name) for name in _record_constants()}
+
+
+def _record_constants() -> tuple[str, ...]:
+    """The RunConstants fields that are FlightRecord fields too."""
+    record = {f.name for f in fields(FlightRecord)}
+    return tuple(f.name for f in fields(RunConstants) if f.name in record)
 
 
 def period_rows(rec: FlightRecord, name: str) -> np.ndarray:

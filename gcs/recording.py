@@ -14,15 +14,18 @@ a lockstep and a live run:
   strip per vehicle and period; the blueprint shows this entity over the last `trail_window_s`
   before the time cursor (a visible time range on it alone), so the steps join into trails
   while a period costs one segment per vehicle, not the whole window;
-- `map/formation_links` (every pair) as LineStrips2D; `map/target` and `map/slots` (one per
-  vehicle) as Points2D;
+- `map/formation_links` (each vehicle to the `LINK_NEAREST` slots nearest its own:
+  `link_pairs`) as LineStrips2D; `map/target` and `map/slots` (one per vehicle) as Points2D;
+- `series/fleet/<name>` (`fleetmpc.gcs.fleet_series.FLEET_SERIES`: a line or two for the whole
+  fleet, what the viewer shows by default);
 - `series/separation` (one line per pair), `series/centre_distance`,
   `series/formation_error`, `series/c_norm`, `series/solve_time_ms` (one line per vehicle),
   `series/beta/effectiveness` and `series/beta/drift_m_s` (`BETA_SERIES`: two parameters each,
   learned, then truth, per parameter and vehicle) as Scalars, the lines named and
   coloured by a static SeriesLines;
 - `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
-- `map/plans` (each agent's planned horizon, LineStrips2D), `map/target_prediction` (the
+- `map/plans` (each agent's planned horizon, a Points2D bead per planned period after the
+  first, coloured row by row), `map/target_prediction` (the
   ground side's prediction of the target over the horizon, made at each period's time from the
   observations stamped up to it), `series/plan_age` [s] (one line per vehicle and neighbour)
   and `series/setpoint_rate` [Hz];
@@ -48,13 +51,16 @@ import numpy as np
 import rerun as rr
 
 from fleetmpc.gcs.blueprint import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S, fleet_blueprint
+from fleetmpc.gcs.fleet_series import fleet_rows
 from fleetmpc.gcs.metrics import pair_indices
+from fleetmpc.gcs.palette import lighter, vehicle_colour
 from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants, period_rows
 from fleetmpc.gcs.viewer import spawn_viewer as spawn_viewer_process
 
 __all__ = [
     "APPLICATION_ID",
     "LEGACY_RECORD_ARRAYS",
+    "LINK_NEAREST",
     "MIN_SEPARATION_COLUMN",
     "RECORD_ARRAYS",
     "RECORD_COLUMN",
@@ -67,6 +73,7 @@ __all__ = [
     "map_from_ned",
     "record_layout",
     "sim_time_ns",
+    "link_pairs",
 ]
 
 APPLICATION_ID = "fleetmpc"
@@ -110,6 +117,8 @@ def record_layout(
 
 
 _HEADING_ARROW_M = 2.0
+LINK_NEAREST = 3
+"""The map links each vehicle to this many of the slots nearest its own."""
 
 
 _EAST_SOUTH = np.array([1.0, -1.0])
@@ -225,9 +234,22 @@ def _map(columns: _Slice, rec: FlightRecord, *, start: int) -> None:
     columns.strips("map/trails", steps.transpose(0, 2, 1, 3))
     columns.points("map/slots", map_from_ned(rec.slots[start:]))
     columns.points("map/target", map_from_ned(rec.target[start:])[:, None, :])
-    pairs = _pairs(n)
-    if len(pairs):
-        columns.strips("map/formation_links", here[:, pairs])  # (K, P, 2 points, 2)
+    links = link_pairs(rec.desired_distance_m)
+    if len(links):
+        columns.strips("map/formation_links", here[:, links])  # (K, L, 2 points, 2)
+
+
+def link_pairs(desired_distance_m: np.ndarray, *, nearest: int = LINK_NEAREST) -> np.ndarray:
+    """(L, 2) the vehicle pairs the map links, in `pair_indices` order: each vehicle with the
+    `nearest` slots closest to its own in the formation (so at most `nearest` x N links, not
+    every pair: a fleet of 50 has 1,225)."""
+    d = np.asarray(desired_distance_m, dtype=np.float64)
+    n = len(d)
+    pairs = set()
+    for i in range(n):
+        others = [j for j in np.argsort(d[i], kind="stable") if j != i][:nearest]
+        pairs.update((min(i, j), max(i, j)) for j in others)
+    return np.array(sorted(pairs), dtype=np.intp).reshape(-1, 2)
 
 
 @lru_cache(maxsize=8)
@@ -241,11 +263,17 @@ def _norm2(v: np.ndarray) -> np.ndarray:
     return np.hypot(v[..., 0], v[..., 1])
 
 
-def _series(columns: _Slice, rec: FlightRecord) -> None:
+def _series(
+    columns: _Slice, rec: FlightRecord, live: LiveRows, *, plan_stale_s: float | None
+) -> None:
     pos = rec.truth[:, :, :2]
     pairs = _pairs(len(rec.vehicle_ids))
+    separation = _norm2(pos[:, pairs[:, 0]] - pos[:, pairs[:, 1]])
     if len(pairs):
-        columns.scalars("series/separation", _norm2(pos[:, pairs[:, 0]] - pos[:, pairs[:, 1]]))
+        columns.scalars("series/separation", separation)
+    fleet = fleet_rows(rec, live, separation_m=separation, plan_stale_s=plan_stale_s)
+    for name, rows in fleet.items():
+        columns.scalars(f"series/fleet/{name}", rows)
     centre = np.mean(pos - rec.slot_offsets_world, axis=1)
     columns.scalars("series/centre_distance", _norm2(centre - rec.target))
     columns.scalars("series/formation_error", _norm2(pos - rec.slots))
@@ -259,15 +287,29 @@ def _series(columns: _Slice, rec: FlightRecord) -> None:
         columns.scalars(f"series/beta/{name}", np.concatenate([learned, truth], axis=1))
 
 
+def _plans(columns: _Slice, plans: np.ndarray) -> None:
+    """Each vehicle's plan (K, N, M + 1, 2) as a bead per planned period after the first (the
+    first is where the vehicle is), in a lighter shade of the vehicle's colour, so a plan
+    straight ahead shows on the heading arrow it lies along. Rows where no vehicle has a plan
+    are not logged; in the others a vehicle without one has no beads."""
+    n = plans.shape[1]
+    ahead = plans[:, :, 1:]
+    has = np.isfinite(ahead).all(axis=(2, 3)) & (ahead.shape[2] > 0)  # (K, N)
+    present = has.any(axis=1)
+    if not present.any():
+        return
+    shade = np.array([lighter(vehicle_colour(i)) for i in range(n)], dtype=np.uint8)  # (N, 3)
+    beads = ahead.shape[2]
+    positions = map_from_ned(ahead[has]).reshape(-1, 2)  # (vehicle-plans x beads, 2)
+    colours = np.repeat(shade[np.nonzero(has)[1]], beads, axis=0)
+    counts = (has[present].sum(axis=1) * beads).tolist()
+    column = rr.Points2D.columns(positions=positions, colors=colours).partition(counts)
+    columns.send("map/plans", [*column], rows=present)
+
+
 def _live_map(columns: _Slice, live: LiveRows) -> None:
     """Plans and the target predictions of a slice's live rows."""
-    plans = live.plans
-    has = np.isfinite(plans).all(axis=(2, 3))  # (K, N)
-    # Rows where no vehicle has a plan are not logged; in the others a vehicle without one has
-    # an empty strip.
-    present = has.any(axis=1)
-    if present.any():
-        columns.strips("map/plans", map_from_ned(plans[present]), rows=present)
+    _plans(columns, live.plans)
     # Each row's prediction, made at its own time; rows before the first observation have none.
     known = np.isfinite(live.target_path).all(axis=(1, 2))
     if known.any():
@@ -334,14 +376,20 @@ def log_map(stream: rr.RecordingStream, rec: FlightRecord, live: LiveRows, *, he
 
 
 def log_series(
-    stream: rr.RecordingStream, rec: FlightRecord, live: LiveRows, *, run_start: bool
+    stream: rr.RecordingStream,
+    rec: FlightRecord,
+    live: LiveRows,
+    *,
+    run_start: bool,
+    plan_stale_s: float | None = None,
 ) -> None:
-    """The time series, the `flight_record` rows and the QP events of a slice of periods (the
-    run's start event first when it begins the run)."""
+    """The time series (the fleet's among them: `fleetmpc.gcs.fleet_series`, the stale plans
+    those older than `plan_stale_s` [s]), the `flight_record` rows and the QP events of a slice
+    of periods (the run's start event first when it begins the run)."""
     t_ns = sim_time_ns(rec.t_s)
     columns = _Slice(stream, t_ns)
     _record_rows(columns, rec)
-    _series(columns, rec)
+    _series(columns, rec, live, plan_stale_s=plan_stale_s)
     _live_series(columns, live)
     log_events(stream, _qp_events(rec, t_ns=t_ns, run_start=run_start))
 

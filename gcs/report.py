@@ -1,9 +1,10 @@
 """`fleetmpc report RUN.rrd --out DIR`: the paper's figures and the metrics from a recording.
 
 The recording is read back into a FlightRecord (`fleetmpc.gcs.rrd_reader`), then the same
-`write_figures` and `compute_metrics` as `fleetmpc sim` run on it: the metrics are those `sim
---metrics` (or the ground station's `--metrics`) wrote for the same run, with the facts logged
-at its start and end (a live run's periods recorded), and the recording's id.
+`write_figures` and metrics as `fleetmpc sim` and the ground station run on it
+(`judged_metrics`): the metrics are those `sim --metrics` (or the ground station's `--metrics`)
+wrote for the same run, key by key, with the facts logged at its start and end (a live run's
+periods recorded, the vehicles it had ground truth for), and the recording's id.
 """
 
 import argparse
@@ -11,7 +12,7 @@ import json
 from pathlib import Path
 
 from fleetmpc.gcs.figures import write_figures
-from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.gcs.metrics import judged_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
 
 __all__ = ["METRICS_FILE", "add_arguments", "run"]
@@ -34,7 +35,11 @@ def run(args: argparse.Namespace) -> int:
         "scenario": rec.scenario,
         "duration_s": float(rec.t_s[-1]),
         "recording_id": loaded.recording_id,
-        **compute_metrics(rec),
+        **judged_metrics(
+            rec,
+            ground_truth=loaded.run_end.get("ground_truth"),
+            target_source=loaded.run_info.get("target_source", "script"),
+        ),
         **{k: v for k, v in loaded.run_end.items() if k != "network"},
     }
     out = Path(args.out)

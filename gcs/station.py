@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from fleetmpc.clock import ClockSync, FleetClock
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
-from fleetmpc.gcs.metrics import TARGET_FIGURES, compute_metrics
+from fleetmpc.gcs.metrics import judged_metrics
 from fleetmpc.gcs.telemetry import TelemetrySink, samples_of
 from fleetmpc.onboard.telemetry_streams import MAX_BOOT_MS
 from fleetmpc.protocol.local_frame import ned_from_geodetic, quaternion_yaw
@@ -360,21 +360,18 @@ class GroundStation:
         if periods < 1:
             return None
         rec = self.live.record(periods)
-        truth = sorted(v for v, link in self.links.items() if link.ground_truth)
-        metrics = compute_metrics(rec)
+        facts = self.run_end_facts()
         # The learned model's error is against the simulated truth: a vehicle that sends none (a
         # real autopilot, or its SITL) has no truth to compare with.
-        untrue = [b["vehicle"] for b in metrics["beta_error"] if b["vehicle"] not in truth]
-        metrics["beta_error"] = [b for b in metrics["beta_error"] if b["vehicle"] in truth]
-        if self.run_info["target_source"] != "script":  # (the scenario's target is not the one)
-            metrics |= dict.fromkeys(TARGET_FIGURES)
+        metrics = judged_metrics(
+            rec, ground_truth=facts["ground_truth"], target_source=self.run_info["target_source"]
+        )
         return {
             "scenario": self.scenario.name,
             **self.run_info,
             "duration_s": float(rec.t_s[-1]),
             **metrics,
-            **self.run_end_facts(),
-            **({"beta_error_without_truth": untrue} if untrue else {}),
+            **facts,
         }
 
 

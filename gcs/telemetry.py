@@ -266,7 +266,13 @@ class RerunSink:
         if series and self._series:
             rec = record_of(self._constants, self._series)
             run_start = not self._series_started
-            recording.log_series(self.stream, rec, live_rows_of(self._series), run_start=run_start)
+            recording.log_series(
+                self.stream,
+                rec,
+                live_rows_of(self._series),
+                run_start=run_start,
+                plan_stale_s=self._constants.plan_stale_s,
+            )
             self._series_started, self._series = True, []
 
     def flush(self) -> None:

@@ -113,6 +113,7 @@ def _fly(
         yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
         d_safe_m=sc.controller.d_safe_m,
         prediction_horizon_periods=sc.controller.horizon,
+        plan_stale_s=sc.controller.plan_stale_s,
     )
     for sink in sinks:
         sink.open(constants, run_info or {})

@@ -18,10 +18,12 @@ and, in a map, labels and points, none of which is a stroke.
 
 Where the views are: the viewer tiles its viewport as the blueprint's containers say and draws
 a one-pixel rule between neighbouring tiles, in the colour of the rules under its top bar and
-above its time panel. `locate_views` finds those two rules and the side panels' borders (the
-viewport lies between them), then splits the viewport as the blueprint does: a horizontal or
+above its time panel. `locate_views` finds those two rules and the open side panels' borders
+(the viewport lies between them), then splits the viewport as the blueprint does: a horizontal or
 vertical container at the rules nearest to where its shares put them, a grid at the rules that
-cross it from side to side (its cells filled row by row, in the blueprint's order).
+cross it from side to side (its cells filled row by row, in the blueprint's order), a tabs
+container's active tab below its bar of tab names (the others are not shown). A collapsed side
+panel leaves the viewport the window's edge.
 
 Nothing leaves the machine: the viewer binds 127.0.0.1, its usage analytics are disabled in a
 private HOME before it starts, and Chromium resolves no host name but 127.0.0.1 and sends
@@ -68,6 +70,7 @@ __all__ = [
     "View",
     "Viewer",
     "ViewerError",
+    "blueprint_fields",
     "locate_views",
     "open_viewer",
     "panel_ink",
@@ -80,8 +83,8 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 """The Chromium executable, or None where it is not installed."""
 
 WINDOW = (1600, 1000)
-"""Browser viewport [px], at one device pixel per CSS pixel: wide enough for the viewer to show
-its blueprint and selection panels beside the views."""
+"""Browser viewport [px], at one device pixel per CSS pixel: a laptop's screen (the recording's
+blueprint starts the viewer's side panels collapsed; one left open would take its side)."""
 
 MIN_CHROMA = 30
 """Least max - min of a pixel's R, G, B for it to count as coloured (the viewer's greys: < 10;
@@ -97,6 +100,8 @@ across a plot: several hundred; an empty view: none)."""
 
 TITLE_BAR_PX = 28
 """Height of a view's title bar, which `panel_ink` leaves out [px]."""
+TAB_BAR_PX = 24
+"""Height of a tabs container's bar of tab names, which draws no rule under it [px]."""
 
 SETTLE_S = 3.0
 """A page counts as loaded when its screenshots have not changed for this long [s]."""
@@ -139,21 +144,29 @@ class View:
 @dataclass(frozen=True)
 class Container:
     """One container of a blueprint: "horizontal", "vertical", "grid" or "tabs", its visible
-    children in order and their shares along its axis (none for a grid)."""
+    children in order and their shares along its axis (none for a grid); its name, and for
+    tabs the index of the active one among the children."""
 
     kind: str
     children: tuple["View | Container", ...]
     shares: tuple[float, ...] = ()
+    name: str = ""
+    active: int = 0
 
-    def views(self) -> list[View]:
-        """Every view under this container, depth first, in the blueprint's order."""
+    def shown(self) -> tuple["View | Container", ...]:
+        """The children the viewer shows: all of them, or a tabs container's active one."""
+        return (self.children[self.active],) if self.kind == "tabs" else self.children
+
+    def views(self, *, hidden: bool = False) -> list[View]:
+        """Every view the viewer shows under this container (with `hidden`, also those of
+        tabs not active), depth first, in the blueprint's order."""
         out = []
-        for child in self.children:
-            out.extend(child.views() if isinstance(child, Container) else [child])
+        for child in self.children if hidden else self.shown():
+            out.extend(child.views(hidden=hidden) if isinstance(child, Container) else [child])
         return out
 
 
-def _blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
+def blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
     """The blueprint stored in `rrd`: entity path (no leading /) -> component field -> the
     value its last row logged (a list: Rerun components are batches)."""
     reader = rr.chunk.RrdReader(Path(rrd))
@@ -175,7 +188,7 @@ def _blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
 def recorded_blueprint(rrd: Path) -> Container:
     """The root container of the blueprint stored in the recording `rrd`, the one its viewer
     starts with, down to its views."""
-    fields = _blueprint_fields(rrd)
+    fields = blueprint_fields(rrd)
 
     def one(path: str, field: str, default=None):
         value = fields.get(path, {}).get(field)
@@ -195,11 +208,15 @@ def recorded_blueprint(rrd: Path) -> Container:
         contents = fields[path].get("contents") or []
         shown = [i for i, child in enumerate(contents) if one(child, "visible", True)]
         children = tuple(build(contents[i]) for i in shown)
-        if kind not in ("horizontal", "vertical"):
-            return Container(kind, children)
+        name = one(path, "display_name", "")
+        if kind == "tabs":
+            active = [contents[i] for i in shown].index(one(path, "active_tab", contents[0]))
+            return Container(kind, children, name=name, active=active)
+        if kind != "horizontal" and kind != "vertical":
+            return Container(kind, children, name=name)
         given = fields[path].get("col_shares" if kind == "horizontal" else "row_shares") or []
         shares = tuple(given[i] if i < len(given) else 1.0 for i in shown)
-        return Container(kind, children, shares)
+        return Container(kind, children, shares, name=name)
 
     root = one("viewport", "root_container")
     if root is None:
@@ -242,9 +259,11 @@ def _viewport(image: np.ndarray) -> tuple[Rect, np.ndarray]:
     (top, colour), (bottom, _) = rows[0], rows[1]
     band = Rect(0, top + 1, width, bottom)
     columns = _rules_across(image, colour, band, vertical=True)
-    if not columns or columns[0] > width // 3 or columns[-1] < 2 * width // 3:
-        raise LayoutNotFound(f"no side panel borders between rows {top} and {bottom}")
-    return Rect(columns[0] + 1, top + 1, columns[-1], bottom), colour
+    # A side panel's border, where the panel is open (a collapsed one leaves the views the
+    # window's edge).
+    left = columns[0] if columns and columns[0] < width // 4 else -1
+    right = columns[-1] if columns and columns[-1] > 3 * width // 4 else width
+    return Rect(left + 1, top + 1, right, bottom), colour
 
 
 def _split(rect: Rect, cuts: list[int], *, vertical: bool) -> list[Rect]:
@@ -262,8 +281,10 @@ def _place(image, colour, node, rect: Rect, out: dict) -> None:
         out[node] = rect
         return
     n = len(node.children)
-    if node.kind == "tabs":
-        raise ViewerError("a blueprint with tabs: only the active tab would show")
+    if node.kind == "tabs":  # (the active tab fills what its tab bar leaves)
+        below = Rect(rect.x0, rect.y0 + TAB_BAR_PX, rect.x1, rect.y1)
+        _place(image, colour, node.children[node.active], below, out)
+        return
     if node.kind == "grid":
         cols = _rules_across(image, colour, rect, vertical=True)
         rows = _rules_across(image, colour, rect, vertical=False)

@@ -10,6 +10,7 @@ import rerun as rr
 from fleetmpc.bench.telemetry import period_messages, receive_period
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.gcs.palette import lighter, vehicle_colour
 from fleetmpc.gcs.record import LiveRows, RunConstants
 from fleetmpc.gcs.rrd_reader import read_recording
 from fleetmpc.gcs.station import GroundStation
@@ -235,10 +236,15 @@ def test_ground_station_flushes_read_back_as_the_live_record(
     assert len(chunks["/map/vehicles"]) == flushes
     assert len(chunks["/flight_record"]) == len(chunks["/series/separation"])
     assert len(chunks["/flight_record"]) == (flushes - 1) // series_every + 1
-    plans = rows("/map/plans", "LineStrips2D:strips")
-    assert len(plans) == k and all(len(r) == 3 for r in plans)
+    # A plan is a bead per planned period after the first: 3 vehicles x horizon 5.
+    plans = rows("/map/plans", "Points2D:positions")
+    assert len(plans) == k and all(len(r) == 3 * 5 for r in plans)
     north, east = lockstep.truth[4, 1, :2]
-    assert plans[4][1] == [pytest.approx([east, -north], abs=1e-4)] * 6  # 6 = horizon + 1
+    assert plans[4][5:10] == [pytest.approx([east, -north], abs=1e-4)] * 5
+    # Each bead in a lighter shade of its vehicle's colour (RGBA packed, opaque).
+    shade = [lighter(vehicle_colour(i)) for i in range(3)]
+    want = [(r << 24) | (g << 16) | (b << 8) | 255 for r, g, b in shade for _ in range(5)]
+    assert rows("/map/plans", "Points2D:colors")[4] == want
     plan_age = rows("/series/plan_age", "Scalars:scalars")
     assert plan_age[-1] == pytest.approx([0.05] * 6)
     assert rows("/series/setpoint_rate", "Scalars:scalars")[-1] == [20.0] * 3

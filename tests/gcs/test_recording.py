@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import rerun as rr
 
+from fleetmpc.bench.telemetry import receive_period
 from fleetmpc.cli import main
 from fleetmpc.gcs.blueprint import BETA_SERIES, TIMELINE, TRAIL_WINDOW_S
 from fleetmpc.gcs.figures import FIGURE_FILES
@@ -15,7 +16,8 @@ from fleetmpc.gcs.metrics import compute_metrics, pair_indices
 from fleetmpc.gcs.record import FlightRecord
 from fleetmpc.gcs.report import METRICS_FILE
 from fleetmpc.gcs.rrd_reader import RecordingError, read_recording
-from fleetmpc.gcs.telemetry import write_recording
+from fleetmpc.gcs.station import GroundStation
+from fleetmpc.gcs.telemetry import RerunSink, write_recording
 from fleetmpc.sim.lockstep import run_lockstep
 
 DURATION_S = 5.0
@@ -220,6 +222,33 @@ def test_report_gives_every_metric_sim_gives_for_the_same_run(tmp_path, capsys):
     for key, want in direct.items():
         assert _same(reported[key], want), (key, reported[key], want)
     assert reported["source"] == "lockstep"  # (and the recording's id: what only it has)
+
+
+@pytest.mark.parametrize("target_source", ["script", "mavlink"])
+def test_report_of_a_live_recording_gives_the_ground_stations_metrics(
+    paper, tmp_path, capsys, target_source
+):
+    """`fleetmpc report` of a ground station's recording: every key of its `--metrics`, equal,
+    what it could not judge included (vehicles without ground truth, whose learned model is
+    not judged; with another target than the scenario's, the figures against the target)."""
+    rec = run_lockstep(paper, duration_s=3.0)
+    rrd, out = tmp_path / "live.rrd", tmp_path / "report"
+    gs = GroundStation(paper, speed=1.0, duration_s=3.0, target_source=target_source)
+    gs.open_sinks([RerunSink(path=rrd)])
+    for k in range(len(rec.t_s)):
+        receive_period(gs, rec, k, plan_age_ns=200_000_000, setpoint_rate_hz=5.0)
+        if k % 5 == 4:
+            gs.flush()
+    gs.flush(final=True)
+    direct = json.loads(json.dumps(gs.metrics()))
+    gs.close_sinks()
+    assert main(["report", str(rrd), "--out", str(out)]) == 0
+    reported = json.loads((out / METRICS_FILE).read_text())
+    assert direct["beta_error_without_truth"] == list(rec.vehicle_ids)  # (no truth was sent)
+    assert (direct["formation_rms_m"] is None) == (target_source != "script")
+    assert set(reported) - set(direct) == {"recording_id"}
+    for key, want in direct.items():
+        assert _same(reported[key], want), (key, reported[key], want)
 
 
 def test_report_of_a_missing_or_foreign_file_is_a_clean_error(tmp_path, capsys):

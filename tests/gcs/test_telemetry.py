@@ -9,6 +9,7 @@ import rerun as rr
 
 from fleetmpc.bench.telemetry import receive_period
 from fleetmpc.errors import ConfigError
+from fleetmpc.gcs.fleet_series import FLEET_SERIES
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
 from fleetmpc.gcs.station import GroundStation
@@ -101,7 +102,7 @@ def test_the_map_holds_every_period_at_its_own_time(recordings, which) -> None:
     for entity, component in (
         ("/map/vehicles", "Points2D:positions"),
         ("/map/target", "Points2D:positions"),
-        ("/map/plans", "LineStrips2D:strips"),
+        ("/map/plans", "Points2D:positions"),
         ("/map/target_prediction", "LineStrips2D:strips"),
     ):
         t_ns, _ = _temporal_rows(path, entity, component)
@@ -113,6 +114,27 @@ def test_the_map_holds_every_period_at_its_own_time(recordings, which) -> None:
     error = np.hypot(*(start - target).T)
     # (observed with 5 cm of noise; one prediction per flush ran up to 4 s, 3 m, behind)
     assert error.max() < 0.25 and np.median(error) < 0.05
+
+
+@pytest.mark.parametrize("which", ["sim", "live"])
+def test_the_fleet_series_hold_every_period(recordings, which) -> None:
+    """The fleet-level series are in both recordings at every period's time: the closest pair
+    of each period, the stale plans (none: each plan is one period old, within the agents'
+    limit; the first period, before any plan, has none reported in lockstep)."""
+    rec, _, sim_rrd, live_rrd = recordings
+    path = sim_rrd if which == "sim" else live_rrd
+    period_ns = round((rec.t_s[1] - rec.t_s[0]) * 1e9)
+    want_ns = np.arange(len(rec.t_s)) * period_ns
+    for name in FLEET_SERIES:
+        t_ns, _ = _temporal_rows(path, f"/series/fleet/{name}", "Scalars:scalars")
+        first = 1 if name == "stale_plans" and which == "sim" else 0
+        np.testing.assert_array_equal(t_ns, want_ns[first:], err_msg=name)
+    _, closest = _temporal_rows(path, "/series/fleet/min_separation", "Scalars:scalars")
+    pos = rec.truth[:, :, :2]
+    gaps = [np.linalg.norm(pos[:, a] - pos[:, b], axis=1) for a, b in ((0, 1), (0, 2), (1, 2))]
+    np.testing.assert_allclose([row[0] for row in closest], np.min(gaps, axis=0), rtol=1e-12)
+    _, stale = _temporal_rows(path, "/series/fleet/stale_plans", "Scalars:scalars")
+    assert {row[0] for row in stale} == {0.0}
 
 
 @pytest.mark.parametrize(

@@ -46,7 +46,7 @@ DURATION_S = 20.0
 SPEED = 4.0
 CHECKED = ("2D", "TimeSeries")
 """View classes whose data the tests look for: the map and the time series."""
-DROPPED_SERIES = "series/c_norm"
+DROPPED_SERIES = "series/centre_distance"
 """The series the negative case leaves out (with every `map/...` entity)."""
 
 
