@@ -12,6 +12,7 @@ Plain floats throughout: the horizon is a handful of points.
 import math
 
 from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.tube import InputBox
 from fleetmpc.onboard.core.unicycle import advance, wrap
 
 __all__ = ["Seeder"]
@@ -30,10 +31,10 @@ class Seeder:
     def __init__(
         self,
         controller: ControllerSettings,
-        input_box: list[tuple[float, float, float, float]],
+        box: InputBox,
     ) -> None:
         self.settings = controller
-        self.input_box = input_box
+        self.input_box = box.steps
         """The tube-tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
         self._turn_sign = 0
         """The way the pursuit seed turned toward a goal behind (+1, -1), 0 when it was not."""

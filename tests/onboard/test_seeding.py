@@ -10,7 +10,7 @@ SETTINGS = ControllerSettings(horizon=5)
 
 
 def _seeder() -> Seeder:
-    return Seeder(SETTINGS, TubeLbmpc(SETTINGS, n_neighbours=1).input_box)
+    return Seeder(SETTINGS, TubeLbmpc(SETTINGS, n_neighbours=1).box)
 
 
 def test_steady_inputs_keep_the_model_on_slots_that_fly_a_straight_line():
