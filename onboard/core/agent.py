@@ -407,9 +407,9 @@ class Agent:
     def solve(
         self, data: QpData, estimate: Estimate, reference: Reference, surroundings: Surroundings
     ) -> Decision:
-        """The QP's plan, its inputs clipped to U; on failure the tube feedback law toward the
-        slot, kept clear of the half-planes (`safe_fallback`), held over the horizon."""
-        s, M = self.settings, self.settings.horizon
+        """The QP's plan, its inputs clipped to U; on failure, the fallback input held over the
+        horizon (`_fallback`). Headings wrapped."""
+        M = self.settings.horizon
         sol = self.mpc.solve(data)
         if sol.ok:
             inputs, states, c, status = (
@@ -420,24 +420,24 @@ class Agent:
             )
         else:
             self.fallbacks += 1
-            (x, y), heading = reference.slots[0], reference.headings[0]
-            u = self.mpc.fallback_input(
-                estimate.z0, np.array([x, y, heading]), np.array(reference.u_s[0])
-            )
-            u = safe_fallback(
-                estimate.z0,
-                u,
-                estimate.beta,
-                surroundings.planes,
-                box=self.box,
-                horizon=M,
-                tau=s.period_s,
-            )
+            u = self._fallback(estimate, reference, surroundings)
             inputs = np.repeat(u[None, :], M, axis=0)
-            states = rollout(estimate.z0, inputs, estimate.beta, s.period_s)
+            states = rollout(estimate.z0, inputs, estimate.beta, self.settings.period_s)
             c, status = np.zeros((M, 2)), f"fallback: {sol.status}"
         states[:, 2] = wrap(states[:, 2])
         return Decision(inputs=inputs, states=states, c=c, ok=sol.ok, status=status)
+
+    def _fallback(
+        self, estimate: Estimate, reference: Reference, surroundings: Surroundings
+    ) -> np.ndarray:
+        """The tube feedback law toward the slot, or, if held over the horizon it would leave
+        a separation half-plane, the stop or turn that leaves them least (`safe_fallback`)."""
+        (x, y), heading = reference.slots[0], reference.headings[0]
+        slot = np.array([x, y, heading])
+        u = self.mpc.fallback_input(estimate.z0, slot, np.array(reference.u_s[0]))
+        s, z0, beta = self.settings, estimate.z0, estimate.beta
+        planes = surroundings.planes
+        return safe_fallback(z0, u, beta, planes, box=self.box, horizon=s.horizon, tau=s.period_s)
 
     def emit(
         self,

@@ -145,11 +145,6 @@ class CourseRateLimit:
     lever_m: float
     """The longest lever arm max_i L_i [m]."""
 
-    @classmethod
-    def fixed(cls, rate_rad_s: float) -> "CourseRateLimit":
-        """The same limit at every speed (no lever arm)."""
-        return cls(speed_bound_m_s=math.inf, yaw_rate_bound_rad_s=2.0 * rate_rad_s, lever_m=0.0)
-
     def at(self, speed_m_s: float) -> float:
         """r_max at the target's speed `speed_m_s`."""
         spare = (1.0 - SPEED_RESERVE) * (self.speed_bound_m_s - speed_m_s)
