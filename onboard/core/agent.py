@@ -16,8 +16,9 @@ period"), each an `Agent` method with explicit inputs and a frozen output
   feedback law, or, if held over the horizon it would leave a half-plane, the stop or turn that
   leaves them least -> `Decision`;
 - emit: the setpoint to send and the plan to broadcast -> `AgentOutput`.
-Each stage changes only the component it names (the DEKF, the target filter, the formation
-reference, the seeder's turn, the QP's warm start, the commands sent and the last plan).
+Each stage changes only the components it names (the DEKF; the target filter; the formation
+reference; the neighbourhood's crowded count; the seeder's turn; the QP's warm start and the
+fallback count; the commands sent and the last plan).
 No I/O, no clocks: time arrives as integer nanoseconds. docs/design.md has the maths.
 """
 
@@ -320,7 +321,9 @@ class Agent:
         """The target predicted over j = 0..M+1 from the plan's start, the formation's centre
         and reference course along its path (the reference follows the estimate now and looks
         ahead along the rest of the track), this vehicle's slot (centre + its offset turned to
-        the reference course) and the steady inputs that keep it there."""
+        the reference course) and the steady inputs that keep it there. Changes the target
+        watch's state (lost, held, reacquired: `TargetWatch.track`) and the formation
+        reference, which follows the estimate now (the look-ahead follows a copy)."""
         s, start_ns = self.settings, estimate.start_ns
         track, velocities = self.target_watch.track(
             self.target, start_ns, s.period_ns, s.horizon + 2
@@ -343,7 +346,8 @@ class Agent:
 
     def gather(self, inp: AgentInput, estimate: Estimate, reference: Reference) -> Surroundings:
         """The neighbourhood: the formation pull, the nearest neighbours, the separation
-        half-planes between this vehicle's previous plan and theirs, and the goal."""
+        half-planes between this vehicle's previous plan and theirs, and the goal. Changes
+        only the neighbourhood's count of crowded periods."""
         hood, plans, start_ns = self.neighbourhood, inp.neighbour_plans, estimate.start_ns
         s, (x, y, _), beta = self.settings, estimate.z0, estimate.beta
         centres, offsets = reference.centres, reference.offsets
@@ -370,7 +374,8 @@ class Agent:
     ) -> QpData:
         """This period's QP data: the linearization trajectory (the best of the steady inputs,
         a pursuit of the slot and the shifted previous plan, with hysteresis) and the cost
-        targets, headings unwrapped near the linearization's."""
+        targets, headings unwrapped near the linearization's. Changes only the seeder's memory
+        of the way its pursuit turned."""
         s, M, tau = self.settings, self.settings.horizon, self.settings.period_s
         z0, beta, slots = list(estimate.z0), list(estimate.beta), reference.slots
         (sx0, sy0), (sx1, sy1) = slots[0], slots[-1]

@@ -107,8 +107,8 @@ class CondensedQp:
         self.n_neighbours = n_neighbours
         self.K0, self.P0 = K0, P0
         """The DARE gain and terminal weight at heading 0 (`fleetmpc.onboard.core.tube`)."""
-        self.input_box = box.steps
-        """The tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
+        self.box = box
+        """U and its tightened box of each step j (`InputBox.steps`)."""
         self._precompute()
 
     # -- constant structure ---------------------------------------------------------------------
@@ -379,7 +379,7 @@ class CondensedQp:
             _rows(d.lin_inputs),
             _rows(d.u_s),
             _rows(d.targets),
-            self.input_box,
+            self.box.steps,
             strict=True,
         )
         for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
