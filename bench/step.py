@@ -120,8 +120,8 @@ def _as_arrays(d: QpData) -> QpData:
 def _input_bounds(mpc: TubeLbmpc, d: QpData, j: int) -> tuple[np.ndarray, np.ndarray]:
     """The bounds of u_j: U tightened by the tube at step j (all but the speed's lower bound 0),
     its yaw rate also within the trust region about the linearization's."""
-    lower = mpc.u_min + mpc.tightening[j] * [0.0, 1.0]
-    upper = mpc.u_max - mpc.tightening[j]
+    v_lo, w_lo, v_hi, w_hi = mpc.box.steps[j]
+    lower, upper = np.array([v_lo, w_lo]), np.array([v_hi, w_hi])
     v, w = np.asarray(d.lin_inputs, float)[j].tolist()
     trust = mpc.settings.yaw_rate_trust(v)
     lower[1], upper[1] = (
@@ -242,6 +242,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --sweep: runs of 10 s for the memory check (default 1000)",
     )
     parser.add_argument(
+        "--stages",
+        action="store_true",
+        help="instead: the agent's step stage by stage (median, p99, share of the step) over"
+        " --repeats lockstep runs (fleetmpc.bench.stages)",
+    )
+    parser.add_argument(
         "--gcs-logging",
         action="store_true",
         help="instead: the ground station logging cost per vehicle-period"
@@ -275,8 +281,15 @@ def load_average() -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if sum(map(bool, (args.baseline, args.gcs_logging, args.scale, args.sweep))) > 1:
-        raise FleetMpcError("--baseline, --gcs-logging, --scale and --sweep: one at a time")
+    modes = (args.baseline, args.gcs_logging, args.scale, args.sweep, args.stages)
+    if sum(map(bool, modes)) > 1:
+        raise FleetMpcError(
+            "--baseline, --gcs-logging, --scale, --stages and --sweep: one at a time"
+        )
+    if args.stages:
+        from fleetmpc.bench import stages
+
+        return stages.run(args)
     if args.sweep:
         from fleetmpc.bench import sweep as bench_sweep
 

@@ -7,7 +7,7 @@ No threads, no sockets, no MAVLink.
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.autopilot_link import AutopilotLink, LinkState
-from fleetmpc.onboard.core.unicycle import NOMINAL_BETA_FLOATS, advance, wrap
+from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, advance, wrap
 from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode
 
 __all__ = ["FakeAutopilotLink"]
@@ -103,7 +103,7 @@ class FakeAutopilotLink(AutopilotLink):
                 self._pose[0], self._pose[1] = self.hold_point[:2]  # an ideal position hold
             elif flying:
                 v, w = self.command
-                self._pose[:] = advance(*self._pose, v, w, NOMINAL_BETA_FLOATS, dt_ns * 1e-9)
+                self._pose[:] = advance(*self._pose, v, w, NOMINAL_BETA, dt_ns * 1e-9)
             self._now_ns += dt_ns
         self._publish()
 

@@ -1,22 +1,27 @@
 """One vehicle's controller: `Agent.step` is the same in every runner (lockstep, fleet, real).
 
-Per period: fuse the telemetry into the DEKF (state and learned beta); fuse any target observation
-and predict the target over the horizon (positions and velocities along a possibly curved path);
-grow the target's path by the estimate and place the formation at every step along it (its
-centre d_s of path behind the predicted target, its reference course rate-limited toward the
-path's course there) and the slots around it; compute the steady-state
-inputs u_s under the *learned* model from consecutive slots; gather the neighbours' assumed
-trajectories (extrapolated while stale, formation term dropped when too old); place the
-separation half-planes between this vehicle's previous plan and each neighbour's; pick a
-linearization trajectory (the shifted previous plan, kept unless the steady inputs or a pursuit
-path toward the slot score clearly better: hysteresis); solve the tube LBMPC QP; on failure apply
-the clipped tube feedback law, or, if held over the horizon it would leave a half-plane, the stop
-or turn that leaves them least. The neighbours' part is `fleetmpc.onboard.core.neighbourhood`'s,
-the linearization seed `fleetmpc.onboard.core.seeding`'s, the QP `fleetmpc.onboard.core.lbmpc`'s.
+A period is a short sequence of named stages (`Agent.STAGES`; docs/design.md, "The control
+period"), each an `Agent` method with explicit inputs and a frozen output
+(`fleetmpc.onboard.core.period`):
+- learn: fuse the telemetry into the DEKF (state and learned beta) -> `Estimate`;
+- observe_target: fuse any target observation -> whether the target is known;
+- reference: predict the target over the horizon, place the formation along its path (centre d_s
+  of path behind it, reference course rate-limited toward the path's course) and this vehicle's
+  slot, with the steady inputs u_s under the learned model -> `Reference`;
+- gather: the neighbours' assumed trajectories, the formation pull, the separation half-planes
+  and the goal -> `Surroundings` (`fleetmpc.onboard.core.neighbourhood`);
+- build_qp: the linearization seed (`fleetmpc.onboard.core.seeding`) and this period's QP data
+  -> `QpData`;
+- solve: the tube LBMPC QP (`fleetmpc.onboard.core.lbmpc`), or on failure the clipped tube
+  feedback law, or, if held over the horizon it would leave a half-plane, the stop or turn that
+  leaves them least -> `Decision`;
+- emit: the setpoint to send and the plan to broadcast -> `AgentOutput`.
+Each stage changes only the components it names (the DEKF; the target filter; the formation
+reference; the neighbourhood's crowded count; the seeder's turn; the QP's warm start and the
+fallback count; the commands sent and the last plan).
 No I/O, no clocks: time arrives as integer nanoseconds. docs/design.md has the maths.
 """
 
-import math
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -34,10 +39,18 @@ from fleetmpc.onboard.core.formation import (
 )
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.neighbourhood import Neighbourhood
+from fleetmpc.onboard.core.period import (
+    Decision,
+    Estimate,
+    Reference,
+    Surroundings,
+    plan_ages,
+    safe_fallback,
+)
 from fleetmpc.onboard.core.seeding import Seeder
-from fleetmpc.onboard.core.separation import Plane, plane_slack
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.core.target_watch import TRACKING, TargetWatch
+from fleetmpc.onboard.core.tube import InputBox, vehicle_tube
 from fleetmpc.onboard.core.unicycle import advance, rollout, wrap
 from fleetmpc.protocol.plan import Plan
 
@@ -50,7 +63,7 @@ def reference_course_limit(
     """How fast the formation's reference course may turn at a target speed, as every agent of
     the fleet computes it (from its tube-tightened input bounds and the formation's lever arms)."""
     shape = Formation(formation)
-    return _course_limit(vehicle_mpc(controller, shape), shape)
+    return _course_limit(vehicle_tube(controller, formation_terms=shape.max_degree).box, shape)
 
 
 def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbmpc:
@@ -64,8 +77,8 @@ def vehicle_mpc(controller: ControllerSettings, formation: Formation) -> TubeLbm
     )
 
 
-def _course_limit(mpc: TubeLbmpc, formation: Formation) -> CourseRateLimit:
-    speed_bound, yaw_rate_bound = (mpc.u_max - mpc.tightening[-1]).tolist()
+def _course_limit(box: InputBox, formation: Formation) -> CourseRateLimit:
+    speed_bound, yaw_rate_bound = box.last
     return course_rate_limit(
         formation, speed_bound_m_s=speed_bound, yaw_rate_bound_rad_s=yaw_rate_bound
     )
@@ -132,6 +145,9 @@ class AgentOutput:
 class Agent:
     """The LBMPC agent of one vehicle."""
 
+    STAGES = ("learn", "observe_target", "place_formation", "gather", "build_qp", "solve", "emit")
+    """The period's stages, in order: the methods `step` calls (a benchmark may wrap them)."""
+
     def __init__(
         self,
         vehicle_id: int,
@@ -164,36 +180,20 @@ class Agent:
         )
         self.formation = Formation(formation)
         self.mpc = vehicle_mpc(controller, self.formation)
-        self.reference = FormationReference(self.formation, _course_limit(self.mpc, self.formation))
+        self.box = self.mpc.box
+        """U and its tube-tightened boxes."""
+        self.reference = FormationReference(self.formation, _course_limit(self.box, self.formation))
         """The formation's centre and reference course, along the estimated target path."""
         self._reference_stamp_ns: int | None = None
-        self.u_max = self.mpc.u_max
-        M = controller.horizon
-        self._input_box = (np.tile(self.mpc.u_min, (M, 1)), np.tile(self.u_max, (M, 1)))
-        """U's bounds for the M planned inputs (full shape: broadcasting costs a ufunc more)."""
         self.neighbourhood = Neighbourhood(
             fleet_ids=fleet_ids,
             formation_links=self.formation.links[self.index],
             controller=controller,
             tube_radius_m=float(self.mpc.tube_radius_m[-1]),
         )
-        self.seeder = Seeder(controller, self.mpc.input_box)
-        terms = self.formation.max_degree
-        self._position_weights = [
-            np.full(M, controller.q_position + n * controller.q_formation) for n in range(terms + 1)
-        ]
-        """Stage position weights by number of formation terms (read-only arrays)."""
-        self._full_weight = controller.q_position + terms * controller.q_formation
-        """Stage position weight with every formation term the tube assumes (the terminal
-        P's)."""
-        self._delay_periods = max(0, round(response_delay_s / controller.period_s))
-        """Periods between a command and the autopilot flying it (the vehicle's
-        `response_delay_s`; docs/design.md, "Response delay")."""
-        self._sent: deque[np.ndarray] = deque(
-            [np.zeros(2)] * (self._delay_periods + 1), maxlen=self._delay_periods + 1
-        )
-        """The last commands sent, oldest first: the oldest is the one flown over the last
-        period, the others are still to be flown; the newest is `_last_command`."""
+        self.seeder = Seeder(controller, self.box)
+        self._set_up_weights()
+        self._set_up_commands(response_delay_s)
         self._last_plan: Plan | None = None
         self.fallbacks = 0
         self.steps = 0
@@ -202,6 +202,26 @@ class Agent:
         self._last_stamp_ns: int | None = None
         self._resuming = False
         """Periods were missed and no measurement has come since."""
+
+    def _set_up_weights(self) -> None:
+        s, terms = self.settings, self.formation.max_degree
+        self._position_weights = [
+            np.full(s.horizon, s.q_position + n * s.q_formation) for n in range(terms + 1)
+        ]
+        """Stage position weights by number of formation terms (read-only arrays)."""
+        self._full_weight = s.q_position + terms * s.q_formation
+        """Stage position weight with every formation term the tube assumes (the terminal
+        P's)."""
+
+    def _set_up_commands(self, response_delay_s: float) -> None:
+        self._delay_periods = max(0, round(response_delay_s / self.settings.period_s))
+        """Periods between a command and the autopilot flying it (the vehicle's
+        `response_delay_s`; docs/design.md, "Response delay")."""
+        self._sent: deque[np.ndarray] = deque(
+            [np.zeros(2)] * (self._delay_periods + 1), maxlen=self._delay_periods + 1
+        )
+        """The last commands sent, oldest first: the oldest is the one flown over the last
+        period, the others are still to be flown; the newest is `_last_command`."""
 
     def interest(self) -> tuple[tuple[float, float], float, frozenset[int]] | None:
         """What this agent needs to hear, for its plan bus (`PlanBus.listen_near`): the plans
@@ -218,60 +238,45 @@ class Agent:
         """The command sent last (zero before any)."""
         return self._sent[-1]
 
-    # -- pieces of a period ---------------------------------------------------------------------
-    # Per-horizon quantities (M + 2 points at most) are plain-float lists, and reach the QP as
-    # such (it reads them as floats): for a handful of points a float loop is cheaper than numpy
-    # calls.
-    def _placement(
-        self,
-        stamp_ns: int,
-        track: list[tuple[float, float]],
-        velocities: list[tuple[float, float]],
-    ) -> list[tuple[tuple[float, float], float]]:
-        """The formation's centre and reference course at j = 0..M+1 along the predicted target
-        track: the reference follows the estimate now (its path grows by it) and looks ahead
-        along the rest of the track, which it leaves as it is."""
-        ref, period_s = self.reference, self.settings.period_s
-        dt_s = period_s
-        if self._reference_stamp_ns is not None:
-            dt_s = (stamp_ns - self._reference_stamp_ns) * 1e-9
-        self._reference_stamp_ns = stamp_ns
-        std = self.target.velocity_std_m_s()
-        now = ref.follow(track[0], velocities[0], dt_s, velocity_std_m_s=std)
-        return [now, *ref.ahead(track[1:], velocities[1:], period_s, velocity_std_m_s=std)]
-
-    def _safe_fallback(
-        self, z0: list[float], u: np.ndarray, beta: list[float], planes: list[list[Plane]]
-    ) -> np.ndarray:
-        """The fallback input: the tube law `u` if, held over the horizon, it keeps every
-        separation half-plane; otherwise, of `u` and the corners and mid-points of U (stop,
-        half and full speed, turning either way or not), the input whose rollout leaves the
-        half-planes least (the largest smallest slack over steps and neighbours)."""
-        s = self.settings
-        v_max, w_max = s.speed_max_m_s, s.yaw_rate_max_rad_s
-        candidates = [tuple(u.tolist())] + [
-            (v, w) for v in (0.0, 0.5 * v_max, v_max) for w in (-w_max, 0.0, w_max)
-        ]
-        best, best_slack = candidates[0], -math.inf
-        for v, w in candidates:
-            z, slack = tuple(z0), math.inf
-            for j in range(s.horizon):
-                z = advance(*z, v, w, beta, s.period_s)
-                slack = min(
-                    slack, min((plane_slack(z[0], z[1], p[j]) for p in planes), default=slack)
-                )
-            if slack >= 0.0 and (v, w) == candidates[0]:
-                return u
-            if slack > best_slack:
-                best, best_slack = (v, w), slack
-        return np.array(best)
-
     # -- the period -----------------------------------------------------------------------------
     def step(self, inp: AgentInput) -> AgentOutput:
-        """Run one control period."""
-        s = self.settings
-        M, tau = s.horizon, s.period_s
+        """Run one control period: the stages of `STAGES`, in order."""
         self.steps += 1
+        estimate = self.learn(inp)
+        target_known = self.observe_target(inp)
+        if estimate is None or not target_known:
+            why = "waiting for telemetry" if estimate is None else "waiting for target"
+            return self._wait(inp, estimate, why)
+        reference = self.place_formation(estimate)
+        surroundings = self.gather(inp, estimate, reference)
+        data = self.build_qp(estimate, reference, surroundings)
+        decision = self.solve(data, estimate, reference, surroundings)
+        return self.emit(decision, estimate, reference, surroundings)
+
+    def _wait(self, inp: AgentInput, estimate: Estimate | None, why: str) -> AgentOutput:
+        """Zero command and a standing plan while the agent lacks telemetry or a target."""
+        M = self.settings.horizon
+        z = np.full(3, np.nan) if estimate is None else np.array(estimate.z_now)
+        beta = self.learning.beta_initial if estimate is None else estimate.beta
+        decision = Decision(
+            inputs=np.zeros((M, 2)),
+            states=np.repeat(z[None, :], M + 1, 0),
+            c=np.zeros((M, 2)),
+            ok=False,
+            status=why,
+            standing=True,
+        )
+        z_now = tuple(z.tolist())
+        waiting = Estimate(z_now=z_now, z0=z_now, beta=beta, start_ns=inp.stamp_ns)
+        ages = plan_ages(inp.stamp_ns, inp.neighbour_plans, self.neighbour_ids)
+        return self.emit(decision, waiting, None, Surroundings(ages=ages))
+
+    # -- the stages -----------------------------------------------------------------------------
+    def learn(self, inp: AgentInput) -> Estimate | None:
+        """The DEKF's update by this period's measurement (or its prediction without one), and
+        where the plan starts; None while no measurement has come. Periods missed since the
+        last step restart the state filter at the next measurement and drop the last plan."""
+        s = self.settings
         applied = (
             self._sent[0] if inp.applied_input is None else np.asarray(inp.applied_input, float)
         )
@@ -282,11 +287,10 @@ class Agent:
         ):
             self._resuming = True  # (until a measurement comes)
         self._last_stamp_ns = inp.stamp_ns
-        if y is not None and all(map(math.isfinite, y.tolist())):
+        if y is not None and np.isfinite(y).all():
             if self._resuming and self.dekf.initialized:
-                # Periods were missed (the agent was late or frozen): what the vehicle did
-                # meanwhile is not one period of the last command, so the filter restarts at
-                # the measurement, learning nothing from the gap, and the old plan is dropped.
+                # What the vehicle did meanwhile is not one period of the last command: the
+                # filter restarts at the measurement, learning nothing from the gap.
                 self.dekf.reset(y)
                 self._last_plan = None
                 self.resumes += 1
@@ -295,153 +299,181 @@ class Agent:
             self._resuming = False
         elif self.dekf.initialized:
             self.dekf.propagate(applied)
+        if not self.dekf.initialized:
+            return None
+        z_now, beta = tuple(self.dekf.z.tolist()), tuple(self.dekf.beta.tolist())
+        # The plan starts when its first input will be flown: after the commands already sent
+        # and not flown yet, from the state they lead to.
+        z0 = z_now
+        for v, w in list(self._sent)[1:]:
+            z0 = advance(*z0, v, w, beta, s.period_s)
+        start_ns = inp.stamp_ns + self._delay_periods * s.period_ns
+        return Estimate(z_now=z_now, z0=z0, beta=beta, start_ns=start_ns)
+
+    def observe_target(self, inp: AgentInput) -> bool:
+        """Fuse a target observation, if one came; True once the target is known."""
         if inp.target_observation is not None:
             t_obs = inp.stamp_ns if inp.target_stamp_ns is None else inp.target_stamp_ns
             self.target_watch.observe(self.target, t_obs, inp.target_observation)
-        ages = {
-            k: (inp.stamp_ns - p.stamp_ns) * 1e-9
-            for k, p in inp.neighbour_plans.items()
-            if k in self.neighbour_ids
-        }
-        if not self.dekf.initialized or not self.target.ready:
-            return self._hold(
-                inp,
-                "waiting for telemetry" if not self.dekf.initialized else "waiting for target",
-                ages,
-            )
-        z0, beta = self.dekf.z.copy(), self.dekf.beta.copy()
-        # The plan starts when its first input will be flown: after the commands already sent
-        # and not flown yet (none unless the autopilot responds late), from the state they lead
-        # to; everything below is placed at that time, `start_ns`.
-        for v, w in list(self._sent)[1:]:
-            z0 = np.array(advance(*z0.tolist(), v, w, beta.tolist(), tau))
-        start_ns = inp.stamp_ns + self._delay_periods * s.period_ns
-        z0_f, beta_f = z0.tolist(), beta.tolist()
-        # The target, the formation's centre and reference course, and the slots over
-        # j = 0..M+1: at each step, slot i = centre + offset i turned to the reference course.
-        track, velocities = self.target_watch.track(self.target, start_ns, s.period_ns, M + 2)
-        placed = self._placement(start_ns, track, velocities)
-        centres = [centre for centre, _ in placed]
-        offsets = [self.formation.offsets(course) for _, course in placed]
-        mine = [
+        return self.target.ready
+
+    def place_formation(self, estimate: Estimate) -> Reference:
+        """The target predicted over j = 0..M+1 from the plan's start, the formation's centre
+        and reference course along its path (the reference follows the estimate now and looks
+        ahead along the rest of the track), this vehicle's slot (centre + its offset turned to
+        the reference course) and the steady inputs that keep it there. Changes the target
+        watch's state (lost, held, reacquired: `TargetWatch.track`) and the formation
+        reference, which follows the estimate now (the look-ahead follows a copy)."""
+        s, start_ns = self.settings, estimate.start_ns
+        track, velocities = self.target_watch.track(
+            self.target, start_ns, s.period_ns, s.horizon + 2
+        )
+        dt_s = s.period_s
+        if self._reference_stamp_ns is not None:
+            dt_s = (start_ns - self._reference_stamp_ns) * 1e-9
+        self._reference_stamp_ns = start_ns
+        ref, std = self.reference, self.target.velocity_std_m_s()
+        now = ref.follow(track[0], velocities[0], dt_s, velocity_std_m_s=std)
+        ahead = ref.ahead(track[1:], velocities[1:], s.period_s, velocity_std_m_s=std)
+        centres = [centre for centre, _ in (now, *ahead)]
+        offsets = [self.formation.offsets(course) for _, course in (now, *ahead)]
+        slots = [
             (cx + o[self.index][0], cy + o[self.index][1])
             for (cx, cy), o in zip(centres, offsets, strict=True)
         ]
-        u_s, heading_s = self.seeder.steady_inputs(mine, beta_f, z0_f[2])
-        neighbourhood, plans = self.neighbourhood, inp.neighbour_plans
-        pull, n_terms = neighbourhood.pull(start_ns, plans, ages, centres, offsets)
-        weight = s.q_position + n_terms * s.q_formation
+        u_s, headings = self.seeder.steady_inputs(slots, list(estimate.beta), estimate.z0[2])
+        return Reference(track, centres, offsets, slots, u_s, headings)
+
+    def gather(self, inp: AgentInput, estimate: Estimate, reference: Reference) -> Surroundings:
+        """The neighbourhood: the formation pull, the nearest neighbours, the separation
+        half-planes between this vehicle's previous plan and theirs, and the goal. Changes
+        only the neighbourhood's count of crowded periods."""
+        hood, plans, start_ns = self.neighbourhood, inp.neighbour_plans, estimate.start_ns
+        s, (x, y, _), beta = self.settings, estimate.z0, estimate.beta
+        centres, offsets = reference.centres, reference.offsets
+        ages = plan_ages(inp.stamp_ns, plans, self.neighbour_ids)
+        pull, n_terms = hood.pull(start_ns, plans, ages, centres, offsets)
         # A late step's plan starts later than its stamp says: the vehicle may be up to
         # v_max x the lateness from where the plan puts it, so it keeps that much more from
         # every neighbour (its half of each line; docs/design.md, "Safety").
-        inflations = neighbourhood.inflations(ages, inp.late_s)
-        here, drift = (z0_f[0], z0_f[1]), (beta_f[2], beta_f[3])
-        neighbours = neighbourhood.nearest(
-            start_ns, plans, here, inflations, ages, centres[0], offsets[0]
-        )
-        held = neighbourhood.held(neighbours, plans)
-        planes, lines = neighbourhood.planes(
+        inflations = hood.inflations(ages, inp.late_s)
+        here, drift = (x, y), (beta[2], beta[3])
+        neighbours = hood.nearest(start_ns, plans, here, inflations, ages, centres[0], offsets[0])
+        held = hood.held(neighbours, plans)
+        planes, lines = hood.planes(
             start_ns, neighbours, self._last_plan, here, drift, ages, inflations, held=held
         )
-        goal = neighbourhood.goal(mine[1 : M + 1], pull, n_terms, weight)
-        goal = neighbourhood.give_way(goal, planes, here, self._last_command[0])
-        goal = neighbourhood.draw_out(goal, lines)
-        # Linearization trajectory.
-        (sx0, sy0), (sx1, sy1) = mine[0], mine[-1]
+        weight = s.q_position + n_terms * s.q_formation
+        goal = hood.goal(reference.slots[1 : s.horizon + 1], pull, n_terms, weight)
+        goal = hood.give_way(goal, planes, here, self._last_command[0])
+        goal = hood.draw_out(goal, lines)
+        return Surroundings(ages, tuple(neighbours), n_terms, planes, goal)
+
+    def build_qp(
+        self, estimate: Estimate, reference: Reference, surroundings: Surroundings
+    ) -> QpData:
+        """This period's QP data: the linearization trajectory (the best of the steady inputs,
+        a pursuit of the slot and the shifted previous plan, with hysteresis) and the cost
+        targets, headings unwrapped near the linearization's. Changes only the seeder's memory
+        of the way its pursuit turned."""
+        s, M, tau = self.settings, self.settings.horizon, self.settings.period_s
+        z0, beta, slots = list(estimate.z0), list(estimate.beta), reference.slots
+        (sx0, sy0), (sx1, sy1) = slots[0], slots[-1]
         slot_vel = ((sx1 - sx0) / ((M + 1) * tau), (sy1 - sy0) / ((M + 1) * tau))
-        candidates = [u_s, self.seeder.pursuit_inputs(z0_f, mine, slot_vel, beta_f)]
+        candidates = [reference.u_s, self.seeder.pursuit_inputs(z0, slots, slot_vel, beta)]
         incumbent = None
         if self._last_plan is not None:
             shifted = self._last_plan.inputs.tolist()
             candidates.append(shifted[1:] + shifted[-1:])
             incumbent = len(candidates) - 1
-        lin_states, lin_inputs = self.seeder.seed(
-            z0_f, candidates, beta_f, goal, incumbent=incumbent
-        )
-        # Target headings: the steady headings, unwrapped near the linearization's (whose
-        # rollout headings are continuous from z0's).
+        goal = surroundings.goal
+        lin_states, lin_inputs = self.seeder.seed(z0, candidates, beta, goal, incumbent=incumbent)
         targets = [
             (gx, gy, ref + wrap(h - ref))
             for (gx, gy), h, (_, _, ref) in zip(
-                goal, heading_s[1 : M + 1], lin_states[1:], strict=True
+                goal, reference.headings[1 : M + 1], lin_states[1:], strict=True
             )
         ]
-        # The QP reads its data as plain floats: hand them over as they are.
-        data = QpData(
-            z0=z0_f,
+        n_terms = surroundings.formation_terms
+        return QpData(
+            z0=z0,
             lin_states=lin_states,
             lin_inputs=lin_inputs,
-            beta=beta_f,
-            u_s=u_s,
+            beta=beta,
+            u_s=reference.u_s,
             targets=targets,
             position_weights=self._position_weights[n_terms],
-            terminal_scale=weight / self._full_weight,
+            terminal_scale=(s.q_position + n_terms * s.q_formation) / self._full_weight,
             speed_now_m_s=float(self._last_command[0]),
             yaw_rate_now_rad_s=float(self._last_command[1]),
-            separation_planes=planes,
-        )
-        sol = self.mpc.solve(data)
-        if sol.ok:
-            lower, upper = self._input_box
-            inputs = np.minimum(np.maximum(sol.inputs, lower), upper)
-            states, c, status = sol.learned.copy(), sol.c, "solved"
-        else:
-            self.fallbacks += 1
-            ref = np.array([mine[0][0], mine[0][1], heading_s[0]])
-            u = self.mpc.fallback_input(z0, ref, np.array(u_s[0]))
-            u = self._safe_fallback(z0_f, u, beta_f, planes)
-            inputs = np.repeat(u[None, :], M, axis=0)
-            states, c, status = (
-                rollout(z0, inputs, beta, tau),
-                np.zeros((M, 2)),
-                f"fallback: {sol.status}",
-            )
-        states[:, 2] = [wrap(h) for h in states[:, 2].tolist()]
-        plan = Plan(self.vehicle_id, start_ns, s.period_ns, states, inputs)
-        self._last_plan = plan
-        self._sent.append(inputs[0].copy())
-        return AgentOutput(
-            command=inputs[0].copy(),
-            plan=plan,
-            c=c,
-            qp_ok=sol.ok,
-            status=status,
-            state_estimate=z0,
-            beta=beta,
-            slot_m=np.array(mine[0]),
-            neighbour_ages_s=ages,
-            neighbours=tuple(neighbours),
-            formation_terms=n_terms,
-            target_prediction_m=np.array(track[M]),
-            target_state=self.target_watch.state,
+            separation_planes=surroundings.planes,
         )
 
-    def _hold(self, inp: AgentInput, why: str, ages: dict[int, float]) -> AgentOutput:
-        """Zero command and a standing plan while the agent lacks telemetry or a target."""
+    def solve(
+        self, data: QpData, estimate: Estimate, reference: Reference, surroundings: Surroundings
+    ) -> Decision:
+        """The QP's plan, its inputs clipped to U; on failure, the fallback input held over the
+        horizon (`_fallback`). Headings wrapped."""
+        M = self.settings.horizon
+        sol = self.mpc.solve(data)
+        if sol.ok:
+            inputs, states, c, status = (
+                self.box.clip(sol.inputs),
+                sol.learned.copy(),
+                sol.c,
+                "solved",
+            )
+        else:
+            self.fallbacks += 1
+            u = self._fallback(estimate, reference, surroundings)
+            inputs = np.repeat(u[None, :], M, axis=0)
+            states = rollout(estimate.z0, inputs, estimate.beta, self.settings.period_s)
+            c, status = np.zeros((M, 2)), f"fallback: {sol.status}"
+        states[:, 2] = wrap(states[:, 2])
+        return Decision(inputs=inputs, states=states, c=c, ok=sol.ok, status=status)
+
+    def _fallback(
+        self, estimate: Estimate, reference: Reference, surroundings: Surroundings
+    ) -> np.ndarray:
+        """The tube feedback law toward the slot, or, if held over the horizon it would leave
+        a separation half-plane, the stop or turn that leaves them least (`safe_fallback`)."""
+        (x, y), heading = reference.slots[0], reference.headings[0]
+        slot = np.array([x, y, heading])
+        u = self.mpc.fallback_input(estimate.z0, slot, np.array(reference.u_s[0]))
+        s, z0, beta = self.settings, estimate.z0, estimate.beta
+        planes = surroundings.planes
+        return safe_fallback(z0, u, beta, planes, box=self.box, horizon=s.horizon, tau=s.period_s)
+
+    def emit(
+        self,
+        decision: Decision,
+        estimate: Estimate,
+        reference: Reference | None,
+        surroundings: Surroundings,
+    ) -> AgentOutput:
+        """Send the decision's first input and broadcast its plan, which starts at the estimate's
+        start and is the next period's incumbent unless it is a standing one; `reference` None:
+        the agent is waiting (no slot, no target prediction)."""
         s = self.settings
-        z = self.dekf.z.copy() if self.dekf.initialized else np.full(3, np.nan)
-        self._sent.append(np.zeros(2))
         plan = Plan(
-            self.vehicle_id,
-            inp.stamp_ns,
-            s.period_ns,
-            np.repeat(z[None, :], s.horizon + 1, 0),
-            np.zeros((s.horizon, 2)),
+            self.vehicle_id, estimate.start_ns, s.period_ns, decision.states, decision.inputs
         )
-        self._last_plan = None
+        self._last_plan = None if decision.standing else plan
+        self._sent.append(decision.inputs[0].copy())
+        waiting = reference is None
+        nowhere = np.full(2, np.nan)
         return AgentOutput(
-            command=np.zeros(2),
+            command=decision.inputs[0].copy(),
             plan=plan,
-            c=np.zeros((s.horizon, 2)),
-            qp_ok=False,
-            status=why,
-            state_estimate=z,
-            beta=self.dekf.beta.copy()
-            if self.dekf.initialized
-            else np.array(self.learning.beta_initial),
-            slot_m=np.full(2, np.nan),
-            neighbour_ages_s=ages,
-            neighbours=(),
-            formation_terms=0,
-            target_prediction_m=np.full(2, np.nan),
+            c=decision.c,
+            qp_ok=decision.ok,
+            status=decision.status,
+            state_estimate=np.array(estimate.z0),
+            beta=np.array(estimate.beta),
+            slot_m=nowhere if waiting else np.array(reference.slots[0]),
+            neighbour_ages_s=surroundings.ages,
+            neighbours=surroundings.neighbours,
+            formation_terms=surroundings.formation_terms,
+            target_prediction_m=nowhere.copy() if waiting else np.array(reference.track[s.horizon]),
+            target_state=TRACKING if waiting else self.target_watch.state,
         )

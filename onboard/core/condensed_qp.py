@@ -31,7 +31,8 @@ from scipy.linalg import blas
 
 from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.sparse_qp import INFINITY, FixedPatternQp
-from fleetmpc.onboard.core.unicycle import wrap
+from fleetmpc.onboard.core.tube import InputBox
+from fleetmpc.onboard.core.unicycle import linearization, wrap
 
 __all__ = ["CondensedQp", "QpData"]
 
@@ -98,7 +99,7 @@ class CondensedQp:
         n_neighbours: int,
         K0: np.ndarray,
         P0: np.ndarray,
-        input_box: list[tuple[float, float, float, float]],
+        box: InputBox,
     ) -> None:
         self.settings = settings
         self.M = settings.horizon
@@ -106,8 +107,8 @@ class CondensedQp:
         self.n_neighbours = n_neighbours
         self.K0, self.P0 = K0, P0
         """The DARE gain and terminal weight at heading 0 (`fleetmpc.onboard.core.tube`)."""
-        self.input_box = input_box
-        """The tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
+        self.box = box
+        """U and its tightened box of each step j (`InputBox.steps`)."""
         self._precompute()
 
     # -- constant structure ---------------------------------------------------------------------
@@ -143,6 +144,51 @@ class CondensedQp:
         The products run over all 2M + 2 columns of the step rows (a contiguous block whose last
         column's products go unread), so that BLAS reads Y in place.
 
+        Also cached: the K0 and P0 entries as floats, the packer of the float pass, and the OSQP
+        problem with its fixed pattern (`osqp`).
+        """
+        M, N = self.M, self.n_neighbours
+        self._steps = _BLOCK * (M + 1)
+        self._m = self._steps + N * M + M
+        self._K0_entries = tuple(float(k) for k in self.K0.ravel())
+        self._P0_entries = tuple(self.P0.ravel().tolist())
+        self._zbar_row = [_BLOCK * j for j in range(M + 1)]  # rows of zbar_j, ztil_j and u_j
+        self._ztil_row = [_BLOCK * j + 3 for j in range(M + 1)]
+        self._u_row = [_BLOCK * j + 6 for j in range(M + 1)]
+        p_mask, a_mask = self._pattern()
+        views, index = self._allocate(p_mask, a_mask)
+        self._set_up_solver(p_mask, a_mask, views["qp"])
+        self._T, self._Y = views["T"], views["Y"]
+        self._write_constant_system()
+        self._lin_dest = self._scatter_map(index)
+        self._pack = struct.Struct(f"{len(self._lin_dest)}d").pack
+        self._set_up_weights()
+        self._set_up_products(views, index)
+
+    def _pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """OSQP's pattern: P's upper triangle dense; A's rows, Y's u rows (u_j depends on
+        c_0..c_j), then its separation rows (a row at step j on c_0..c_{j-1}), then its
+        speed-change rows (u_j - u_{j-1} on c_0..c_j)."""
+        M, N, n = self.M, self.n_neighbours, 2 * self.M
+        p_mask = np.triu(np.ones((n, n), dtype=bool))
+        in_mask = np.zeros((2 * M, n), dtype=bool)
+        for j in range(M):
+            in_mask[2 * j : 2 * j + 2, : 2 * j + 2] = True
+        sep_mask = np.zeros((N * M, n), dtype=bool)
+        for k in range(N):
+            for j in range(1, M + 1):
+                sep_mask[k * M + j - 1, : 2 * j] = True
+        accel_mask = np.zeros((M, n), dtype=bool)
+        for j in range(M):
+            accel_mask[j, : 2 * j + 2] = True
+        return p_mask, np.vstack([in_mask, sep_mask, accel_mask])
+
+    def _allocate(
+        self, p_mask: np.ndarray, a_mask: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """The period buffer (OSQP's values, T, Y, P_M, H) as views, and, carved from
+        np.arange alongside, each entry's flat index.
+
         Persistent buffers: OSQP's values, T, Y, P_M and H are views into one flat buffer, so
         that the period's float pass reaches every value it computes (T's and Y's entries, the
         bounds l and u, the terminal P) with one scatter through a flat index map (`_lin_dest`),
@@ -153,35 +199,8 @@ class CondensedQp:
         data, so nothing of an earlier period (even a non-finite one) survives into the next;
         the stage position weights in `_w`, which change only with the number of formation
         terms, are rewritten whenever they differ from the last period's.
-
-        Also cached: the K0 and P0 entries as floats, the packer of the float pass, and the OSQP
-        problem with its fixed pattern (`osqp`).
         """
-        s, M, N, n = self.settings, self.M, self.n_neighbours, 2 * self.M
-        steps = _BLOCK * (M + 1)
-        m = steps + N * M + M
-        accel = steps + N * M  # the first speed-change row
-        self._K0_entries = tuple(float(k) for k in self.K0.ravel())
-        self._P0_entries = tuple(self.P0.ravel().tolist())
-        zbar_row = [_BLOCK * j for j in range(M + 1)]  # rows of zbar_j, ztil_j and u_j
-        ztil_row = [_BLOCK * j + 3 for j in range(M + 1)]
-        u_row = [_BLOCK * j + 6 for j in range(M + 1)]
-        # OSQP's pattern: P upper triangle dense; u_j depends on c_0..c_j; a separation row at
-        # step j on c_0..c_{j-1}. A's rows are Y's u rows, then its separation rows.
-        p_mask = np.triu(np.ones((n, n), dtype=bool))
-        in_mask = np.zeros((2 * M, n), dtype=bool)
-        for j in range(M):
-            in_mask[2 * j : 2 * j + 2, : 2 * j + 2] = True
-        sep_mask = np.zeros((N * M, n), dtype=bool)
-        for k in range(N):
-            for j in range(1, M + 1):
-                sep_mask[k * M + j - 1, : 2 * j] = True
-        accel_mask = np.zeros((M, n), dtype=bool)  # u_j - u_{j-1} on c_0..c_j
-        for j in range(M):
-            accel_mask[j, : 2 * j + 2] = True
-        a_mask = np.vstack([in_mask, sep_mask, accel_mask])
-        # The period buffer (OSQP's values, T, Y) and, carved from np.arange alongside, each
-        # entry's flat index.
+        m, n = self._m, 2 * self.M
         shapes = {
             "qp": ((FixedPatternQp.data_size(p_mask, a_mask),), "C"),
             "T": ((m, m), "F"),  # Fortran order: dtrsm reads it in place
@@ -197,21 +216,31 @@ class CondensedQp:
             views[name] = self._buffer[start:stop].reshape(shape, order=order)
             index[name] = np.arange(start, stop).reshape(shape, order=order)
             start = stop
-        a_rows = [u_row[j] + i for j in range(M) for i in (0, 1)] + list(range(steps, m))
-        self._a_rows = np.array(a_rows)
+        return views, index
+
+    def _set_up_solver(self, p_mask: np.ndarray, a_mask: np.ndarray, data: np.ndarray) -> None:
+        """OSQP on the fixed pattern, its values in `data`; A's rows read from Y's rows."""
+        s, M, n = self.settings, self.M, 2 * self.M
+        a_rows = [self._u_row[j] + i for j in range(M) for i in (0, 1)]
+        self._a_rows = np.array(a_rows + list(range(self._steps, self._m)))
         """Y's rows that are A's, in A's order."""
-        self.osqp = qp = FixedPatternQp(
+        self.osqp = FixedPatternQp(
             p_mask,
             a_mask,
             eps=s.solver_eps,
             max_iter=s.solver_max_iter,
-            a_rows=np.array(a_rows),
+            a_rows=self._a_rows,
             a_row_length=n + 2,
-            data=views["qp"],
+            data=data,
         )
-        qp.u[2 * M : 2 * M + N * M] = INFINITY  # separation rows: lower bounds only
-        il, iu = index["qp"][qp.layout["l"]], index["qp"][qp.layout["u"]]
-        self._T, self._Y = T, Y = views["T"], views["Y"]
+        self.osqp.u[2 * M : 2 * M + self.n_neighbours * M] = INFINITY  # lower bounds only
+
+    def _write_constant_system(self) -> None:
+        """T's entries that never change (its unit diagonal, the identity parts of A and A~,
+        B's tau, K_j's heading column, the speed-change rows) and E."""
+        M, m, T = self.M, self._m, self._T
+        zbar_row, ztil_row, u_row = self._zbar_row, self._ztil_row, self._u_row
+        accel = self._steps + self.n_neighbours * M  # the first speed-change row
         T[np.arange(m), np.arange(m)] = 1.0
         for j in range(M):
             T[zbar_row[j + 1] + 2, u_row[j] + 1] = -self.tau  # B[2, 1] (B~[2, 1] varies)
@@ -223,15 +252,20 @@ class CondensedQp:
             T[accel + j, u_row[j]] = -1.0
             if j:
                 T[accel + j, u_row[j - 1]] = 1.0
-        self._E = np.zeros((m, n), order="F")
+        self._E = np.zeros((m, 2 * M), order="F")
         for j in range(M):
             self._E[u_row[j] : u_row[j] + 2, 2 * j : 2 * j + 2] = np.eye(2)
-        # Where the float pass's values go (see `_fill` for their order).
+
+    def _scatter_map(self, index: dict[str, np.ndarray]) -> np.ndarray:
+        """Where the float pass's values go, in its order (`_fill`): flat buffer positions."""
+        M, N, n, steps = self.M, self.n_neighbours, 2 * self.M, self._steps
+        qp = self.osqp
+        il, iu = index["qp"][qp.layout["l"]], index["qp"][qp.layout["u"]]
         iT, iY = index["T"], index["Y"]
-        dest = iY[: ztil_row[0] + 3, n + 1].tolist()  # zbar_0 = ztil_0 = z0
+        dest = iY[: self._ztil_row[0] + 3, n + 1].tolist()  # zbar_0 = ztil_0 = z0
         for j in range(M):
-            zb, zt, u = zbar_row[j], ztil_row[j], u_row[j]
-            zb1, zt1 = zbar_row[j + 1], ztil_row[j + 1]
+            zb, zt, u = self._zbar_row[j], self._ztil_row[j], self._u_row[j]
+            zb1, zt1 = self._zbar_row[j + 1], self._ztil_row[j + 1]
             for entries in (
                 iT[u : u + 2, zb : zb + 2],  # K_j's position columns
                 iY[u : u + 2, n + 1],  # u_s,j
@@ -248,35 +282,43 @@ class CondensedQp:
                 dest += entries.ravel().tolist()
         for k in range(N):
             for j in range(1, M + 1):
-                dest += iT[steps + k * M + j - 1, ztil_row[j] : ztil_row[j] + 2].tolist()
+                row = self._ztil_row[j]
+                dest += iT[steps + k * M + j - 1, row : row + 2].tolist()
                 dest.append(int(il[2 * M + k * M + j - 1]))
         for j in range(M):  # the speed-change rows' bounds
             dest += (int(il[2 * M + N * M + j]), int(iu[2 * M + N * M + j]))
-        # Weights, by step block, doubled (so that Y' W Y is OSQP's P, and q its column n):
-        # q_heading and the stage position weights (`_stage_weights`) on ztil_j, the terminal P
-        # on ztil_M (written every period, through the scatter), R on u_j.
         dest += index["P_M"].ravel().tolist()  # terminal P, row-major
-        self._lin_dest = np.array(dest, dtype=np.intp)
-        self._pack = struct.Struct(f"{len(dest)}d").pack
-        self._w = np.zeros((steps, n + 2))
+        return np.array(dest, dtype=np.intp)
+
+    def _set_up_weights(self) -> None:
+        """W's diagonal by step block, doubled (so that Y' W Y is OSQP's P, and q its column n):
+        q_heading and the stage position weights (`_set_stage_weights`) on ztil_j, R on u_j; the
+        terminal P on ztil_M is written every period, through the scatter."""
+        s, M, n = self.settings, self.M, 2 * self.M
+        self._w = np.zeros((self._steps, n + 2))
         self._w_steps = w = self._w.reshape(M + 1, _BLOCK, n + 2)
         w[1:M, 5] = 2.0 * s.q_heading
         w[:M, 6], w[:M, 7] = 2.0 * s.r_speed, 2.0 * s.r_yaw_rate
         self._stage_weights: list[float] = [0.0] * (M - 1)
         """The position weights of j = 1..M-1 that `_w` holds (zero until the first period)."""
+
+    def _set_up_products(self, views: dict[str, np.ndarray], index: dict[str, np.ndarray]) -> None:
+        """The views and index maps the period's products read and write."""
+        M, n, qp, Y = self.M, 2 * self.M, self.osqp, self._Y
+        zbar_row, ztil_row, u_row = self._zbar_row, self._ztil_row, self._u_row
         self._P_M = views["P_M"]
         self._H = views["H"]  # [[P, q, .], [q', ., .], ...]: P's upper triangle and q to OSQP
         iH = index["H"]
         self._qp_sources = qp.value_sources(iH[:n, :n], index["Y"], iH[:n, n])
         self._qp_values = qp.data[: qp.layout["q"].stop]
         """OSQP's Px, Ax and q, gathered from H and Y with one take."""
-        self._Y_steps = Y[:steps]
+        self._Y_steps = Y[: self._steps]
         self._yaw_rows = np.array([u_row[j] + 1 for j in range(M)])
         """Y's rows of the planned yaw rates."""
         self._yaw_change = np.zeros((M, n + 1))
         """Each planned yaw rate's change from the one before (the first: from the yaw rate
         flown now), as [derivative in c; value at c = 0]."""
-        self._WY = np.zeros((steps, n + 2))
+        self._WY = np.zeros((self._steps, n + 2))
         terminal = slice(ztil_row[M], ztil_row[M] + 3)
         self._Y_terminal, self._WY_terminal = Y[terminal], self._WY[terminal]
         self._by_kind = np.array(
@@ -285,7 +327,7 @@ class CondensedQp:
             + [zbar_row[j] + i for j in range(M + 1) for i in range(3)]
         )
         """The step rows as the solution hands them out: inputs, learned, nominal predictions."""
-        self.x0 = Y[:steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
+        self.x0 = Y[: self._steps, n + 1].reshape(M + 1, _BLOCK)[:, :6]
         """[zref; ztil] at c = 0, j = 0..M (M + 1, 6): a view into Y."""
         self._x_ext = np.zeros(n + 2)  # [c; 0; 1]: Y's rows at c
         self._x_ext[-1] = 1.0
@@ -297,40 +339,47 @@ class CondensedQp:
         and the terminal weight, scattered into T, Y's constant columns, OSQP's l and u and P_M;
         then the stage position weights into `_w` if they changed.
 
-        Per step j, at phi = th + tau a_w w / 2:
-            A = I + (dx/dth, dy/dth, 0) e3',  dx/dth = -tau a_V v sin phi,
-            dy/dth = tau a_V v cos phi,  B = [[tau a_V cos phi, dx/dth tau a_w / 2],
-            [tau a_V sin phi, dy/dth tau a_w / 2], [0, tau a_w]],
-            e = (tau d_x - dx/dth phi, tau d_y - dy/dth phi, 0),
-        with (a_V, a_w, d_x, d_y) = beta for the learned model and (1, 1, 0, 0) for the nominal,
-        and K_j = K0 T(th_j)'. T holds their negatives (the system's off-diagonal blocks); the
-        c = 0 values are zref and ztil, the linearized models' rollouts of u_s from z0; the cost
-        residual's heading is wrapped; u_j = Hu_j c + u_s,j stays in the tightened box, so the
-        input rows' bounds are the box less u_s,j.
-
-        Values go out in `_lin_dest`'s order through one `struct` pack (a list of a couple of
-        hundred floats becomes an array 3-4x faster than through np.array). With M a handful of
+        Values go out in `_lin_dest`'s order through one `struct` pack. With M a handful of
         steps, a float loop is cheaper than a few dozen numpy calls on (M,)-arrays.
         """
+        xb, yb, hb = _rows(d.z0)
+        out = [xb, yb, hb, xb, yb, hb]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
+        ref = self._horizon_entries(d, out)
+        if self.n_neighbours:
+            self._separation(d, ref, out)
+        # Speed changes: u_0 - V_now and u_j - u_{j-1} within +-a_max tau, less their values at
+        # c = 0 (the steady speeds' changes).
+        step = self.settings.speed_rate_max_m_s2 * self.tau
+        last = float(d.speed_now_m_s)
+        for us_v, _ in _rows(d.u_s):
+            out += (-step - (us_v - last), step - (us_v - last))
+            last = us_v
+        # The terminal P at the last target heading (doubled).
+        out += self.terminal_entries(_rows(d.targets)[-1][2], 2.0 * d.terminal_scale)
+        self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
+        self._set_stage_weights(_rows(d.position_weights)[: self.M - 1])
+
+    def _horizon_entries(self, d: QpData, out: list[float]) -> list[tuple[float, float]]:
+        """Per step j, appends to `out` the entries of the period's system: -K_j's position
+        columns (K_j = K0 T(th_j)'), u_s,j, the input rows' bounds (the tightened box less
+        u_s,j, the yaw rate within its trust region), the negated linearizations of both models
+        at the linearization point (`fleetmpc.onboard.core.unicycle.linearization`; the nominal
+        one at beta = (1, 1, 0, 0)), their rollouts of u_s at c = 0 (zref, ztil) and the cost
+        residual, its heading wrapped. Returns ptil(0)'s positions, j = 1..M (where the
+        separation rows are linearized)."""
         tau, trust_at = self.tau, self.settings.yaw_rate_trust
         a_v, a_w, d_x, d_y = _rows(d.beta)
-        tv, hw, tw = tau * a_v, 0.5 * tau * a_w, tau * a_w  # learned
-        hn = 0.5 * tau  # nominal, a_V = a_w = 1
         k00, k01, _, k10, k11, _ = self._K0_entries
         sin, cos = math.sin, math.cos
         xb, yb, hb = _rows(d.z0)
         xt, yt, ht = xb, yb, hb
-        out = [xb, yb, hb, xt, yt, ht]  # zbar_0, ztil_0; then per step, `_lin_dest`'s entries
-        ref: list[
-            tuple[float, float]
-        ] = []  # ptil(0)'s positions, j = 1..M (the separation rows' linearization)
-        lin = _rows(d.lin_states)
+        ref: list[tuple[float, float]] = []
         steps = zip(
-            lin[: self.M],
+            _rows(d.lin_states)[: self.M],
             _rows(d.lin_inputs),
             _rows(d.u_s),
             _rows(d.targets),
-            self.input_box,
+            self.box.steps,
             strict=True,
         )
         for (_, _, th), (v, w), (us_v, us_w), (rx, ry, rh), (lo_v, lo_w, hi_v, hi_w) in steps:
@@ -345,19 +394,13 @@ class CondensedQp:
                 us_v, us_w,  # u_s,j
                 lo_v - us_v, lo_w - us_w, hi_v - us_v, hi_w - us_w,  # input rows' l, u
             )  # fmt: skip
-            phi = th + hn * w
-            s, c = sin(phi), cos(phi)
-            dx, dy = -tau * v * s, tau * v * c
-            b00, b01, b10, b11 = tau * c, dx * hn, tau * s, dy * hn
+            phi, _, _, dx, dy, b00, b01, b10, b11, _ = linearization(th, v, w, 1.0, 1.0, tau)
             xb, yb, hb = (
                 xb + dx * hb + b00 * us_v + b01 * us_w - dx * phi,
                 yb + dy * hb + b10 * us_v + b11 * us_w - dy * phi,
                 hb + tau * us_w,
             )
-            phi = th + hw * w
-            s, c = sin(phi), cos(phi)
-            tx, ty = -tv * v * s, tv * v * c
-            t00, t01, t10, t11 = tv * c, tx * hw, tv * s, ty * hw
+            phi, _, _, tx, ty, t00, t01, t10, t11, tw = linearization(th, v, w, a_v, a_w, tau)
             xt, yt, ht = (
                 xt + tx * ht + t00 * us_v + t01 * us_w + tau * d_x - tx * phi,
                 yt + ty * ht + t10 * us_v + t11 * us_w + tau * d_y - ty * phi,
@@ -370,19 +413,7 @@ class CondensedQp:
                 xt - rx, yt - ry, wrap(ht - rh),  # cost residual
             )  # fmt: skip
             ref.append((xt, yt))
-        if self.n_neighbours:
-            self._separation(d, ref, out)
-        # Speed changes: u_0 - V_now and u_j - u_{j-1} within +-a_max tau, less their values at
-        # c = 0 (the steady speeds' changes).
-        step = self.settings.speed_rate_max_m_s2 * tau
-        last = float(d.speed_now_m_s)
-        for us_v, _ in _rows(d.u_s):
-            out += (-step - (us_v - last), step - (us_v - last))
-            last = us_v
-        # The terminal P at the last target heading rh (doubled).
-        out += self.terminal_entries(rh, 2.0 * d.terminal_scale)
-        self._buffer[self._lin_dest] = np.frombuffer(self._pack(*out))
-        self._set_stage_weights(_rows(d.position_weights)[: self.M - 1])
+        return ref
 
     def _set_stage_weights(self, weights: Sequence[float]) -> None:
         """Write the position weights of j = 1..M-1 (doubled) into `_w` when they changed."""

@@ -35,6 +35,7 @@ no side to sweep by, it sweeps at +r_max, to starboard (the positive rotation in
 give-way rule turns vessels meeting head-on: every agent, and the judge, sweep the same way.
 """
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -143,11 +144,6 @@ class CourseRateLimit:
     """ω̄: the tightened yaw-rate bound [rad/s]."""
     lever_m: float
     """The longest lever arm max_i L_i [m]."""
-
-    @classmethod
-    def fixed(cls, rate_rad_s: float) -> "CourseRateLimit":
-        """The same limit at every speed (no lever arm)."""
-        return cls(speed_bound_m_s=math.inf, yaw_rate_bound_rad_s=2.0 * rate_rad_s, lever_m=0.0)
 
     def at(self, speed_m_s: float) -> float:
         """r_max at the target's speed `speed_m_s`."""
@@ -268,16 +264,14 @@ class FormationReference:
         velocities dt_s apart, after the ones followed last): `follow` along it from the
         current state, which stays as it is. So a prediction is placed as the estimates it
         predicts will be: a moving target's positions lay its path, a stopped one's are placed
-        on the path where it stopped."""
-        kept = self.path, self.value, self.limit_speed_m_s
-        self.path = self.path.copy()
-        try:
-            return [
-                self.follow(p, v, dt_s, velocity_std_m_s=velocity_std_m_s)
-                for p, v in zip(positions_m, velocities_m_s, strict=True)
-            ]
-        finally:
-            self.path, self.value, self.limit_speed_m_s = kept
+        on the path where it stopped. A copy follows the track (a scout), so this reference
+        keeps its state."""
+        scout = copy.copy(self)
+        scout.path = self.path.copy()
+        return [
+            scout.follow(p, v, dt_s, velocity_std_m_s=velocity_std_m_s)
+            for p, v in zip(positions_m, velocities_m_s, strict=True)
+        ]
 
 
 def true_reference(

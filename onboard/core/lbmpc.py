@@ -28,15 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmpc.errors import InfeasibleError
 from fleetmpc.onboard.core.condensed_qp import CondensedQp, QpData
 from fleetmpc.onboard.core.config import ControllerSettings
-from fleetmpc.onboard.core.tube import (
-    cruise_linearization,
-    dare_gain,
-    position_tube_radius,
-    robust_input_tightening,
-)
+from fleetmpc.onboard.core.tube import vehicle_tube
 from fleetmpc.onboard.core.unicycle import wrap
 
 __all__ = ["QpSolution", "TubeLbmpc"]
@@ -48,6 +42,10 @@ may be a little short of its optimum, the plan is still one the vehicle may fly.
 FEASIBILITY_TOL = 1e-3
 """How far an unconverged iterate may break a constraint row and still be used [m, m/s, rad/s]:
 a millimetre on a separation row, well inside every margin."""
+
+FIRST_INPUT_TOL = 1e-3
+"""How far outside U, relative to its upper bounds (and 1e-6 more), a solution's first input may
+be and pass its check: a solver's tolerance."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,43 +80,27 @@ class TubeLbmpc:
         self.M = M = s.horizon
         self.tau = s.period_s
         self.n_neighbours = n_neighbours
-        self.u_max = np.array([s.speed_max_m_s, s.yaw_rate_max_rad_s])
-        self.u_min = np.array([0.0, -s.yaw_rate_max_rad_s])
-        """U's lower corner: the vehicle flies forward (docs/design.md, "Input set")."""
-        self.A0, self.B0 = cruise_linearization(s.reference_speed_m_s, s.period_s)
         terms = n_neighbours if formation_terms is None else formation_terms
-        q_pos = s.q_position + terms * s.q_formation
-        self.Q0 = np.diag([q_pos, q_pos, s.q_heading])
-        self.R = np.diag([s.r_speed, s.r_yaw_rate])
-        self.K0, self.P0 = dare_gain(self.A0, self.B0, self.Q0, self.R)
-        w_bar = np.array([s.w_position_m, s.w_position_m, s.w_heading_rad])
-        self.tightening = robust_input_tightening(self.A0, self.B0, self.K0, w_bar, M)
-        worst = self.tightening / self.u_max
-        if np.any(worst >= 1.0):
-            j, i = np.unravel_index(int(np.argmax(worst)), worst.shape)
-            name = ("speed", "yaw rate")[i]
-            raise InfeasibleError(
-                "controller.w_position_m",
-                f"the tightened input set U ⊖ K R_j is empty: the {name} bound "
-                f"{self.u_max[i]:g} shrinks by {self.tightening[j, i]:.3g} at step {j}; "
-                "reduce the disturbance box W or the horizon, or raise the input bounds",
-            )
-        self.tube_radius_m = position_tube_radius(self.A0, self.B0, self.K0, w_bar, M)
-        # (The speed's lower bound 0 is not tightened: a plan may stop, and a feedback that
-        # would take the speed below it is clipped there.)
-        lower = (self.u_min[None, :] + self.tightening * [0.0, 1.0]).tolist()
-        upper = (self.u_max[None, :] - self.tightening).tolist()
-        self.input_box = [(*lo, *hi) for lo, hi in zip(lower, upper, strict=True)]
-        """The tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
-        slack = 1e-3 * self.u_max + 1e-6
-        self._first_input_box = (*(self.u_min - slack).tolist(), *(self.u_max + slack).tolist())
-        """U with a solver's tolerance: a first input outside it fails the solve's check."""
+        self.tube = vehicle_tube(s, formation_terms=terms)
+        """The DARE gain, the tube's margins and the tightened input set."""
+        self.box = self.tube.box
+        self.K0, self.P0 = self.tube.K0, self.tube.P0
         self.problem = CondensedQp(
-            s, n_neighbours=n_neighbours, K0=self.K0, P0=self.P0, input_box=self.input_box
+            s, n_neighbours=n_neighbours, K0=self.K0, P0=self.P0, box=self.box
         )
         """The QP, condensed: its structure, and its values each period."""
         self._warm = np.zeros(2 * M)
         self._last_c: np.ndarray | None = None
+
+    @property
+    def tightening(self) -> np.ndarray:
+        """How much each input bound shrinks at step j (M, 2)."""
+        return self.tube.tightening
+
+    @property
+    def tube_radius_m(self) -> np.ndarray:
+        """The position tube's radius at j = 0..M (M + 1,) [m]."""
+        return self.tube.radius_m
 
     # -- small maps -----------------------------------------------------------------------------
     def feedback_gain(self, yaw: float) -> np.ndarray:
@@ -139,7 +121,7 @@ class TubeLbmpc:
         err[2] = wrap(float(err[2]))
         u = np.asarray(u_s, float) + self.feedback_gain(float(reference[2])) @ err
         u = np.where(np.isfinite(u), u, 0.0)
-        return np.clip(u, self.u_min, self.u_max)
+        return self.box.clip(u)
 
     def _failed(self, status: str, d: QpData) -> QpSolution:
         return QpSolution(
@@ -177,8 +159,7 @@ class TubeLbmpc:
             x = np.zeros(n)
         inputs, learned, nominal = problem.predictions(x)  # at c = x
         u0, w0 = inputs[:2].tolist()
-        v_lo, w_lo, v_hi, w_hi = self._first_input_box
-        if ok and not (v_lo <= u0 <= v_hi and w_lo <= w0 <= w_hi):
+        if ok and not self.box.admits(u0, w0, relative_tolerance=FIRST_INPUT_TOL):
             ok, status = False, "first input outside U"
         if ok:
             self._last_c = x

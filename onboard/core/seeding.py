@@ -12,6 +12,7 @@ Plain floats throughout: the horizon is a handful of points.
 import math
 
 from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.tube import InputBox
 from fleetmpc.onboard.core.unicycle import advance, wrap
 
 __all__ = ["Seeder"]
@@ -30,11 +31,11 @@ class Seeder:
     def __init__(
         self,
         controller: ControllerSettings,
-        input_box: list[tuple[float, float, float, float]],
+        box: InputBox,
     ) -> None:
         self.settings = controller
-        self.input_box = input_box
-        """The tube-tightened input box of each step j: (v_min, w_min, v_max, w_max)."""
+        self.box = box
+        """U and its tube-tightened box of each step j (`InputBox.steps`)."""
         self._turn_sign = 0
         """The way the pursuit seed turned toward a goal behind (+1, -1), 0 when it was not."""
 
@@ -70,7 +71,7 @@ class Seeder:
         steps = zip(speeds, headings, headings[1:], strict=False)
         u_s = [
             (min(v / a_v, v_hi), max(w_lo, min(w_hi, (h1 - h0) / tw)))
-            for (v, h0, h1), (_, w_lo, v_hi, w_hi) in zip(steps, self.input_box, strict=True)
+            for (v, h0, h1), (_, w_lo, v_hi, w_hi) in zip(steps, self.box.steps, strict=True)
         ]  # (M pairs)
         return u_s, headings
 
@@ -132,7 +133,7 @@ class Seeder:
         for candidate in candidates:
             z = tuple(z0)
             states, inputs, cost = [z], [], 0.0
-            steps = zip(candidate, goal, self.input_box, strict=True)
+            steps = zip(candidate, goal, self.box.steps, strict=True)
             for (v, w), (gx, gy), (_, w_lo, v_hi, w_hi) in steps:
                 v = max(v_min, min(v_hi, v))
                 w = max(w_lo, min(w_hi, w))

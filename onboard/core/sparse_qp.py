@@ -18,7 +18,9 @@ infinity), which keeps the buffer finite; any inf or nan left in it is bad data.
 The solver is OSQP's compiled binding (`osqp.ext_builtin.OSQPSolver`), the object that
 `osqp.OSQP` itself wraps, set up with the same settings. The wrapper's `update` and `solve` add
 about 20 us of Python per period (a module look-up of OSQP_INFTY on every update, a namespace of
-every info field on every solve), as much as the solve of this small QP.
+every info field on every solve), as much as the solve of this small QP. The binding is not
+OSQP's public API: pyproject.toml keeps osqp below its next major release, and
+tests/onboard/test_sparse_qp.py fails, saying so, when a release no longer takes these calls.
 """
 
 import math

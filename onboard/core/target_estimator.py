@@ -161,11 +161,6 @@ class TargetEstimator:
         return self._stamp_ns is not None
 
     @property
-    def turn_rate_rad_s(self) -> float:
-        """The estimated turn rate [rad/s]."""
-        return float(self.x[4])
-
-    @property
     def P(self) -> np.ndarray:
         """The combined covariance (5, 5), the spread between the models' states included."""
         return _mixed_covariance(self.probabilities[:, None], self._xs, self._Ps, self.x[None])[0]

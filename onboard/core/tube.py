@@ -12,20 +12,116 @@ P(th) = T P0 T'. W is a box in the world frame, so the tube depends on heading; 
 online is the maximum over headings.
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg
 
-from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, step_jacobians
+from fleetmpc.errors import InfeasibleError
+from fleetmpc.onboard.core.config import ControllerSettings
+from fleetmpc.onboard.core.unicycle import linearization
 
 __all__ = [
+    "InputBox",
+    "Tube",
     "cruise_linearization",
     "dare_gain",
-    "heading_rotation",
-    "input_tightening",
     "position_tube_radius",
     "robust_input_tightening",
-    "tube_vertices_support",
+    "vehicle_tube",
 ]
+
+
+@dataclass(frozen=True)
+class InputBox:
+    """The input set U and its tube-tightened boxes U ⊖ K R_j (docs/design.md, "Input set")."""
+
+    lower: tuple[float, float]
+    """U's lower corner (speed [m/s], yaw rate [rad/s]): the vehicle flies forward."""
+    upper: tuple[float, float]
+    """U's upper corner (speed [m/s], yaw rate [rad/s])."""
+    steps: tuple[tuple[float, float, float, float], ...]
+    """The tightened box of each step j = 0..M-1: (v_min, w_min, v_max, w_max). The speed's
+    lower bound 0 is not tightened: a plan may stop, and a feedback that would take the speed
+    below it is clipped there."""
+
+    @classmethod
+    def tightened(cls, settings: ControllerSettings, tightening: np.ndarray) -> "InputBox":
+        """U of the settings and its boxes shrunk by the tube's margins (M, 2)."""
+        u_max = np.array([settings.speed_max_m_s, settings.yaw_rate_max_rad_s])
+        u_min = np.array([0.0, -settings.yaw_rate_max_rad_s])
+        lower = (u_min[None, :] + tightening * [0.0, 1.0]).tolist()
+        upper = (u_max[None, :] - tightening).tolist()
+        steps = tuple((*lo, *hi) for lo, hi in zip(lower, upper, strict=True))
+        return cls(lower=tuple(u_min.tolist()), upper=tuple(u_max.tolist()), steps=steps)
+
+    def clip(self, u: np.ndarray) -> np.ndarray:
+        """Inputs (..., 2) clipped to U."""
+        return np.minimum(np.maximum(u, self.lower), self.upper)
+
+    def admits(self, v: float, w: float, *, relative_tolerance: float) -> bool:
+        """True when (v, w) lies in U widened by relative_tolerance of its upper bounds (and
+        1e-6): a solver's answer may stand that far outside."""
+        (v_lo, w_lo), (v_hi, w_hi) = self.lower, self.upper
+        slack_v = relative_tolerance * v_hi + 1e-6
+        slack_w = relative_tolerance * w_hi + 1e-6
+        return v_lo - slack_v <= v <= v_hi + slack_v and w_lo - slack_w <= w <= w_hi + slack_w
+
+    def corners(self) -> list[tuple[float, float]]:
+        """Stop, half and full speed, each turning either way at U's yaw-rate bound or not."""
+        v_max, w_max = self.upper
+        return [(v, w) for v in (0.0, 0.5 * v_max, v_max) for w in (-w_max, 0.0, w_max)]
+
+    @property
+    def last(self) -> tuple[float, float]:
+        """The tightened upper bounds (speed, yaw rate) of the last step."""
+        return self.steps[-1][2], self.steps[-1][3]
+
+
+@dataclass(frozen=True, eq=False)
+class Tube:
+    """The tube of one vehicle's MPC: the DARE gain and terminal weight at heading 0, the
+    input margins and tightened input set, and the position tube's radius."""
+
+    A0: np.ndarray
+    """The nominal model's A at the cruise linearization (3, 3)."""
+    B0: np.ndarray
+    """Its B (3, 2)."""
+    K0: np.ndarray
+    """The DARE gain at heading 0 (2, 3)."""
+    P0: np.ndarray
+    """The DARE solution at heading 0, the terminal weight (3, 3)."""
+    tightening: np.ndarray
+    """How much each input bound shrinks at step j (M, 2), the maximum over headings."""
+    radius_m: np.ndarray
+    """Radius of a disc holding the position part of R_j, j = 0..M (M + 1,) [m]."""
+    box: InputBox
+    """U and its tightened boxes."""
+
+
+def vehicle_tube(settings: ControllerSettings, *, formation_terms: int) -> Tube:
+    """The tube of a vehicle whose stage weight holds `formation_terms` formation terms;
+    InfeasibleError, naming the field, when a tightened input set is empty."""
+    s, M = settings, settings.horizon
+    A0, B0 = cruise_linearization(s.reference_speed_m_s, s.period_s)
+    q_pos = s.q_position + formation_terms * s.q_formation
+    Q0 = np.diag([q_pos, q_pos, s.q_heading])
+    K0, P0 = dare_gain(A0, B0, Q0, np.diag([s.r_speed, s.r_yaw_rate]))
+    w_bar = np.array([s.w_position_m, s.w_position_m, s.w_heading_rad])
+    tightening = robust_input_tightening(A0, B0, K0, w_bar, M)
+    box = InputBox.tightened(s, tightening)
+    worst = tightening / np.array(box.upper)
+    if np.any(worst >= 1.0):
+        j, i = np.unravel_index(int(np.argmax(worst)), worst.shape)
+        name = ("speed", "yaw rate")[i]
+        raise InfeasibleError(
+            "controller.w_position_m",
+            f"the tightened input set U ⊖ K R_j is empty: the {name} bound "
+            f"{box.upper[i]:g} shrinks by {tightening[j, i]:.3g} at step {j}; "
+            "reduce the disturbance box W or the horizon, or raise the input bounds",
+        )
+    radius_m = position_tube_radius(A0, B0, K0, w_bar, M)
+    return Tube(A0=A0, B0=B0, K0=K0, P0=P0, tightening=tightening, radius_m=radius_m, box=box)
 
 
 def dare_gain(
@@ -41,30 +137,10 @@ def cruise_linearization(speed_m_s: float, tau: float) -> tuple[np.ndarray, np.n
     """Discrete (A, B) of the nominal model flying straight North at `speed_m_s` (must be > 0)."""
     if not speed_m_s > 0:
         raise ValueError(f"speed_m_s: a linearization point needs speed > 0, got {speed_m_s}")
-    A, B, _ = step_jacobians(np.zeros(3), np.array([speed_m_s, 0.0]), NOMINAL_BETA, tau)
-    return A, B
-
-
-def heading_rotation(yaw: float) -> np.ndarray:
-    """T(yaw) = blockdiag(Rot(yaw), 1), 3x3."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def input_tightening(
-    A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, horizon: int
-) -> np.ndarray:
-    """Margins (horizon, m): how much each input bound of U shrinks at step j, U ⊖ K R_j.
-
-    margin[j, i] = sum_{l<j} |e_i' K Phi^l| w_bar, Phi = A + BK, for the box W = {|w| <= w_bar}.
-    """
-    Phi = A + B @ K
-    out = np.zeros((horizon, K.shape[0]))
-    M = K.copy()
-    for j in range(1, horizon):
-        out[j] = out[j - 1] + np.abs(M) @ w_bar
-        M = M @ Phi
-    return out
+    _, _, _, dx, dy, b00, b01, b10, b11, b21 = linearization(0.0, speed_m_s, 0.0, 1.0, 1.0, tau)
+    A = np.eye(3)
+    A[0, 2], A[1, 2] = dx, dy
+    return A, np.array([[b00, b01], [b10, b11], [0.0, b21]])
 
 
 def robust_input_tightening(
@@ -78,7 +154,8 @@ def robust_input_tightening(
 ) -> np.ndarray:
     """Largest input tightening over `headings` evenly spaced headings (world-frame box W).
 
-    `input_tightening` at every heading at once: the rotated A, B, K are stacked over headings.
+    At each heading the margin of step j is sum_{l<j} |e_i' K Phi^l| w_bar, Phi = A + BK (the
+    support of K R_j in the box W = {|w| <= w_bar}); the rotated A, B, K are stacked over headings.
     """
     th = np.linspace(0.0, 2.0 * np.pi, headings, endpoint=False)
     c, s = np.cos(th), np.sin(th)
@@ -112,21 +189,3 @@ def position_tube_radius(
         out[j] = out[j - 1] + np.linalg.norm(np.abs(M[:2]) @ w_bar) * np.sqrt(2.0)
         M = Phi @ M
     return out
-
-
-def tube_vertices_support(
-    A: np.ndarray, B: np.ndarray, K: np.ndarray, w_bar: np.ndarray, j: int, h: np.ndarray
-) -> float:
-    """Brute-force support of h' K R_j over every vertex combination (for tests; small j)."""
-    Phi = A + B @ K
-    n = A.shape[0]
-    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * n, indexing="ij")).reshape(n, -1).T * w_bar
-    best = 0.0
-    if j == 0:
-        return 0.0
-    maps = [h @ K @ np.linalg.matrix_power(Phi, l) for l in range(j)]
-    # Sum over l of max over vertices; verify by enumerating all combinations.
-    idx = np.array(np.meshgrid(*[np.arange(len(corners))] * j, indexing="ij")).reshape(j, -1).T
-    for combo in idx:
-        best = max(best, float(sum(maps[l] @ corners[c] for l, c in enumerate(combo))))
-    return best

@@ -133,3 +133,27 @@ def test_bench_against_this_tree_itself(tmp_path, capsys):
     result = json.loads(json_path.read_text())
     assert result["this"]["steps"] == result["baseline"]["steps"] == 11 * 3
     assert result["this"]["realtime_factor"] > 1.0
+
+
+def test_stages_times_every_stage_of_every_step_and_leaves_the_agent_unwrapped(tmp_path, capsys):
+    """`fleetmpc bench --stages` on a 2 s paper run: one row per stage with one call per step
+    (none waits: telemetry and the target come from the start), shares that add up to the
+    step, and the agent's methods as they were afterwards."""
+    from fleetmpc.onboard.core.agent import Agent
+
+    before = {name: getattr(Agent, name) for name in (*Agent.STAGES, "step")}
+    text = (THIS_TREE / "scenarios" / "paper.toml").read_text()
+    scenario = tmp_path / "paper.toml"
+    scenario.write_text(re.sub(r"(?m)^duration_s = .*$", "duration_s = 2.0", text))
+    json_path = tmp_path / "stages.json"
+    args = ["bench", str(scenario), "--stages", "--repeats", "1", "--json", str(json_path)]
+    assert main(args) == 0
+    rows = {r["stage"]: r for r in json.loads(json_path.read_text())["stages"]}
+    assert list(rows) == [*Agent.STAGES, "other", "step"]
+    steps = rows["step"]["calls"]
+    assert steps == 11 * 3
+    assert all(rows[name]["calls"] == steps for name in Agent.STAGES)
+    assert sum(rows[name]["share"] for name in (*Agent.STAGES, "other")) == pytest.approx(1.0)
+    assert all(rows[name]["median_ms"] > 0.0 for name in Agent.STAGES)
+    assert "place_formation" in capsys.readouterr().out
+    assert {name: getattr(Agent, name) for name in before} == before

@@ -19,9 +19,16 @@ from fleetmpc.onboard.core.target_path import CHORD_HALF_M, TargetPath
 DT = 0.2
 
 
+def _fixed_limit(rate_rad_s: float) -> CourseRateLimit:
+    """The same course-rate limit at every speed (no lever arm)."""
+    return CourseRateLimit(
+        speed_bound_m_s=math.inf, yaw_rate_bound_rad_s=2.0 * rate_rad_s, lever_m=0.0
+    )
+
+
 def _reference(trail_m: float = 5.0, rate: float = 0.05, frame: str = "course"):
     formation = Formation(FormationSettings(slots_m=((0.0, 0.0),), frame=frame, trail_m=trail_m))
-    return FormationReference(formation, CourseRateLimit.fixed(rate))
+    return FormationReference(formation, _fixed_limit(rate))
 
 
 def _fly(ref, positions, velocities, std=0.0):
@@ -225,7 +232,7 @@ def test_the_rate_limit_spends_the_spare_speed_on_the_longest_lever():
     np.testing.assert_allclose(world.lever_arms_m(), [0.0, 0.0])  # (it does not turn)
     fast = course_rate_limit(world, speed_bound_m_s=1.9, yaw_rate_bound_rad_s=0.4)
     assert fast.at(1.0) == pytest.approx(0.2)  # half the tightened yaw-rate bound
-    assert CourseRateLimit.fixed(0.05).at(1.7) == 0.05
+    assert _fixed_limit(0.05).at(1.7) == 0.05
 
 
 def test_the_reference_turns_faster_where_the_target_slows_down():
@@ -258,7 +265,7 @@ def test_the_true_reference_of_a_run_is_the_stateful_one_period_by_period():
     p2, v2 = _line(math.pi / 2, 40.0, start=p1[-1])
     p, v = np.vstack([p1, p2]), np.vstack([v1, v2])
     formation = Formation(FormationSettings(slots_m=((0.0, 0.0),), frame="course", trail_m=5.0))
-    limit = CourseRateLimit.fixed(0.04)
+    limit = _fixed_limit(0.04)
     ref = FormationReference(formation, limit)
     one_by_one = [ref.follow(a, b, DT) for a, b in zip(p.tolist(), v.tolist(), strict=True)]
     centres, courses = true_reference(formation, limit, p, v, DT)

@@ -1,12 +1,13 @@
 import cvxpy as cp
 import numpy as np
 import pytest
+from model_oracles import linearize
 
 from fleetmpc.bench.step import _input_bounds
 from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
-from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, linearize, rollout
+from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, rollout
 
 SETTINGS = ControllerSettings(reference_speed_m_s=1.4, solver_eps=1e-8, solver_max_iter=20000)
 
@@ -125,9 +126,9 @@ def test_infeasible_separation_gives_failure_and_fallback_stays_in_u():
     assert not sol.ok
     assert np.all(np.isfinite(sol.inputs))
     u = mpc.fallback_input(d.z0, np.array([1e3, -1e3, 3.0]), np.array([5.0, 2.0]))
-    assert np.all(u <= mpc.u_max) and np.all(u >= mpc.u_min)
+    assert np.all(u <= mpc.box.upper) and np.all(u >= mpc.box.lower)
     u = mpc.fallback_input(d.z0, np.array([np.nan, 0.0, 0.0]), np.array([0.5, 0.0]))
-    assert np.all(np.isfinite(u)) and np.all(u <= mpc.u_max) and np.all(u >= mpc.u_min)
+    assert np.all(np.isfinite(u)) and np.all(u <= mpc.box.upper) and np.all(u >= mpc.box.lower)
 
 
 def test_the_plan_flies_forward_keeps_the_yaw_rate_trust_region_and_its_speed_rate():

@@ -14,7 +14,7 @@ import pytest
 
 from fleetmpc.clock import FleetClock
 from fleetmpc.onboard.core.agent import AgentInput
-from fleetmpc.onboard.core.unicycle import NOMINAL_BETA_FLOATS, advance
+from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, advance
 from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
@@ -116,7 +116,7 @@ def fly(paper, agent, *, pose, stamps, measurements=None):
                 target_stamp_ns=stamp,
             )
         )
-        pose = advance(*pose, *out.command.tolist(), NOMINAL_BETA_FLOATS, period * 1e-9)
+        pose = advance(*pose, *out.command.tolist(), NOMINAL_BETA, period * 1e-9)
     return out, pose
 
 

@@ -10,7 +10,7 @@ SETTINGS = ControllerSettings(horizon=5)
 
 
 def _seeder() -> Seeder:
-    return Seeder(SETTINGS, TubeLbmpc(SETTINGS, n_neighbours=1).input_box)
+    return Seeder(SETTINGS, TubeLbmpc(SETTINGS, n_neighbours=1).box)
 
 
 def test_steady_inputs_keep_the_model_on_slots_that_fly_a_straight_line():
@@ -27,7 +27,7 @@ def test_steady_inputs_across_slots_that_jump_ask_for_no_more_than_the_box():
     seeder = _seeder()
     slots = [(0.0, 0.2 * j) for j in range(3)] + [(21.0, 5.0 + 0.2 * j) for j in range(4)]
     u_s, _ = seeder.steady_inputs(slots, [1.0, 1.0, 0.0, 0.0], math.pi / 2)
-    for (v, w), (v_lo, w_lo, v_hi, w_hi) in zip(u_s, seeder.input_box, strict=True):
+    for (v, w), (v_lo, w_lo, v_hi, w_hi) in zip(u_s, seeder.box.steps, strict=True):
         assert v_lo <= v <= v_hi
         assert w_lo <= w <= w_hi
-    assert u_s[2][0] == pytest.approx(seeder.input_box[2][2])  # (the jump: at the bound)
+    assert u_s[2][0] == pytest.approx(seeder.box.steps[2][2])  # (the jump: at the bound)

@@ -2,17 +2,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from model_oracles import heading_rotation, input_tightening, tube_vertices_support
 
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
-from fleetmpc.onboard.core.tube import (
-    cruise_linearization,
-    dare_gain,
-    heading_rotation,
-    input_tightening,
-    tube_vertices_support,
-)
+from fleetmpc.onboard.core.tube import cruise_linearization, dare_gain
 
 
 @settings(max_examples=40, deadline=None)

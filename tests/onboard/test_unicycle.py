@@ -1,17 +1,20 @@
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from fleetmpc.onboard.core.unicycle import (
-    NOMINAL_BETA,
+from model_oracles import (
     continuous_jacobians,
     linearize,
     oracle,
-    rollout,
     step,
     step_jacobians,
+)
+
+from fleetmpc.onboard.core.unicycle import (
+    NOMINAL_BETA,
+    linearization,
+    rollout,
     step_with_jacobians,
-    wrap_angle,
+    wrap,
 )
 
 finite = st.floats(-5, 5, allow_nan=False)
@@ -93,7 +96,18 @@ def test_straight_flight_is_exact_and_oracle_is_the_model_difference():
 
 
 @given(st.floats(-100, 100))
-def test_wrap_angle_range_and_equivalence(a):
-    w = float(wrap_angle(a))
+def test_wrap_range_and_equivalence(a):
+    w = wrap(a)
     assert -np.pi <= w < np.pi
     assert abs(np.sin(w) - np.sin(a)) < 1e-9 and abs(np.cos(w) - np.cos(a)) < 1e-9
+
+
+@given(states, inputs, betas)
+def test_the_one_linearization_is_the_array_jacobians_exactly(z, u, beta):
+    phi, s, c, dx, dy, b00, b01, b10, b11, b21 = linearization(
+        float(z[2]), float(u[0]), float(u[1]), float(beta[0]), float(beta[1]), 0.2
+    )
+    A, B, _ = step_jacobians(z, u, beta, 0.2)
+    assert (s, c) == (np.sin(phi), np.cos(phi))
+    np.testing.assert_array_equal(A[:2, 2], [dx, dy])
+    np.testing.assert_array_equal(B, [[b00, b01], [b10, b11], [0.0, b21]])
