@@ -462,27 +462,23 @@ class MavlinkAutopilotLink(AutopilotLink):
         return False
 
     def _shows_engaged(self, deadline: float) -> bool:
-        """Wait for a HEARTBEAT that shows the vehicle armed in the agent's mode. PX4 and
-        ArduPilot send HEARTBEAT at a constant 1 Hz (PX4: `mavlink_main.cpp`), so the COMMAND_ACK
-        of a mode change comes up to a second before the state it set: taking the vehicle as
-        engaged at the ACK would read the last HEARTBEAT's old mode as a mode lost."""
+        """Wait for a HEARTBEAT showing the vehicle armed in the agent's mode: PX4 and ArduPilot
+        send it at 1 Hz (PX4's `mavlink_main.cpp`), up to a second after the COMMAND_ACK, and the
+        old one's mode would read as a mode lost."""
         texts_before = self._texts_seen
-        until = min(deadline, time.monotonic() + _CONFIRM_S)
+        timeout = min(deadline - time.monotonic(), _CONFIRM_S)
         with self._cond:
-            while not self._stop.is_set():
-                st = self._state
-                if st.armed and st.mode == FlightMode.OFFBOARD:
-                    return True
-                left = until - time.monotonic()
-                if left <= 0:
-                    break
-                self._cond.wait(min(left, 0.1))
+            self._cond.wait_for(self._engaged_shown_or_stopped, timeout=max(timeout, 0.0))
+            if self._engaged_shown_or_stopped() and not self._stop.is_set():
+                return True
         st = self.state()
         shown = f"{st.mode_name or 'an unknown mode'}, {'armed' if st.armed else 'disarmed'}"
-        self._fail(
-            f"mode accepted, but the HEARTBEAT still shows {shown}", texts_before=texts_before
-        )
+        self._fail(f"mode accepted, the HEARTBEAT shows {shown}", texts_before=texts_before)
         return False
+
+    def _engaged_shown_or_stopped(self) -> bool:
+        st = self._state
+        return self._stop.is_set() or (st.armed and st.mode == FlightMode.OFFBOARD)
 
     def _engage_once(self, deadline: float) -> bool:
         """One pass of the autopilot's engage sequence from the vehicle's present state."""
