@@ -58,6 +58,10 @@ _COMMANDS: dict[str, tuple[str, str]] = {
         "the fleet as a docker compose file (one service per process)",
     ),
     "keys": ("fleetmpc.launch.keys", "a fleet's secrets: one MAVLink signing key per vehicle"),
+    "real-autopilots": (
+        "fleetmpc.launch.real_autopilots",
+        "the fleet measured against real PX4 and ArduCopter SITLs (built by their projects)",
+    ),
     "home": (
         "fleetmpc.launch.home",
         "where to boot a real autopilot's SITL so it starts where its vehicle starts",
