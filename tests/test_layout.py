@@ -96,3 +96,15 @@ def test_no_module_of_the_product_is_over_600_lines():
 def _lines(path: Path) -> int:
     with path.open(encoding="utf-8") as f:
         return sum(1 for _ in f)
+
+
+def test_the_docker_image_copies_every_package_folder():
+    """The image installs the project from the folders it copies: a folder of the package-dir
+    mapping left out fails the compose build ("package directory ... does not exist")."""
+    folders = tomllib.loads(Path("pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    copied = {
+        line.split()[1].rstrip("/")
+        for line in Path("docker/Dockerfile").read_text().splitlines()
+        if line.startswith("COPY ")
+    }
+    assert set(folders.values()) - copied == set()
