@@ -170,6 +170,7 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 def _fly(m: Measurement, paths, folder: Path) -> tuple[int, dict | None]:
     """Start the autopilots, fly `fleetmpc up`, stop them: (up's exit status, its metrics)."""
+    folder.mkdir(parents=True, exist_ok=True)
     scenario = load_scenario(m.scenario)
     autopilots = [
         Autopilot(kind, vehicle_home(scenario, vid)) for vid, kind in m.autopilots.items()
