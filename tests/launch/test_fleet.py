@@ -190,15 +190,17 @@ def test_up_gives_each_agent_its_connect_and_engage_timeouts():
 
 
 def test_the_real_autopilot_docs_name_only_flags_the_commands_have():
-    """Every `--flag` docs/real-autopilots.md names is one of `fleetmpc up`'s, `fleetmpc
-    agent`'s or `fleetmpc sitl`'s (or of the autopilots' own tools, listed)."""
+    """Every `--flag` docs/real-autopilots.md names is one of `fleetmpc up`'s, `agent`'s,
+    `sitl`'s, `home`'s or `real-autopilots`'s (or of the autopilots' own tools, listed)."""
     import re
 
+    from fleetmpc.launch import home, real_autopilots
     from fleetmpc.onboard import cli as agent_cli
     from fleetmpc.sitl import cli as sitl_cli
 
     known: set[str] = set()
-    for add in (up.add_arguments, agent_cli.add_arguments, sitl_cli.add_arguments):
+    commands = (up, agent_cli, sitl_cli, home, real_autopilots)
+    for add in (command.add_arguments for command in commands):
         parser = argparse.ArgumentParser()
         add(parser)
         known |= {s for a in parser._actions for s in a.option_strings}
