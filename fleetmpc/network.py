@@ -20,9 +20,11 @@ if TYPE_CHECKING:
     from fleetmpc.scenario import VehicleSpec
 
 __all__ = [
+    "ARDUCOPTER_TCP_BASE_PORT",
     "Network",
     "PX4_GCS_LOCAL_BASE_PORT",
     "PX4_OFFBOARD_LOCAL_BASE_PORT",
+    "PX4_OFFBOARD_REMOTE_BASE_PORT",
     "SITL_GCS_LOCAL_BASE_PORT",
     "SITL_OFFBOARD_LOCAL_BASE_PORT",
     "check_ports",
@@ -169,8 +171,12 @@ class Network:
 
 SUGGEST_WITHIN = 1000
 """How far above a clashing field's value `check_ports` looks for one that clears every clash."""
+PX4_OFFBOARD_REMOTE_BASE_PORT = 14540
+"""A real PX4 SITL sends its offboard-API link here (instance n: + n), where an agent listens."""
 PX4_OFFBOARD_LOCAL_BASE_PORT = 14580
 """A real PX4 SITL binds its offboard-API link here (instance n: + n)."""
+ARDUCOPTER_TCP_BASE_PORT = 5760
+"""A real ArduCopter SITL serves MAVLink on this TCP port (instance n: + 10 n)."""
 PX4_GCS_LOCAL_BASE_PORT = 18570
 """A real PX4 SITL binds its ground-station link here (instance n: + n)."""
 SITL_OFFBOARD_LOCAL_BASE_PORT = PX4_OFFBOARD_LOCAL_BASE_PORT + 10_000

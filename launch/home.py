@@ -14,7 +14,6 @@ import argparse
 import math
 from dataclasses import dataclass
 
-from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.local_frame import geodetic_from_ned
 from fleetmpc.scenario import Scenario, load_scenario
 
@@ -47,12 +46,7 @@ class VehicleHome:
 
 def vehicle_home(scenario: Scenario, vehicle_id: int) -> VehicleHome:
     """Where vehicle `vehicle_id` of `scenario` starts; ConfigError naming the id if none."""
-    for v in scenario.vehicles:
-        if v.id == vehicle_id:
-            break
-    else:
-        ids = ", ".join(str(i) for i in scenario.vehicle_ids)
-        raise ConfigError("--vehicle", f"no vehicle {vehicle_id} in the scenario (its ids: {ids})")
+    v = scenario.vehicle(vehicle_id)
     site = scenario.site
     north, east, yaw = v.initial
     lat, lon = geodetic_from_ned(

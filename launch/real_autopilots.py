@@ -1,10 +1,11 @@
 """`fleetmpc real-autopilots`: the fleet measured against real autopilot SITLs, as a table.
 
-    fleetmpc real-autopilots --px4 PX4/build/px4_sitl_default \\
-        [--arducopter ARDUPILOT/build/sitl/bin/arducopter --arducopter-defaults copter.parm]
+    fleetmpc real-autopilots --px4 PX4_BUILD \\
+        [--arducopter ARDUCOPTER --arducopter-defaults COPTER_PARM]
 
-Given autopilots already built by their own projects' instructions (nothing here builds one),
-it flies the measurements of docs/real-autopilots.md, each `--runs` times at x1:
+Given autopilots already built by their own projects' documentation (nothing here builds one:
+PX4_BUILD is the folder PX4's SITL build made, holding `bin/px4` and `etc/`), it flies the
+measurements of docs/real-autopilots.md, each `--runs` times at x1:
 
 - vehicle 2 of `scenarios/paper.toml` on a PX4 SIH instance, the others on our SITL;
 - every vehicle of `scenarios/paper.toml` on PX4;
@@ -32,6 +33,7 @@ from pathlib import Path
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.launch.home import VehicleHome, vehicle_home
+from fleetmpc.network import ARDUCOPTER_TCP_BASE_PORT, PX4_OFFBOARD_REMOTE_BASE_PORT
 from fleetmpc.scenario import Scenario, load_scenario
 
 __all__ = ["Autopilot", "Measurement", "add_arguments", "judge", "measurements", "run"]
@@ -63,8 +65,8 @@ class Autopilot:
     def url(self) -> str:
         """Where the vehicle's agent reaches it (each SITL's own default ports)."""
         if self.kind == "px4":
-            return f"udpin:127.0.0.1:{14540 + self.instance}"
-        return f"tcp:127.0.0.1:{5760 + 10 * self.instance}"
+            return f"udpin:127.0.0.1:{PX4_OFFBOARD_REMOTE_BASE_PORT + self.instance}"
+        return f"tcp:127.0.0.1:{ARDUCOPTER_TCP_BASE_PORT + 10 * self.instance}"
 
     def command(self, paths: argparse.Namespace, folder: Path) -> tuple[list[str], dict[str, str]]:
         """The command line and the environment that start it in `folder`."""
@@ -168,10 +170,9 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             p.wait()
 
 
-def _fly(m: Measurement, paths, folder: Path) -> tuple[int, dict | None]:
+def _fly(m: Measurement, scenario: Scenario, paths, folder: Path) -> tuple[int, dict | None]:
     """Start the autopilots, fly `fleetmpc up`, stop them: (up's exit status, its metrics)."""
     folder.mkdir(parents=True, exist_ok=True)
-    scenario = load_scenario(m.scenario)
     autopilots = [
         Autopilot(kind, vehicle_home(scenario, vid)) for vid, kind in m.autopilots.items()
     ]
@@ -212,11 +213,14 @@ def _row(m: Measurement, k: int, code: int, metrics: dict | None, scenario: Scen
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--px4", required=True, metavar="DIR", help="PX4's px4_sitl_default build")
-    parser.add_argument("--arducopter", metavar="BIN", help="ArduPilot's arducopter SITL binary")
     parser.add_argument(
-        "--arducopter-defaults", metavar="FILE", help="its defaults file (copter.parm)"
+        "--px4",
+        required=True,
+        metavar="DIR",
+        help="the folder PX4's SITL build made (bin/px4, etc/)",
     )
+    parser.add_argument("--arducopter", metavar="BIN", help="ArduPilot's arducopter SITL binary")
+    parser.add_argument("--arducopter-defaults", metavar="FILE", help="its default parameters file")
     parser.add_argument("--scenarios", default="scenarios", help="folder of the shipped scenarios")
     parser.add_argument("--runs", type=int, default=3, help="runs of each measurement")
     parser.add_argument("--run-dir", default="runs/real-autopilots", help="logs and recordings")
@@ -226,7 +230,9 @@ def _check(args: argparse.Namespace) -> None:
     if not (Path(args.px4) / "bin" / "px4").is_file():
         raise ConfigError("--px4", f"no bin/px4 under {args.px4}: give PX4's build folder")
     if args.arducopter and not args.arducopter_defaults:
-        raise ConfigError("--arducopter-defaults", "needed with --arducopter (its copter.parm)")
+        raise ConfigError(
+            "--arducopter-defaults", "needed with --arducopter (its default parameters file)"
+        )
     if args.runs < 1:
         raise ConfigError("--runs", f"must be at least 1, got {args.runs}")
 
@@ -240,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
         scenario = load_scenario(m.scenario)
         for k in range(1, args.runs + 1):
             folder = root / m.name.replace(" ", "-").replace(",", "") / f"run-{k}"
-            code, metrics = _fly(m, args, folder)
+            code, metrics = _fly(m, scenario, args, folder)
             all_met &= (
                 code == 0
                 and metrics is not None

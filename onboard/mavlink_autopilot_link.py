@@ -468,17 +468,18 @@ class MavlinkAutopilotLink(AutopilotLink):
         texts_before = self._texts_seen
         timeout = min(deadline - time.monotonic(), _CONFIRM_S)
         with self._cond:
-            self._cond.wait_for(self._engaged_shown_or_stopped, timeout=max(timeout, 0.0))
-            if self._engaged_shown_or_stopped() and not self._stop.is_set():
+            self._cond.wait_for(
+                lambda: self._stop.is_set() or self._armed_in_offboard(), timeout=max(timeout, 0.0)
+            )
+            if self._armed_in_offboard() and not self._stop.is_set():
                 return True
         st = self.state()
         shown = f"{st.mode_name or 'an unknown mode'}, {'armed' if st.armed else 'disarmed'}"
         self._fail(f"mode accepted, the HEARTBEAT shows {shown}", texts_before=texts_before)
         return False
 
-    def _engaged_shown_or_stopped(self) -> bool:
-        st = self._state
-        return self._stop.is_set() or (st.armed and st.mode == FlightMode.OFFBOARD)
+    def _armed_in_offboard(self) -> bool:
+        return self._state.armed and self._state.mode == FlightMode.OFFBOARD
 
     def _engage_once(self, deadline: float) -> bool:
         """One pass of the autopilot's engage sequence from the vehicle's present state."""

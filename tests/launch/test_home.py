@@ -38,5 +38,5 @@ def test_the_printed_values_are_what_each_sitl_takes(capsys):
 
 
 def test_an_unknown_vehicle_is_named():
-    with pytest.raises(ConfigError, match="no vehicle 7 .*1, 2, 3"):
+    with pytest.raises(ConfigError, match=r"no vehicle with id 7 .*\(1, 2, 3\)"):
         vehicle_home(load_scenario("scenarios/paper.toml"), 7)
