@@ -86,8 +86,9 @@ def fleet_blueprint(
     *, vehicle_ids: tuple[int, ...], trail_window_s: float = TRAIL_WINDOW_S
 ) -> rrb.Blueprint:
     """The viewer layout: the map on the left, the time series on the right (the fleet's
-    shown, the per-vehicle ones a tab away); the map shows `map/trails` over the last
-    `trail_window_s` [s] before the time cursor; the side panels collapsed."""
+    shown, the per-vehicle ones a tab away); the map shows `map/trails` and the target's raw
+    observations over the last `trail_window_s` [s] before the time cursor; the side panels
+    collapsed."""
     trail = rrb.VisibleTimeRanges(
         timeline=TIMELINE,
         start=rrb.TimeRangeBoundary.cursor_relative(seconds=-trail_window_s),
@@ -99,7 +100,7 @@ def fleet_blueprint(
                 rrb.Spatial2DView(
                     origin="map",
                     name=f"map ({len(vehicle_ids)} UAVs)",
-                    overrides={"/map/trails": trail},
+                    overrides={"/map/trails": trail, "/map/target_observations": trail},
                 ),
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],
@@ -178,6 +179,16 @@ def log_statics(stream: rr.RecordingStream, vehicle_ids: tuple[int, ...]) -> Non
     stream.log(
         "map/target_prediction",
         rr.LineStrips2D.from_fields(colors=[TARGET_RGB], radii=[-1.0]),
+        static=True,
+    )
+    stream.log(
+        "map/target_estimate",
+        rr.Points2D.from_fields(colors=[TARGET_RGB], radii=[-3.0]),
+        static=True,
+    )
+    stream.log(
+        "map/target_observations",
+        rr.Points2D.from_fields(colors=[(*TARGET_RGB, 110)], radii=[-1.5]),
         static=True,
     )
     for path, (names, colours) in _series_names(ids).items():

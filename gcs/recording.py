@@ -16,6 +16,9 @@ a lockstep and a live run:
   while a period costs one segment per vehicle, not the whole window;
 - `map/formation_links` (each vehicle to the `LINK_NEAREST` slots nearest its own:
   `link_pairs`) as LineStrips2D; `map/target` and `map/slots` (one per vehicle) as Points2D;
+- `map/target_observations` (Points2D): each target observation as the fleet received it (raw,
+  before any filter: a script's or a recorded track's noisy fix, a MAVLink source's screened
+  one), at its own time; the blueprint shows them over the trail window;
 - `series/fleet/<name>` (`fleetmpc.gcs.fleet_series.FLEET_SERIES`: a line or two for the whole
   fleet, what the viewer shows by default);
 - `series/separation` (one line per pair), `series/centre_distance`,
@@ -23,12 +26,13 @@ a lockstep and a live run:
   `series/beta/effectiveness` and `series/beta/drift_m_s` (`BETA_SERIES`: two parameters each,
   learned, then truth, per parameter and vehicle) as Scalars, the lines named and
   coloured by a static SeriesLines;
-- `events` (TextLog): QP fallbacks; live runs add mode changes and STATUSTEXT;
+- `events` (TextLog): QP fallbacks, each vehicle's target state as it changes (target lost:
+  predicting, holding, reacquiring, tracking again); live runs add mode changes and STATUSTEXT;
 - `map/plans` (each agent's planned horizon, a Points2D bead per planned period after the
-  first, coloured row by row), `map/target_prediction` (the
-  ground side's prediction of the target over the horizon, made at each period's time from the
-  observations stamped up to it), `series/plan_age` [s] (one line per vehicle and neighbour)
-  and `series/setpoint_rate` [Hz];
+  first, coloured row by row), `map/target_estimate` and `map/target_prediction` (the
+  ground side's filtered target and its prediction over the horizon, made at each period's
+  time from the observations stamped up to it), `series/plan_age` [s] (one line per vehicle
+  and neighbour) and `series/setpoint_rate` [Hz];
 - `meta` (static AnyValues), `flight_record` (AnyValues: one `periods` column, a float64
   list per period that packs every per-period FlightRecord field in `record_layout`'s order)
   and `run_end` (static AnyValues, logged at the end: what the plan bus did): what
@@ -65,6 +69,7 @@ __all__ = [
     "RECORD_ARRAYS",
     "RECORD_COLUMN",
     "log_events",
+    "log_target_observations",
     "log_run_end",
     "log_map",
     "log_series",
@@ -150,17 +155,24 @@ class _Slice:
         index = rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
         self.stream.send_columns(path, indexes=[index], columns=columns)
 
-    def points(self, path: str, xy: np.ndarray, *, arrows: np.ndarray | None = None) -> None:
-        """Points2D positions xy (rows, n, 2), n in every row; with `arrows` (rows, n, 2) also
-        Arrows2D from those positions."""
-        n = xy.shape[1]
+    def points(
+        self,
+        path: str,
+        xy: np.ndarray,
+        *,
+        arrows: np.ndarray | None = None,
+        rows: np.ndarray | None = None,
+    ) -> None:
+        """Points2D positions xy (R, n, 2), n in every row sent (every row, or those `rows`
+        selects); with `arrows` (R, n, 2) also Arrows2D from those positions."""
+        r, n = xy.shape[:2]
         flat = xy.reshape(-1, 2)
-        columns = [*rr.Points2D.columns(positions=flat).partition([n] * self.rows)]
+        columns = [*rr.Points2D.columns(positions=flat).partition([n] * r)]
         if arrows is not None:
             vectors = arrows.reshape(-1, 2)
             arrow = rr.Arrows2D.columns(origins=flat, vectors=vectors)
-            columns += [*arrow.partition([n] * self.rows)]
-        self.send(path, columns)
+            columns += [*arrow.partition([n] * r)]
+        self.send(path, columns, rows=rows)
 
     def strips(self, path: str, strips: np.ndarray, *, rows: np.ndarray | None = None) -> None:
         """LineStrips2D: strips (R, S, P, 2), S strips of P points in each row sent (every row,
@@ -315,6 +327,7 @@ def _live_map(columns: _Slice, live: LiveRows) -> None:
     if known.any():
         path = map_from_ned(live.target_path[known])[:, None]  # (rows, 1 strip, M + 1, 2)
         columns.strips("map/target_prediction", path, rows=known)
+        columns.points("map/target_estimate", path[:, :, 0], rows=known)
 
 
 def _live_series(columns: _Slice, live: LiveRows) -> None:
@@ -337,6 +350,21 @@ def log_events(
         "events",
         indexes=[rr.TimeColumn(TIMELINE, duration=np.array(times).astype("timedelta64[ns]"))],
         columns=rr.TextLog.columns(text=list(texts), level=list(levels)),
+    )
+
+
+def log_target_observations(
+    stream: rr.RecordingStream, observations: list[tuple[int, float, float]]
+) -> None:
+    """Log target observations (fleet time ns, North, East [m]) as received, each at its own
+    time, to `map/target_observations` (one point per observation) in one column batch."""
+    if not observations:
+        return
+    times, north, east = (np.array(part) for part in zip(*observations, strict=True))
+    stream.send_columns(
+        "map/target_observations",
+        indexes=[rr.TimeColumn(TIMELINE, duration=times.astype("timedelta64[ns]"))],
+        columns=rr.Points2D.columns(positions=map_from_ned(np.column_stack([north, east]))),
     )
 
 

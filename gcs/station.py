@@ -15,7 +15,7 @@ from fleetmpc.clock import ClockSync, FleetClock
 from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import judged_metrics
-from fleetmpc.gcs.telemetry import TelemetrySink, samples_of
+from fleetmpc.gcs.telemetry import TargetFix, TelemetrySink, samples_of, target_state_event
 from fleetmpc.onboard.telemetry_streams import MAX_BOOT_MS
 from fleetmpc.protocol.local_frame import ned_from_geodetic, quaternion_yaw
 from fleetmpc.protocol.mavlink_map import (
@@ -108,6 +108,8 @@ class GroundStation:
         """(fleet time [ns] or None, wall time [ns], level, text) of the events not logged
         yet: None for one that happened on the wall clock (a mode change, a STATUSTEXT), placed
         on the fleet clock once it has an epoch (`_timed_events`)."""
+        self._observations: list[TargetFix] = []
+        """Target observations received and not logged yet."""
         self.run_info = {
             "learning": scenario.learning.enabled,
             "feasible": check_scenario(scenario).feasible,
@@ -265,6 +267,8 @@ class GroundStation:
                 self.live.add_status(message)
             elif isinstance(message, TargetObservation):
                 self.live.add_target(message)
+                fix = TargetFix(message.stamp_ns, message.north_m, message.east_m)
+                self._observations.append(fix)
 
     def _target_event(self, message: StatusMessage) -> None:
         """An event when a vehicle's formation starts following something else than before: the
@@ -273,8 +277,7 @@ class GroundStation:
         state = message.status.target_state
         was = TargetState.TRACKING if before is None else before.status.target_state
         if state != was and (before is None or message.stamp_ns > before.stamp_ns):
-            level = "INFO" if state in (TargetState.TRACKING, TargetState.REACQUIRING) else "WARN"
-            text = f"UAV {message.sender_id}: target {state.name.lower()}"
+            level, text = target_state_event(message.sender_id, state.name.lower())
             self._events.append((message.stamp_ns, time.time_ns(), level, text))
 
     # -- telemetry --------------------------------------------------------------------------------
@@ -307,11 +310,12 @@ class GroundStation:
         }
 
     def flush(self, *, final: bool = False) -> None:
-        """Give the sinks what arrived since the last flush: the events, and the samples of the
-        periods completed since then; then flush them (the last flush of a run leaves that to
-        `close_sinks`)."""
+        """Give the sinks what arrived since the last flush: the events, the target
+        observations, and the samples of the periods completed since then; then flush them
+        (the last flush of a run leaves that to `close_sinks`)."""
         self.drain_bus()
         events = self._timed_events(final=final)
+        observations, self._observations = self._observations, []
         done = min(self.live.complete_periods(), self.periods)
         if not self.sinks:
             self.logged_periods = done
@@ -325,6 +329,7 @@ class GroundStation:
         for sink in self.sinks:
             for event in events:
                 sink.event(*event)
+            sink.observe(observations)
             sink.log(samples)
             if not final:
                 sink.flush()

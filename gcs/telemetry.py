@@ -20,7 +20,7 @@ type: the same entities, read back into the same record (`fleetmpc.gcs.rrd_reade
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -33,11 +33,13 @@ __all__ = [
     "MemorySink",
     "PeriodSample",
     "RerunSink",
+    "TargetFix",
     "TelemetrySink",
     "add_telemetry_argument",
     "open_sink",
     "record_of",
     "samples_of",
+    "target_state_event",
     "write_recording",
 ]
 
@@ -46,6 +48,22 @@ FLUSH_S = 4.0
 """Default seconds of flight between two flushes of a run's sinks (a live ground station's and
 the lockstep simulation's): 20 control periods of the paper's 0.2 s (`fleetmpc bench
 --gcs-logging` compares intervals)."""
+
+
+class TargetFix(NamedTuple):
+    """A target observation as the fleet received it (before any filter)."""
+
+    t_ns: int
+    """Its time on the fleet clock [ns]."""
+    north_m: float
+    east_m: float
+
+
+def target_state_event(vehicle_id: int, state: str) -> tuple[str, str]:
+    """The level and text of the event that a vehicle's target state changed to `state`
+    (tracking, predicting, holding, reacquiring: docs/design.md, "Target lost")."""
+    level = "INFO" if state in ("tracking", "reacquiring") else "WARN"
+    return level, f"UAV {vehicle_id}: target {state}"
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,6 +173,10 @@ class TelemetrySink(Protocol):
         """An event at t_ns: level "INFO" or "WARN"."""
         ...
 
+    def observe(self, observations: Sequence[TargetFix]) -> None:
+        """Target observations as the fleet received them, each at its own time."""
+        ...
+
     def flush(self) -> None:
         """Pass on what was logged so far (a live viewer shows it)."""
         ...
@@ -177,6 +199,7 @@ class MemorySink:
         self.run_info: dict = {}
         self.samples: list[PeriodSample] = []
         self.events: list[tuple[int, str, str]] = []
+        self.observations: list[TargetFix] = []
         self.run_end: dict = {}
 
     def open(self, constants: RunConstants, run_info: dict) -> None:
@@ -187,6 +210,9 @@ class MemorySink:
 
     def event(self, t_ns: int, level: str, text: str) -> None:
         self.events.append((t_ns, level, text))
+
+    def observe(self, observations: Sequence[TargetFix]) -> None:
+        self.observations.extend(observations)
 
     def flush(self) -> None:
         pass
@@ -239,6 +265,7 @@ class RerunSink:
         self._series_started = False
         self._flushes = 0
         self._events: list[tuple[int, str, str]] = []
+        self._observations: list[TargetFix] = []
 
     def open(self, constants: RunConstants, run_info: dict) -> None:
         self._constants = constants
@@ -254,9 +281,14 @@ class RerunSink:
     def event(self, t_ns: int, level: str, text: str) -> None:
         self._events.append((t_ns, level, text))
 
+    def observe(self, observations: Sequence[TargetFix]) -> None:
+        self._observations.extend(observations)
+
     def _send(self, *, series: bool) -> None:
         events, self._events = self._events, []
         recording.log_events(self.stream, events)
+        observations, self._observations = self._observations, []
+        recording.log_target_observations(self.stream, observations)
         if self._map:
             # From the last period logged, when there is one: the trail's first step starts there.
             head = [self._last] if self._last is not None else []

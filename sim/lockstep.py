@@ -19,10 +19,18 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord, RunConstants
-from fleetmpc.gcs.telemetry import FLUSH_S, PeriodSample, TelemetrySink, record_of
+from fleetmpc.gcs.telemetry import (
+    FLUSH_S,
+    PeriodSample,
+    TargetFix,
+    TelemetrySink,
+    record_of,
+    target_state_event,
+)
 from fleetmpc.onboard.core.agent import reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
+from fleetmpc.onboard.core.target_watch import TRACKING
 from fleetmpc.onboard.faults import FaultSchedule
 from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
 from fleetmpc.protocol.messages import TARGET_ID
@@ -127,6 +135,8 @@ def _fly(
     target_bus = InMemoryPlanBus(hub, fleet=sc.name, vehicle_id=TARGET_ID)
     """The target's observations reach the agents on the plan bus too, as in a live fleet."""
     setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
+    target_states = [TRACKING] * n
+    """Each agent's target state (tracking, predicting, ...) as last logged."""
     samples: list[PeriodSample] = []
     min_sep = np.inf
     upper = np.triu_indices(n, 1)
@@ -135,6 +145,7 @@ def _fly(
         t_s = t_ns * 1e-9
         tgt_pos, tgt_vel = sc.target.state_at(t_s)
         observations = feed.due(t_ns)
+        _observe(sinks, observations)
         for stamp_ns, obs in observations:
             if ground_target is not None:
                 ground_target.observe(stamp_ns, obs)
@@ -149,6 +160,7 @@ def _fly(
         measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants)]
         truths = np.array([_truth(p) for p in plants])
         outs, published = pool.step(t_ns, measurements, list(truths) if known_model else None)
+        _log_target_states(sinks, t_ns, ids, [o for o, _ in outs], target_states)
         centre, course = truth_reference.follow(
             tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
         )
@@ -206,6 +218,26 @@ def _fly(
         sink.close()
     target_bus.close()
     return record_of(constants, samples, network=network)
+
+
+def _observe(sinks: Sequence[TelemetrySink], observations: list) -> None:
+    """The target's observations (fleet time [ns], North and East [m]) as the agents get them."""
+    if sinks and observations:
+        fixes = [TargetFix(t_ns, float(obs[0]), float(obs[1])) for t_ns, obs in observations]
+        for sink in sinks:
+            sink.observe(fixes)
+
+
+def _log_target_states(
+    sinks: Sequence[TelemetrySink], t_ns: int, ids: tuple[int, ...], outs: list, states: list[str]
+) -> None:
+    """An event for each agent whose target state changed this period (`states`: each one's
+    state before it, updated), as a live ground station logs it from the agents' statuses."""
+    for i, out in enumerate(outs):
+        if out.target_state != states[i]:
+            states[i] = out.target_state
+            for sink in sinks:
+                sink.event(t_ns, *target_state_event(ids[i], out.target_state))
 
 
 def _network_report(

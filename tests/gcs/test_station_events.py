@@ -3,8 +3,15 @@
 from pymavlink.dialects.v20 import common as mavlink
 
 from fleetmpc.gcs.station import GroundStation
-from fleetmpc.gcs.telemetry import MemorySink
+from fleetmpc.gcs.telemetry import MemorySink, TargetFix
 from fleetmpc.protocol.mavlink_map import Autopilot
+from fleetmpc.protocol.messages import (
+    TARGET_ID,
+    StatusMessage,
+    TargetObservation,
+    TargetState,
+    VehicleStatus,
+)
 
 
 def test_events_before_the_fleet_clock_carry_their_own_time(paper):
@@ -37,3 +44,25 @@ def test_events_of_a_fleet_that_never_started_are_not_lost(paper):
     gs.close_sinks()
     ((t_ns, level, text),) = sink.events
     assert level == "WARN" and text == "UAV 2: no MAVLink for 3 s" and t_ns < 0
+
+
+def test_target_observations_reach_the_recording_as_received(paper):
+    """Each observation heard on the bus goes to the sinks once, at its own time and where it
+    was, with or without periods to log; a state change of a vehicle's target is an event."""
+    gs = GroundStation(paper, speed=1.0, duration_s=5.0)
+    sink = MemorySink()
+    gs.open_sinks([sink])
+    gs.set_epoch(1_000_000_000_000)
+    for seq, stamp_ns in enumerate((200_000_000, 400_000_000)):
+        obs = TargetObservation(
+            sender_id=TARGET_ID, seq=seq, stamp_ns=stamp_ns, north_m=5.0 + seq, east_m=-2.0
+        )
+        gs.inbox.put(obs)
+    gs.flush()
+    gs.flush()
+    want = [TargetFix(200_000_000, 5.0, -2.0), TargetFix(400_000_000, 6.0, -2.0)]
+    assert sink.observations == want
+    status = VehicleStatus(target_state=TargetState.PREDICTING)
+    gs.inbox.put(StatusMessage(sender_id=2, seq=0, stamp_ns=600_000_000, status=status))
+    gs.flush()
+    assert sink.events == [(600_000_000, "WARN", "UAV 2: target predicting")]

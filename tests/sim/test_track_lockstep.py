@@ -7,7 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun as rr
 
+from fleetmpc.gcs.blueprint import TIMELINE
+from fleetmpc.gcs.recording import map_from_ned
+from fleetmpc.gcs.telemetry import MemorySink, RerunSink
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 from fleetmpc.targets.track import RecordedTrack
@@ -22,20 +26,35 @@ def _slot_errors(record) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def walk():
+def walk(tmp_path_factory):
+    """The walk flown once, recorded: (scenario, record, the recording's path)."""
     sc = load_scenario(WALK)
-    return sc, run_lockstep(sc)
+    rrd = tmp_path_factory.mktemp("walk") / "walk.rrd"
+    return sc, run_lockstep(sc, sinks=[RerunSink(path=rrd)]), rrd
+
+
+def _entity_rows(rrd: Path, entity: str, component: str) -> tuple[np.ndarray, list]:
+    """The times [ns] and values of an entity's temporal rows in a recording."""
+    times, values = [], []
+    for chunk in rr.chunk.RrdReader(rrd).stream():
+        if chunk.entity_path == entity and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            column = batch.column(batch.schema.get_field_index(TIMELINE))
+            times.extend(column.cast("int64").to_pylist())
+            values.extend(batch.column(batch.schema.names.index(component)).to_pylist())
+    order = np.argsort(times, kind="stable")
+    return np.array(times)[order], [values[k] for k in order]
 
 
 def test_the_walk_has_its_dropout(walk):
-    sc, _ = walk
+    sc, _, _ = walk
     gaps = np.diff(sc.target.times_s)
     (k,) = np.flatnonzero(gaps > 1.0)
     assert sc.target.times_s[k] == pytest.approx(64.8) and gaps[k] == pytest.approx(5.2)
 
 
 def test_walk_with_a_dropout_meets_its_gates(walk):
-    sc, record = walk
+    sc, record, _ = walk
     err, t = _slot_errors(record), record.t_s
     assert record.min_separation_m >= sc.controller.d_safe_m
     dropout = (t >= 64.8) & (t <= 70.0)
@@ -44,6 +63,33 @@ def test_walk_with_a_dropout_meets_its_gates(walk):
     assert err[back].max() < 0.2  # (measured: 0.15 m)
     after = (t >= 80.0) & (t <= 82.0)
     assert np.sqrt(np.mean(err[after] ** 2)) < 0.2
+
+
+def test_the_recording_shows_the_raw_fixes_the_filtered_target_and_the_lost_states(walk):
+    """Every fix at its own time and where it was (the dropout a gap), the ground side's
+    filtered target at every period from the first fix, and each vehicle's target state as it
+    changes: predicting 2 s into the dropout, reacquiring at the first fix after it, tracking
+    once the glide back is over."""
+    sc, record, rrd = walk
+    t_ns, fixes = _entity_rows(rrd, "/map/target_observations", "Points2D:positions")
+    flown = sc.target.times_s <= record.t_s[-1]
+    want_t = np.round(sc.target.times_s[flown] * 1e9).astype(np.int64)
+    assert np.array_equal(t_ns, want_t)
+    got = np.array([row[0] for row in fixes])  # (one point a row)
+    assert np.allclose(got, map_from_ned(sc.target.positions_m[flown]), atol=1e-3)
+    assert np.diff(t_ns).max() == pytest.approx(5.2e9)
+    period_t, _ = _entity_rows(rrd, "/map/target_estimate", "Points2D:positions")
+    assert np.array_equal(period_t, np.round(record.t_s * 1e9).astype(np.int64))
+    event_t, texts = _entity_rows(rrd, "/events", "TextLog:text")
+    lost_s, glide_s = sc.controller.target_lost_s, sc.controller.target_reacquire_s
+    for v in sc.vehicle_ids:
+        mine = f"UAV {v}: target"
+        states = [(t * 1e-9, x[0]) for t, x in zip(event_t, texts, strict=True) if mine in x[0]]
+        assert [text.split()[-1] for _, text in states] == ["predicting", "reacquiring", "tracking"]
+        (predicting, _), (reacquiring, _), (tracking, _) = states
+        assert predicting == pytest.approx(64.8 + lost_s, abs=0.2 + 1e-9)
+        assert reacquiring == pytest.approx(70.0, abs=0.2 + 1e-9)
+        assert tracking == pytest.approx(70.0 + glide_s, abs=0.2 + 1e-9)
 
 
 def _line_with_a_long_gap() -> RecordedTrack:
@@ -66,9 +112,13 @@ def test_a_long_dropout_holds_the_formation_then_reacquires():
         ),
         duration_s=100.0,
     )
-    record = run_lockstep(sc)
+    sink = MemorySink()
+    record = run_lockstep(sc, sinks=[sink])
     t, xy = record.t_s, record.truth[:, :, :2]
     predict_s = sc.controller.target_predict_s
+    states = [text.split(": target ")[1] for _, _, text in sink.events if ": target " in text]
+    cycle = ["predicting", "holding", "reacquiring", "tracking"]
+    assert states == [state for state in cycle for _ in sc.vehicle_ids]
     assert record.min_separation_m >= sc.controller.d_safe_m
     # Held: from 10 s after the prediction ends (the vehicles have stopped, and turned into the
     # wind to stand) until the fixes resume, they stand, each at its slot about the held target:
