@@ -17,7 +17,10 @@ __all__ = ["entry", "main"]
 
 # subcommand -> (module, one-line help)
 _COMMANDS: dict[str, tuple[str, str]] = {
-    "check": ("fleetmpc.gcs.check", "feasibility report of a scenario, before anything flies"),
+    "check": (
+        "fleetmpc.check.feasibility",
+        "feasibility report of a scenario, before anything flies",
+    ),
     "sim": ("fleetmpc.sim.simulate", "in-process lockstep simulation of a whole fleet"),
     "bench": (
         "fleetmpc.bench.step",
@@ -57,7 +60,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
         "fleetmpc.launch.compose",
         "the fleet as a docker compose file (one service per process)",
     ),
-    "keys": ("fleetmpc.launch.keys", "a fleet's secrets: one MAVLink signing key per vehicle"),
+    "keys": ("fleetmpc.security.secrets", "a fleet's secrets: one MAVLink signing key per vehicle"),
     "real-autopilots": (
         "fleetmpc.launch.real_autopilots",
         "the fleet measured against real PX4 and ArduCopter SITLs (built by their projects)",

@@ -45,6 +45,7 @@ import threading
 import time
 from pathlib import Path
 
+from fleetmpc.bus.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.station import GroundStation, gate_failures
@@ -55,12 +56,11 @@ from fleetmpc.gcs.telemetry import (
     add_telemetry_argument,
     open_sink,
 )
-from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
-from fleetmpc.protocol.mavlink_signing import KeyRing, read_key_options
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
 )
 from fleetmpc.scenario import flight_time, load_scenario
+from fleetmpc.security.mavlink_signing import KeyRing, read_key_options
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402

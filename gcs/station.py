@@ -11,8 +11,8 @@ import queue
 import time
 from dataclasses import dataclass
 
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.clock import ClockSync, FleetClock
-from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.live import LiveRecord
 from fleetmpc.gcs.metrics import judged_metrics
 from fleetmpc.gcs.telemetry import TargetFix, TelemetrySink, samples_of, target_state_event

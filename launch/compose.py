@@ -42,8 +42,8 @@ from pathlib import Path, PurePosixPath
 from fleetmpc.errors import ConfigError
 from fleetmpc.launch.fleet import FleetOptions, ProcessSpec, fleet_processes
 from fleetmpc.network import mavlink_url
-from fleetmpc.protocol.zenoh_security import ZenohSecurity
 from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.security.zenoh_security import ZenohSecurity
 
 __all__ = [
     "ComposeOptions",

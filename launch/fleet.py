@@ -10,8 +10,8 @@ member is a client of the one router (peers do not relay for each other with gos
 process is given an epoch: the ground station announces it on the bus once every vehicle is
 engaged, and the target and the agents wait for it (`--wait-epoch`).
 
-Secrets (`FleetOptions.secrets_dir`, made by `fleetmpc.launch.keys`): the router gets the folder
-(its users, access list and TLS certificate), every bus member its own Zenoh client config
+Secrets (`FleetOptions.secrets_dir`, made by `fleetmpc.security.secrets`): the router gets the
+folder (its users, access list and TLS certificate), every bus member its own Zenoh client config
 (``--zenoh-config``: its user, password and the run's CA) instead of ``--zenoh-connect``; each
 simulated vehicle's SITL and agent get that vehicle's MAVLink signing key file, the ground
 station each of them (``--mavlink-key ID=FILE``); a vehicle flown on an external autopilot
@@ -25,11 +25,11 @@ from pathlib import PurePath
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.network import vehicle_host
-from fleetmpc.protocol.mavlink_signing import key_file_name
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.zenoh_access import zenoh_user
-from fleetmpc.protocol.zenoh_security import ZenohSecurity
 from fleetmpc.scenario import Scenario
+from fleetmpc.security.mavlink_signing import key_file_name
+from fleetmpc.security.zenoh_access import zenoh_user
+from fleetmpc.security.zenoh_security import ZenohSecurity
 
 __all__ = ["FleetOptions", "ProcessSpec", "auto_vehicles_per_sitl", "fleet_processes"]
 
@@ -77,7 +77,7 @@ class FleetOptions:
     """Vehicle id -> MAVLink URL of an autopilot outside the fleet (a real PX4 or ArduPilot, or
     their SITL): that vehicle's agent flies it, and no simulated vehicle is started for it."""
     secrets_dir: str | None = None
-    """The folder of the run's secrets (`fleetmpc.launch.keys`) as the processes see it; None:
+    """The folder of the run's secrets (`fleetmpc.security.secrets`) as the processes see it; None:
     an insecure fleet (unsigned MAVLink)."""
     connect_timeout_s: float | None = None
     """Wall seconds each agent waits for its autopilot's HEARTBEAT and first pose (``fleetmpc

@@ -1,6 +1,6 @@
 """Process faults of a live fleet: what `fleetmpc up --faults FILE` does to its processes.
 
-The fault file's process faults (`fleetmpc.onboard.faults`, kinds freeze, kill and restart) each
+The fault file's process faults (`fleetmpc.bus.faults`, kinds freeze, kill and restart) each
 name a process of the launch (``agent-2``, ``sitl-3``, ``zenoh-router``, ``gcs``, ...) and a
 start in fleet time:
 - freeze: SIGSTOP, then SIGCONT `duration_s` later (a stalled process: every thread stops);
@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from fleetmpc.onboard.faults import Fault
+from fleetmpc.bus.faults import Fault
 
 __all__ = ["ProcessFaults"]
 

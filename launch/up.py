@@ -16,7 +16,7 @@ HOLD) and the target, then the SITLs and the router; anything still alive after 
 is killed. Nothing this launcher started outlives it (a viewer spawned with ``--viewer spawn`` is
 the user's window and stays open).
 
-Security is on by default: the run's secrets (`fleetmpc.launch.keys`: a MAVLink signing key per
+Security is on by default: the run's secrets (`fleetmpc.security.secrets`: a MAVLink signing key per
 vehicle, the Zenoh bus's users, access list and certificates) are made fresh in
 ``<run-dir>/secrets`` (mode 0700) unless ``--keys DIR`` names a set; each process is given the
 paths of its own. ``--insecure`` flies without them.
@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
+from fleetmpc.bus.faults import LINK_KINDS, FaultSchedule, load_faults
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
 from fleetmpc.gcs.metrics import format_summary
@@ -52,12 +53,11 @@ from fleetmpc.launch.fleet import (
     auto_vehicles_per_sitl,
     fleet_processes,
 )
-from fleetmpc.launch.keys import check_keys, make_keys
 from fleetmpc.launch.process_faults import ProcessFaults
 from fleetmpc.launch.status_view import StatusView
-from fleetmpc.onboard.faults import LINK_KINDS, FaultSchedule, load_faults
-from fleetmpc.protocol.zenoh_security import MANIFEST_NAME
 from fleetmpc.scenario import flight_time, load_scenario
+from fleetmpc.security.secrets import check_keys, make_keys
+from fleetmpc.security.zenoh_security import MANIFEST_NAME
 
 __all__ = ["add_arguments", "run"]
 

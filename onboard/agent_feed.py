@@ -7,8 +7,8 @@ import dataclasses
 
 import numpy as np
 
+from fleetmpc.bus.planbus import PlanBus
 from fleetmpc.onboard.core.agent import Agent
-from fleetmpc.onboard.planbus import PlanBus
 from fleetmpc.scenario import Scenario, VehicleSpec
 
 __all__ = ["TargetFeed", "agent_for", "listen_for"]

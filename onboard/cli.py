@@ -25,17 +25,17 @@ import threading
 import time
 from pathlib import Path
 
+from fleetmpc.bus.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
+from fleetmpc.bus.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.clock import FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.network import mavlink_url
 from fleetmpc.onboard.agent_feed import agent_for
 from fleetmpc.onboard.autopilot_link import AutopilotLinkError, open_autopilot_link
-from fleetmpc.onboard.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
-from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import COMMAND_LIFETIME_PERIODS, SetpointStreamer, wind_down
-from fleetmpc.protocol.mavlink_signing import read_key_file
 from fleetmpc.scenario import load_scenario
+from fleetmpc.security.mavlink_signing import read_key_file
 
 __all__ = ["add_arguments", "run"]
 

@@ -25,8 +25,8 @@ import threading
 import time
 from collections.abc import Callable
 
+from fleetmpc.bus.faults import LinkFaults
 from fleetmpc.onboard.autopilot_link import AutopilotLink, AutopilotLinkError, LinkState
-from fleetmpc.onboard.faults import LinkFaults
 from fleetmpc.onboard.local_origin import OriginShift
 from fleetmpc.onboard.telemetry_streams import (
     GLOBAL_FIX_INTERVAL_US,
@@ -57,7 +57,7 @@ from fleetmpc.protocol.mavlink_setpoint import (
     encode_setpoint,
     setpoint_message_args,
 )
-from fleetmpc.protocol.mavlink_signing import SigningGuard, sign_outgoing
+from fleetmpc.security.mavlink_signing import SigningGuard, sign_outgoing
 
 __all__ = ["MavlinkAutopilotLink"]
 

@@ -37,12 +37,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fleetmpc.bus.planbus import PlanBus
 from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.agent_feed import TargetFeed, listen_for
 from fleetmpc.onboard.autopilot_link import AutopilotLink, LinkState
 from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
-from fleetmpc.onboard.planbus import PlanBus
 from fleetmpc.onboard.setpoints import SetpointStreamer, gap_stats_ms
 from fleetmpc.protocol.mavlink_map import FlightMode
 from fleetmpc.protocol.messages import (

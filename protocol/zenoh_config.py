@@ -23,7 +23,7 @@ Examples: ``zenoh://127.0.0.1:7447?mode=client`` (client of a router),
 
 Processes of a fleet take their options from the command line with `options_from_args`: a
 config file (on a secured bus, the process's ``zenoh-<user>.json5`` of
-`fleetmpc.protocol.zenoh_security`), or ``--zenoh-connect HOST:PORT[,...]`` (a client of a
+`fleetmpc.security.zenoh_security`), or ``--zenoh-connect HOST:PORT[,...]`` (a client of a
 router), or by default a member of the fleet's full peer mesh on the scenario's ``network.host``
 and ``network.zenoh_port`` (`peer_mesh_index`: the vehicles in scenario order, then the target,
 then the ground station).
@@ -41,7 +41,7 @@ import zenoh
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.private_files import check_private
+from fleetmpc.security.private_files import check_private
 
 RECONNECT_RETRY = '{"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}'
 """Zenoh's connect/retry: how often a member tries its router again once it is lost."""
@@ -115,7 +115,7 @@ def load_config_file(path: str, *, field: str) -> zenoh.Config:
 
 @dataclass(frozen=True)
 class MeshLogin:
-    """How a member of a peer mesh authenticates (`fleetmpc.protocol.zenoh_security`): with the
+    """How a member of a peer mesh authenticates (`fleetmpc.security.zenoh_security`): with the
     user and password of its client config file, and it lets in only the users of a dictionary
     file. Only paths: the password is read when the session opens, never kept or printed."""
 
@@ -147,7 +147,7 @@ class ZenohOptions:
     config_file: str | None = None
     """A Zenoh JSON5 config file used as the base; mode and endpoints given here override it,
     and scouting is turned off regardless. Its other sections are kept, e.g. the user, password
-    and TLS files of a secured bus (``zenoh-<user>.json5``, `fleetmpc.protocol.zenoh_security`)."""
+    and TLS files of a secured bus (``zenoh-<user>.json5``, `fleetmpc.security.zenoh_security`)."""
     login: MeshLogin | None = None
     """Authentication of a peer-mesh member (user/password, and the users it lets in)."""
     connect_wait_s: float = CONNECT_WAIT_S

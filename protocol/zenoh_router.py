@@ -5,7 +5,7 @@ it is given (loopback by default) and never scouts.
 
     python -m fleetmpc.protocol.zenoh_router --port 7447
 
-With ``--security DIR`` (a directory of `fleetmpc.protocol.zenoh_security.make_zenoh_security`)
+With ``--security DIR`` (a directory of `fleetmpc.security.zenoh_security.make_zenoh_security`)
 every session must log in as one of the fleet's users, the fleet's access list applies, and the
 router listens on ``tls/HOST:PORT`` if the directory has TLS material; HOST and PORT default to
 the directory's router address. Clients then connect with ``--zenoh-config DIR/zenoh-<user>.json5``.
@@ -21,7 +21,7 @@ import zenoh
 
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.zenoh_config import DEFAULT_HOST, DEFAULT_PORT, disable_scouting, endpoint
-from fleetmpc.protocol.zenoh_security import ZenohSecurity, router_security_config
+from fleetmpc.security.zenoh_security import ZenohSecurity, router_security_config
 
 __all__ = ["main", "open_router", "router_config", "serve"]
 
@@ -34,9 +34,9 @@ def router_config(
 ) -> zenoh.Config:
     """Config of a router listening on tcp/HOST:PORT, connecting nowhere, scouting off.
 
-    With `security` (a directory of `fleetmpc.protocol.zenoh_security.make_zenoh_security`):
+    With `security` (a directory of `fleetmpc.security.zenoh_security.make_zenoh_security`):
     users and passwords, the fleet's access list, and tls/HOST:PORT if it has TLS material
-    (`fleetmpc.protocol.zenoh_security.router_security_config`).
+    (`fleetmpc.security.zenoh_security.router_security_config`).
     """
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ConfigError("port", f"must be a port number, got {port!r}")

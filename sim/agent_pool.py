@@ -26,10 +26,10 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from fleetmpc.bus.faults import FaultLayer, FaultSchedule
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHub
 from fleetmpc.onboard.agent_feed import TargetFeed, agent_for, listen_for
 from fleetmpc.onboard.core.agent import Agent, AgentInput, AgentOutput
-from fleetmpc.onboard.faults import FaultLayer, FaultSchedule
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
 from fleetmpc.onboard.runner import RunnerSettings
 from fleetmpc.scenario import Scenario
 

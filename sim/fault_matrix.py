@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fleetmpc.bus.faults import FaultSchedule, load_faults
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.onboard.faults import FaultSchedule, load_faults
 from fleetmpc.scenario import load_scenario, toml_files
 from fleetmpc.sim.lockstep import run_lockstep
 

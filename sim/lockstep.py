@@ -3,8 +3,8 @@
 Each period every agent steps on its own noisy measurement, the latest target observation and the
 neighbours' plans as its plan bus has them (Dunbar & Murray's assumed trajectories), then
 publishes its plan, and the plants fly the commands for one period of plant ticks. The plans
-travel through the in-memory plan bus (`fleetmpc.onboard.memory_planbus`), encoded and decoded as
-on the wire, each bus behind its vehicle's `fleetmpc.onboard.faults.FaultLayer` when the run has
+travel through the in-memory plan bus (`fleetmpc.bus.memory`), encoded and decoded as
+on the wire, each bus behind its vehicle's `fleetmpc.bus.faults.FaultLayer` when the run has
 faults: without faults every plan arrives at the next period, as a perfect network would deliver
 it. Deterministic for a seed.
 
@@ -18,6 +18,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from fleetmpc.bus.faults import FaultSchedule
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHub
 from fleetmpc.gcs.record import FlightRecord, RunConstants
 from fleetmpc.gcs.telemetry import (
     FLUSH_S,
@@ -31,8 +33,6 @@ from fleetmpc.onboard.core.agent import reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.core.target_watch import TRACKING
-from fleetmpc.onboard.faults import FaultSchedule
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
 from fleetmpc.sim.agent_pool import COUNTED, AgentPool, build_agents

@@ -6,13 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
+from fleetmpc.bus.faults import load_faults
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.errors import ConfigError
-from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.figures import write_figures
 from fleetmpc.gcs.metrics import compute_metrics, format_summary
 from fleetmpc.gcs.progress import ProgressBar
 from fleetmpc.gcs.telemetry import add_telemetry_argument, open_sink
-from fleetmpc.onboard.faults import load_faults
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 

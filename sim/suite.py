@@ -48,10 +48,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from fleetmpc.bus.faults import FaultSchedule
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.errors import ConfigError
-from fleetmpc.gcs.check import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.onboard.faults import FaultSchedule
 from fleetmpc.scenario import Scenario, load_scenario, toml_files
 from fleetmpc.sim import engine, fault_matrix
 from fleetmpc.sim.engine import Finished, run_tasks

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fleetmpc.bus.faults import FaultSchedule, parse_faults
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.faults import FaultSchedule, parse_faults
 from fleetmpc.scenario import Scenario, parse_scenario
 
 __all__ = [

@@ -33,8 +33,8 @@ from pathlib import Path
 from fleetmpc.clock import RealTimeClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.network import vehicle_host
-from fleetmpc.protocol.mavlink_signing import read_key_file
 from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario
+from fleetmpc.security.mavlink_signing import read_key_file
 from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
 from fleetmpc.sitl.telemetry import HEARTBEAT_ID, PX4_GCS_RATES_HZ, PX4_ONBOARD_RATES_HZ
 from fleetmpc.sitl.vehicle_group import serve_vehicles

@@ -34,7 +34,8 @@ import numpy as np
 from fleetmpc.clock import Clock
 from fleetmpc.errors import ConfigError
 from fleetmpc.protocol.mavlink_map import Autopilot as AutopilotType
-from fleetmpc.protocol.mavlink_signing import (
+from fleetmpc.scenario import Site, VehicleSpec
+from fleetmpc.security.mavlink_signing import (
     KEY_BYTES,
     MAX_SIGNING_TIMESTAMP,
     SigningGuard,
@@ -42,7 +43,6 @@ from fleetmpc.protocol.mavlink_signing import (
     sign_outgoing,
     stop_signing,
 )
-from fleetmpc.scenario import Site, VehicleSpec
 from fleetmpc.sitl.autopilot import Autopilot, AutopilotConfig, Profile
 from fleetmpc.sitl.handlers import MessageHandler
 from fleetmpc.sitl.mavlink_io import (

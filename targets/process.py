@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
+from fleetmpc.bus.open_bus import add_bus_arguments, open_fleet_bus
+from fleetmpc.bus.planbus import PlanBus
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.open_bus import add_bus_arguments, open_fleet_bus
-from fleetmpc.onboard.planbus import PlanBus
-from fleetmpc.protocol.keys import epoch_key
+from fleetmpc.protocol.key_expressions import epoch_key
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario, load_scenario
 from fleetmpc.targets.pipeline import Observation, ObservationPipeline

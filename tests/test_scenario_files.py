@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleetmpc.gcs.check import check_scenario
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.scenario import Scenario, load_scenario
 

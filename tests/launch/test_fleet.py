@@ -154,7 +154,7 @@ def test_a_launch_groups_sitls_once_vehicles_times_speed_exceeds_twelve(vehicles
 
 
 def test_up_refuses_another_fleets_secrets_naming_the_option(tmp_path):
-    from fleetmpc.launch.keys import check_keys, make_keys
+    from fleetmpc.security.secrets import check_keys, make_keys
 
     paper = load_scenario(ROOT / "scenarios" / "paper.toml")
     wedge = load_scenario(ROOT / "scenarios" / "wedge-circle.toml")

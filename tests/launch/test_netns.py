@@ -22,8 +22,8 @@ from pathlib import Path
 import pytest
 
 from fleetmpc.launch.fleet import FleetOptions, fleet_processes
-from fleetmpc.launch.keys import make_keys
 from fleetmpc.scenario import load_scenario
+from fleetmpc.security.secrets import make_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "scenarios" / "paper.toml"

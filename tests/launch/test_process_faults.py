@@ -11,8 +11,8 @@ import time
 
 import pytest
 
+from fleetmpc.bus.faults import Fault
 from fleetmpc.launch.process_faults import ProcessFaults
-from fleetmpc.onboard.faults import Fault
 
 PROCESSES = ("zenoh-router", "target", "sitl-1", "agent-1", "agent-2", "gcs")
 

@@ -13,7 +13,7 @@ from helpers import scenario_on_free_ports
 from test_up import PAPER, launch  # noqa: F401 (the fixture)
 
 from fleetmpc.protocol.codec import decode, encode
-from fleetmpc.protocol.keys import epoch_key, plan_key
+from fleetmpc.protocol.key_expressions import epoch_key, plan_key
 from fleetmpc.protocol.messages import FleetEpoch, PlanMessage
 from fleetmpc.protocol.plan import Plan
 from fleetmpc.protocol.zenoh_config import connect_timeout

@@ -6,7 +6,7 @@ import time
 
 from helpers import free_port_block
 
-from fleetmpc.onboard.open_bus import open_plan_bus
+from fleetmpc.bus.open_bus import open_plan_bus
 from fleetmpc.protocol.messages import GROUND_STATION_ID
 from fleetmpc.protocol.zenoh_router import open_router
 

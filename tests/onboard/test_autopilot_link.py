@@ -399,13 +399,13 @@ def test_a_signed_link_flies_a_signed_vehicle_and_ignores_forged_telemetry() -> 
     wrong key with a far-future timestamp) claiming the vehicle left offboard change nothing,
     and the real stream is still heard after them."""
     from fleetmpc.clock import RealTimeClock
-    from fleetmpc.protocol.mavlink_signing import (
+    from fleetmpc.scenario import load_scenario
+    from fleetmpc.security.mavlink_signing import (
         Rejection,
         key_from_passphrase,
         sign_outgoing,
         signing_timestamp,
     )
-    from fleetmpc.scenario import load_scenario
     from fleetmpc.sitl.autopilot import AutopilotConfig, Profile
     from fleetmpc.sitl.mavlink_io import MavlinkEncoder
     from fleetmpc.sitl.vehicle_group import serve_vehicles

@@ -50,7 +50,7 @@ from pymavlink import mavutil  # noqa: E402
 from fleetmpc.gcs.metrics import compute_metrics  # noqa: E402
 from fleetmpc.launch.fleet import FleetOptions, fleet_processes  # noqa: E402
 from fleetmpc.protocol.codec import SCHEMA_VERSION, DecodeError, decode, encode  # noqa: E402
-from fleetmpc.protocol.keys import epoch_key, plan_key  # noqa: E402
+from fleetmpc.protocol.key_expressions import epoch_key, plan_key  # noqa: E402
 from fleetmpc.protocol.local_frame import ned_from_geodetic  # noqa: E402
 from fleetmpc.protocol.mavlink_map import Autopilot, FlightMode, ModeFlag, mode_from_custom  # noqa: E402
 from fleetmpc.protocol.messages import FleetEpoch, MessageKind, PlanMessage, RejectReason  # noqa: E402

@@ -12,11 +12,11 @@ import threading
 import numpy as np
 import pytest
 
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHubs
 from fleetmpc.clock import FleetClock
 from fleetmpc.onboard.core.agent import AgentInput
 from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, advance
 from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import SetpointStreamer
 from fleetmpc.protocol.mavlink_map import FlightMode

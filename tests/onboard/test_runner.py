@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHubs
 from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import SetpointStreamer, gap_stats_ms, wind_down
 from fleetmpc.protocol.mavlink_map import FlightMode

@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.keys import (
+from fleetmpc.protocol.key_expressions import (
     KeyFormatError,
     ParsedKey,
     all_plans_key,

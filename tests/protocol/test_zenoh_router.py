@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from helpers import free_port, router_process, wait_until
 
+from fleetmpc.bus.open_bus import open_plan_bus
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.open_bus import open_plan_bus
 from fleetmpc.protocol.plan import Plan
 from fleetmpc.protocol.zenoh_router import open_router, router_config
 

@@ -21,14 +21,19 @@ import zenoh
 from helpers import free_port, router_process, wait_until
 from test_zenoh_router import PERIOD_NS, make_plan
 
+from fleetmpc.bus.open_bus import open_plan_bus
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.open_bus import open_plan_bus
-from fleetmpc.protocol.keys import epoch_key, plan_key, status_key, target_observation_key
+from fleetmpc.protocol.key_expressions import (
+    epoch_key,
+    plan_key,
+    status_key,
+    target_observation_key,
+)
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.protocol.zenoh_access import fleet_access_control, zenoh_user
 from fleetmpc.protocol.zenoh_config import ZenohOptions, connect_timeout
 from fleetmpc.protocol.zenoh_router import open_router, router_config
-from fleetmpc.protocol.zenoh_security import ZenohSecurity, make_zenoh_security
+from fleetmpc.security.zenoh_access import fleet_access_control, zenoh_user
+from fleetmpc.security.zenoh_security import ZenohSecurity, make_zenoh_security
 
 REFUSED_WAIT_S = 2.0
 """How long a session the router refuses keeps trying in these tests [s]."""
@@ -112,7 +117,7 @@ def opened(stack: ExitStack, conf: zenoh.Config) -> zenoh.Session:
 
 
 def agent_reads(stack: ExitStack, session: zenoh.Session) -> Heard:
-    """An agent's subscriptions (those of `fleetmpc.onboard.planbus`)."""
+    """An agent's subscriptions (those of `fleetmpc.bus.planbus`)."""
     f = FLEET
     return listen(
         stack,

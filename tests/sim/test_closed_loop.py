@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fleetmpc.gcs.check import check_scenario
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.sim.lockstep import run_lockstep
 

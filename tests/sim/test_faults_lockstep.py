@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from fleetmpc.bus.faults import load_faults
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.onboard.faults import load_faults
 from fleetmpc.scenario import load_scenario
 from fleetmpc.sim.lockstep import run_lockstep
 

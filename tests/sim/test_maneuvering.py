@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from fleetmpc.gcs.check import check_scenario
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.scenario import load_scenario, parse_scenario
 from fleetmpc.sim.lockstep import run_lockstep

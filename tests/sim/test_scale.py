@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import fleetmpc.sim.lockstep as lockstep
-from fleetmpc.gcs.check import check_scenario
+from fleetmpc.bus.faults import load_faults
+from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.onboard.faults import load_faults
 from fleetmpc.scenario import load_scenario, parse_scenario, pattern_slots
 from fleetmpc.sim.agent_pool import AgentPool
 

@@ -14,7 +14,7 @@ from mavsdk_flow import FORWARD_M_S, YAWSPEED_DEG_S, mavsdk_flight
 from sim_client import SimClient, fly_offboard, free_port, horizontal_speed, wait_hold_after_stop
 
 from fleetmpc.protocol.mavlink_setpoint import Frame, encode_setpoint
-from fleetmpc.protocol.mavlink_signing import write_key_file
+from fleetmpc.security.mavlink_signing import write_key_file
 from fleetmpc.sitl.mavlink_io import MavlinkEncoder
 
 MAVPROXY = Path(sys.executable).parent / "mavproxy.py"

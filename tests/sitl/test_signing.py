@@ -11,7 +11,7 @@ from test_vehicle_server import OFFBOARD, Client, Rig, S, _fly, of_type
 
 from fleetmpc.protocol.mavlink_map import FlightMode, px4_split_custom_mode
 from fleetmpc.protocol.mavlink_setpoint import encode_setpoint, setpoint_message_args
-from fleetmpc.protocol.mavlink_signing import (
+from fleetmpc.security.mavlink_signing import (
     Rejection,
     SigningGuard,
     key_from_passphrase,
@@ -247,7 +247,7 @@ def test_a_forged_future_frame_locks_stock_pymavlink_out_but_not_our_guard():
 
 def test_key_files_are_private_one_word_and_errors_name_the_option(tmp_path):
     from fleetmpc.errors import ConfigError
-    from fleetmpc.protocol.mavlink_signing import read_key_file, write_key_file
+    from fleetmpc.security.mavlink_signing import read_key_file, write_key_file
 
     path = write_key_file(tmp_path / "k.key")
     assert path.stat().st_mode & 0o777 == 0o600

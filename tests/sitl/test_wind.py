@@ -166,7 +166,7 @@ def test_a_vehicle_cannot_have_turbulence_of_its_own():
 
 
 def test_check_says_what_the_wind_means_at_the_vehicle(paper):
-    from fleetmpc.gcs.check import check_scenario
+    from fleetmpc.check.feasibility import check_scenario
 
     gust = Gust(onset_s=20.0, amplitude_m_s=(0.0, 0.2), length_m=40.0)
     wind = Wind(mean_m_s=(0.3, -0.2), turbulence=TURBULENT.turbulence, gusts=(gust,))
@@ -185,7 +185,7 @@ def test_check_says_what_the_wind_means_at_the_vehicle(paper):
 
 
 def test_check_says_how_well_the_learned_drift_can_follow_the_wind():
-    from fleetmpc.gcs.check import check_scenario
+    from fleetmpc.check.feasibility import check_scenario
     from fleetmpc.scenario import load_scenario
 
     text = check_scenario(load_scenario("scenarios/turbulence-moderate.toml")).render()

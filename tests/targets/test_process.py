@@ -7,8 +7,8 @@ import time
 import pytest
 from helpers import free_port_block
 
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHubs
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 from fleetmpc.protocol.zenoh_router import open_router
 from fleetmpc.targets.process import wait_for_epoch

@@ -9,10 +9,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHubs
+from fleetmpc.bus.planbus import PlanBus
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHubs
-from fleetmpc.onboard.planbus import PlanBus
-from fleetmpc.protocol.keys import validate_fleet
+from fleetmpc.protocol.key_expressions import validate_fleet
 from fleetmpc.protocol.messages import Message
 
 if TYPE_CHECKING:
@@ -60,7 +60,7 @@ def open_plan_bus(
     """Open the PlanBus a URL names: ``mem://NAME`` (needs `hubs`), ``zenoh[://...]``.
 
     A `fleetmpc.protocol.zenoh_config.ZenohOptions` may be given instead of a zenoh URL.
-    `on_accept`: see `fleetmpc.onboard.planbus`.
+    `on_accept`: see `fleetmpc.bus.planbus`.
     """
     if isinstance(url_or_options, str) and url_or_options.startswith("mem://"):
         if hubs is None:
@@ -70,7 +70,7 @@ def open_plan_bus(
         return InMemoryPlanBus(
             hubs.hub(name), fleet=fleet, vehicle_id=vehicle_id, on_accept=on_accept
         )
-    from fleetmpc.onboard.zenoh_planbus import ZenohPlanBus
+    from fleetmpc.bus.zenoh_bus import ZenohPlanBus
     from fleetmpc.protocol.zenoh_config import ZenohOptions
 
     if isinstance(url_or_options, ZenohOptions):
@@ -100,11 +100,11 @@ def open_fleet_bus(
     options_from_args` says what they mean); the fleet name defaults to the scenario's, and
     `sender_id` is the bus identity, the peer-mesh member
     (`fleetmpc.protocol.zenoh_config.peer_mesh_index`) and, with ``--zenoh-secrets``, the user
-    it logs in as (`fleetmpc.protocol.zenoh_access.zenoh_user`).
+    it logs in as (`fleetmpc.security.zenoh_access.zenoh_user`).
     """
-    from fleetmpc.protocol.zenoh_access import zenoh_user
     from fleetmpc.protocol.zenoh_config import MeshLogin, options_from_args, peer_mesh_index
-    from fleetmpc.protocol.zenoh_security import ZenohSecurity
+    from fleetmpc.security.zenoh_access import zenoh_user
+    from fleetmpc.security.zenoh_security import ZenohSecurity
 
     login = None
     if getattr(args, "zenoh_secrets", None) is not None:

@@ -2,7 +2,7 @@
 
 A `MemoryHub` is a broadcast medium matching keys the way Zenoh does for the fleet's keys; a
 `MemoryHubs` registry (the runner's) names the hubs that ``mem://NAME`` URLs resolve to; an
-`InMemoryPlanBus` is the PlanBus on one hub, with the receive rules of `fleetmpc.onboard.planbus`.
+`InMemoryPlanBus` is the PlanBus on one hub, with the receive rules of `fleetmpc.bus.planbus`.
 Delivery is synchronous, or queued until `MemoryHub.flush` for a lockstep simulation.
 """
 
@@ -10,9 +10,9 @@ import functools
 import threading
 from collections.abc import Callable
 
-from fleetmpc.onboard.faults import FaultLayer
-from fleetmpc.onboard.planbus import PlanBus, decode_as
-from fleetmpc.protocol.keys import validate_fleet
+from fleetmpc.bus.faults import FaultLayer
+from fleetmpc.bus.planbus import PlanBus, decode_as
+from fleetmpc.protocol.key_expressions import validate_fleet
 from fleetmpc.protocol.messages import Message
 
 __all__ = ["InMemoryPlanBus", "MemoryHub", "MemoryHubs"]

@@ -4,7 +4,7 @@
 
 - one MAVLink 2 signing key per vehicle (``mavlink-<id>.key``: a random passphrase whose SHA-256
   is the key, as MAVProxy's ``signing setup`` derives it);
-- the Zenoh bus's users, access list and TLS certificates (`fleetmpc.protocol.zenoh_security`:
+- the Zenoh bus's users, access list and TLS certificates (`fleetmpc.security.zenoh_security`:
   ``zenoh-<user>.json5`` per process, the router's dictionary and certificate).
 
 See docs/design.md, "Security". The directory is created with mode 0700 and every file in it with
@@ -17,9 +17,9 @@ import argparse
 from pathlib import Path
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.mavlink_signing import key_file_name, write_key_file
-from fleetmpc.protocol.zenoh_security import ZenohSecurity, make_zenoh_security
 from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.security.mavlink_signing import key_file_name, write_key_file
+from fleetmpc.security.zenoh_security import ZenohSecurity, make_zenoh_security
 
 __all__ = ["add_arguments", "check_keys", "make_keys", "run"]
 

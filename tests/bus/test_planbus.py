@@ -15,12 +15,12 @@ import pytest
 import zenoh
 from helpers import wait_until
 
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHub, MemoryHubs
+from fleetmpc.bus.open_bus import open_plan_bus
+from fleetmpc.bus.planbus import PlanBus, PlanBusClosedError, PlanBusError
 from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub, MemoryHubs
-from fleetmpc.onboard.open_bus import open_plan_bus
-from fleetmpc.onboard.planbus import PlanBus, PlanBusClosedError, PlanBusError
 from fleetmpc.protocol.codec import encode
-from fleetmpc.protocol.keys import plan_key, target_observation_key
+from fleetmpc.protocol.key_expressions import plan_key, target_observation_key
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
     LearnedParams,
@@ -460,7 +460,7 @@ EXIT_SCRIPT = """
 import sys, time
 import numpy as np
 from fleetmpc.protocol.plan import Plan
-from fleetmpc.onboard.open_bus import open_plan_bus
+from fleetmpc.bus.open_bus import open_plan_bus
 base = int(sys.argv[1])
 plan = Plan(vehicle_id=1, stamp_ns=0, period_ns=1, states=np.zeros((2, 3)), inputs=np.zeros((1, 2)))
 a = open_plan_bus(f"zenoh://?listen=127.0.0.1:{base}", fleet="x", vehicle_id=1)

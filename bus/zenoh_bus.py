@@ -3,7 +3,7 @@
 One session per bus, configured by `fleetmpc.protocol.zenoh_config.ZenohOptions` (explicit
 endpoints, scouting off). The bus subscribes to the fleet's plan, status, target and epoch keys and
 ignores its own session's publications. How samples reach the receive rules of
-`fleetmpc.onboard.planbus` depends on who reads them:
+`fleetmpc.bus.planbus` depends on who reads them:
 
 - a bus with `on_accept` (a ground station, which must see every message as it comes) takes each
   sample in a callback, on a zenoh thread (the receive rules hold a lock);
@@ -22,8 +22,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from fleetmpc.onboard.faults import FaultLayer
-from fleetmpc.onboard.planbus import PlanBus, PlanBusError
+from fleetmpc.bus.faults import FaultLayer
+from fleetmpc.bus.planbus import PlanBus, PlanBusError
 from fleetmpc.protocol.messages import Message
 from fleetmpc.protocol.zenoh_config import ZenohOptions
 

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetmpc.check.track_report import track_lines
+from fleetmpc.check.wind_report import wind_lines
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
-from fleetmpc.gcs.track_report import track_lines
-from fleetmpc.gcs.wind_report import wind_lines
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
 from fleetmpc.onboard.core.formation import CourseRateLimit, Formation, true_reference
 from fleetmpc.onboard.core.neighbourhood import safety_radius

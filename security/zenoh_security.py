@@ -31,7 +31,7 @@ sections from the directory as it sees it at start (`router_security_config`), s
 be mounted anywhere too. (``zenoh-router.json5`` names absolute paths: it is for running a
 ``zenohd`` on the same machine.)
 
-The access list is `fleetmpc.protocol.zenoh_access.fleet_access_control`'s.
+The access list is `fleetmpc.security.zenoh_access.fleet_access_control`'s.
 
 Passwords are random (192 bits) and stored in clear: zenoh 1.10's usrpwd authentication cannot
 take hashed passwords. The router checks an HMAC of its challenge keyed with the password itself,
@@ -54,22 +54,22 @@ from pathlib import Path
 import zenoh
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.keys import validate_fleet
-from fleetmpc.protocol.private_files import check_private, write_private
-from fleetmpc.protocol.zenoh_access import (
-    GROUND_STATION_USER,
-    TARGET_USER,
-    check_vehicle_ids,
-    fleet_access_control,
-    zenoh_user,
-)
-from fleetmpc.protocol.zenoh_certificates import make_certificates
+from fleetmpc.protocol.key_expressions import validate_fleet
 from fleetmpc.protocol.zenoh_config import (
     CONNECT_WAIT_S,
     RECONNECT_RETRY,
     connect_timeout,
     endpoint,
 )
+from fleetmpc.security.private_files import check_private, write_private
+from fleetmpc.security.zenoh_access import (
+    GROUND_STATION_USER,
+    TARGET_USER,
+    check_vehicle_ids,
+    fleet_access_control,
+    zenoh_user,
+)
+from fleetmpc.security.zenoh_certificates import make_certificates
 
 __all__ = [
     "MANIFEST_NAME",

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.faults import (
+from fleetmpc.bus.faults import (
     FAULT_KINDS,
     Fault,
     FaultLayer,
@@ -16,7 +15,8 @@ from fleetmpc.onboard.faults import (
     load_faults,
     parse_faults,
 )
-from fleetmpc.protocol.keys import plan_key, status_key
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.key_expressions import plan_key, status_key
 
 FLEET = "test"
 FLEET_IDS = (1, 2, 3)
@@ -258,7 +258,7 @@ def test_a_clock_offset_is_an_agents_and_needs_its_offset():
 
 
 def test_link_faults_cut_the_hit_vehicles_link_inside_their_window():
-    from fleetmpc.onboard.faults import LinkFaults
+    from fleetmpc.bus.faults import LinkFaults
 
     doc = {
         "faults": [

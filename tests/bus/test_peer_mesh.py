@@ -15,7 +15,7 @@ from pathlib import Path
 from helpers import ROOT, free_port_block, scenario_on_free_ports, wait_until
 from test_planbus import make_plan
 
-from fleetmpc.onboard.open_bus import open_plan_bus
+from fleetmpc.bus.open_bus import open_plan_bus
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
 from fleetmpc.protocol.zenoh_config import (
     MeshLogin,
@@ -23,8 +23,8 @@ from fleetmpc.protocol.zenoh_config import (
     options_from_args,
     peer_mesh_index,
 )
-from fleetmpc.protocol.zenoh_security import make_zenoh_security
 from fleetmpc.scenario import load_scenario
+from fleetmpc.security.zenoh_security import make_zenoh_security
 
 SPEED = "4"
 

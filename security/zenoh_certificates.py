@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.private_files import write_private
+from fleetmpc.security.private_files import write_private
 
 if TYPE_CHECKING:
-    from fleetmpc.protocol.zenoh_security import ZenohSecurity
+    from fleetmpc.security.zenoh_security import ZenohSecurity
 
 __all__ = ["CERTIFICATE_DAYS", "make_certificates"]
 

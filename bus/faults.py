@@ -2,7 +2,7 @@
 
 A fault schedule lists faults, each active over a window of fleet time. Every bus of a faulty
 run gets its own `FaultLayer`, which sits where payloads arrive, before the bus's receive rules
-(`fleetmpc.onboard.planbus`): the same code in the lockstep simulation (on the in-memory hub) and
+(`fleetmpc.bus.planbus`): the same code in the lockstep simulation (on the in-memory hub) and
 in a live fleet (on Zenoh), so a fault does the same thing to both. A fault file is TOML:
 
     seed = 7                   # the faults' own random numbers (default: the run's seed)
@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.keys import KeyFormatError, parse_key
+from fleetmpc.protocol.key_expressions import KeyFormatError, parse_key
 from fleetmpc.validate import in_range, positive
 
 __all__ = [

@@ -1,11 +1,11 @@
 """PlanBus: how a vehicle exchanges assumed trajectories, status and target observations.
 
 One small interface with two transports, chosen by URL with
-`fleetmpc.onboard.open_bus.open_plan_bus`:
+`fleetmpc.bus.open_bus.open_plan_bus`:
 
-- ``mem://NAME``: `fleetmpc.onboard.memory_planbus.InMemoryPlanBus` on a hub of the runner's
+- ``mem://NAME``: `fleetmpc.bus.memory.InMemoryPlanBus` on a hub of the runner's
   registry; synchronous and deterministic (lockstep simulation, tests);
-- ``zenoh`` / ``zenoh://HOST:PORT?...``: `fleetmpc.onboard.zenoh_planbus.ZenohPlanBus`.
+- ``zenoh`` / ``zenoh://HOST:PORT?...``: `fleetmpc.bus.zenoh_bus.ZenohPlanBus`.
 
 Receive-side rules, the same for every implementation: a payload on an unknown key, or that does
 not decode, or whose sender differs from the id in its key, is rejected and counted by reason; a
@@ -17,7 +17,7 @@ run on other threads, so the receive state is guarded by a lock. Staleness is th
 `latest_plans(now_ns, max_age_ns)` returns what is fresh enough and nothing else. A ground
 station that must see every message, not just the latest, passes `on_accept`: it is called with
 each accepted message, on the transport's thread, outside the bus's lock. A bus given a
-`fleetmpc.onboard.faults.FaultLayer` passes every arriving payload through it first (injected
+`fleetmpc.bus.faults.FaultLayer` passes every arriving payload through it first (injected
 network faults); payloads it holds back reach the receive rules when the bus is next read.
 """
 
@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Self
 
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.protocol.codec import DecodeError, decode, encode
-from fleetmpc.protocol.keys import (
+from fleetmpc.protocol.key_expressions import (
     KeyFormatError,
     all_plans_key,
     all_statuses_key,
@@ -62,7 +62,7 @@ from fleetmpc.protocol.messages import (
 from fleetmpc.protocol.plan import Plan
 
 if TYPE_CHECKING:
-    from fleetmpc.onboard.faults import FaultLayer
+    from fleetmpc.bus.faults import FaultLayer
 
 __all__ = [
     "BusCounters",

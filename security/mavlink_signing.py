@@ -34,7 +34,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.private_files import check_private, write_private
+from fleetmpc.security.private_files import check_private, write_private
 
 __all__ = [
     "KEY_BYTES",

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from test_planbus import make_plan
 
-from fleetmpc.errors import ConfigError
-from fleetmpc.onboard.faults import (
+from fleetmpc.bus.faults import (
     REORDER_HOLD_S,
     Fault,
     FaultLayer,
@@ -17,8 +16,14 @@ from fleetmpc.onboard.faults import (
     load_faults,
     parse_faults,
 )
-from fleetmpc.onboard.memory_planbus import InMemoryPlanBus, MemoryHub
-from fleetmpc.protocol.keys import epoch_key, plan_key, status_key, target_observation_key
+from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHub
+from fleetmpc.errors import ConfigError
+from fleetmpc.protocol.key_expressions import (
+    epoch_key,
+    plan_key,
+    status_key,
+    target_observation_key,
+)
 
 FLEET = "test"
 FLEET_IDS = (1, 2, 3, 4, 5)

@@ -22,7 +22,7 @@ liveliness are not used by the fleet and stay denied.
 from collections.abc import Sequence
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.keys import (
+from fleetmpc.protocol.key_expressions import (
     all_plans_key,
     all_statuses_key,
     epoch_key,
