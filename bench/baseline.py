@@ -5,7 +5,7 @@ repository (e.g. `git worktree add /tmp/base <commit>`). For each of `--repeats`
 flies the scenario in a process of its own (`sys.executable` with PYTHONPATH and the working
 directory at the tree), the two in turn and in alternating order, so that both see the same
 machine. A process flies a short warm-up, then the scenario with the tree's `run_lockstep`
-(`fleetmpc.sim.lockstep`, or `gcs.lockstep` in a checkout from before the `fleetmpc` package),
+(`fleetmpc.lockstep.flight`, or `gcs.lockstep` in a checkout from before the `fleetmpc` package),
 and reports the agent step
 times its FlightRecord holds (`step_time_ms`, one per agent and period) and the wall time of the
 run. Per tree: the median and p99 of the agent steps of every round pooled, and the median of
@@ -39,7 +39,7 @@ import json, os, sys, time
 if os.path.exists("fleetmpc/__init__.py"):  # one package whose parts are top-level folders
     import fleetmpc
     fleetmpc.__path__.append(os.getcwd())  # as pyproject's package-dir maps them
-    from fleetmpc.sim.lockstep import run_lockstep
+    from fleetmpc.lockstep.flight import run_lockstep
     from fleetmpc.scenario import load_scenario
 else:  # the layout before: one top-level package per part
     from gcs.lockstep import run_lockstep
@@ -98,13 +98,13 @@ def _describe(tree: Path) -> str:
 def _tree(path: str | Path, *, role: str) -> Path:
     tree = Path(path).resolve()
     layouts = (
-        ("sim/lockstep.py", "fleetmpc/scenario.py"),
+        ("lockstep/flight.py", "fleetmpc/scenario.py"),
         ("gcs/lockstep.py", "protocol/scenario.py"),
     )
     for names in layouts:
         if all((tree / name).is_file() for name in names):
             return tree
-    raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no sim/lockstep.py)")
+    raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no lockstep/flight.py)")
 
 
 def _summary(reports: list[dict]) -> dict:

@@ -20,10 +20,10 @@ import numpy as np
 
 from fleetmpc.bench.step import load_average
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.onboard.core.agent import vehicle_mpc
 from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.scenario import Scenario, parse_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["grid_of", "run"]
 

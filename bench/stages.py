@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.onboard.core.agent import Agent
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["run", "stage_times", "table"]
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from fleetmpc.errors import FleetMpcError
 from fleetmpc.gcs.ground_station import SERIES_FLUSH_S
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.onboard.core.agent import vehicle_mpc
 from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.dekf import DualEkf
@@ -43,7 +44,6 @@ from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.sparse_qp import CHECK_TERMINATION, FixedPatternQp
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["add_arguments", "load_average", "run"]
 

@@ -24,11 +24,11 @@ import time
 from pathlib import Path
 
 from fleetmpc.bench.step import load_average
-from fleetmpc.sim.engine import dask_available, local_cluster
-from fleetmpc.sim.sweep import gated_rows, sweep
-from fleetmpc.sim.sweep_figures import write_sweep_figures
-from fleetmpc.sim.sweep_grid import Axis, plan_runs
-from fleetmpc.sim.sweep_store import ResultStore
+from fleetmpc.lockstep.engine import dask_available, local_cluster
+from fleetmpc.lockstep.sweep import gated_rows, sweep
+from fleetmpc.lockstep.sweep_figures import write_sweep_figures
+from fleetmpc.lockstep.sweep_grid import Axis, plan_runs
+from fleetmpc.lockstep.sweep_store import ResultStore
 
 __all__ = ["run"]
 

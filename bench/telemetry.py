@@ -32,6 +32,7 @@ from fleetmpc.gcs.ground_station import series_every
 from fleetmpc.gcs.record import FlightRecord
 from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import RerunSink
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.protocol.messages import (
     TARGET_ID,
     LearnedParams,
@@ -44,7 +45,6 @@ from fleetmpc.protocol.messages import (
 )
 from fleetmpc.protocol.plan import Plan
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["TARGET_FRACTION", "PeriodMessages", "period_messages", "receive_period", "run"]
 

@@ -21,17 +21,17 @@ _COMMANDS: dict[str, tuple[str, str]] = {
         "fleetmpc.check.feasibility",
         "feasibility report of a scenario, before anything flies",
     ),
-    "sim": ("fleetmpc.sim.simulate", "in-process lockstep simulation of a whole fleet"),
+    "sim": ("fleetmpc.lockstep.simulate", "in-process lockstep simulation of a whole fleet"),
     "bench": (
         "fleetmpc.bench.step",
         "per-agent step timing against a cvxpy rebuild, and lockstep speed",
     ),
     "suite": (
-        "fleetmpc.sim.suite",
+        "fleetmpc.lockstep.suite",
         "fly every scenario of a folder over seeds, learning on and off; gates",
     ),
     "sweep": (
-        "fleetmpc.sim.sweep",
+        "fleetmpc.lockstep.sweep",
         "fly scenarios x varied fields x seeds on a cluster engine; a table and figures",
     ),
     "sitl": (

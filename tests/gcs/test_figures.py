@@ -11,7 +11,7 @@ import rerun as rr
 from fleetmpc.gcs import figures
 from fleetmpc.gcs.palette import LABELLED_VEHICLES_MAX, vehicle_colour
 from fleetmpc.gcs.telemetry import write_recording
-from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.lockstep.flight import run_lockstep
 
 
 @pytest.fixture(scope="module")

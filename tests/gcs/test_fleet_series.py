@@ -9,7 +9,7 @@ import pytest
 from fleetmpc.gcs.fleet_series import FLEET_SERIES, fleet_rows, stale_plan_count
 from fleetmpc.gcs.metrics import pair_indices
 from fleetmpc.gcs.record import LiveRows
-from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.lockstep.flight import run_lockstep
 
 
 @pytest.fixture(scope="module")

@@ -15,8 +15,8 @@ from fleetmpc.gcs.record import LiveRows, RunConstants
 from fleetmpc.gcs.rrd_reader import read_recording
 from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import RerunSink, samples_of
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.protocol.messages import NeighbourPlanAge, PlanMessage
-from fleetmpc.sim.lockstep import run_lockstep
 
 DURATION_S = 6.0
 

@@ -18,7 +18,7 @@ from fleetmpc.gcs.report import METRICS_FILE
 from fleetmpc.gcs.rrd_reader import RecordingError, read_recording
 from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import RerunSink, write_recording
-from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.lockstep.flight import run_lockstep
 
 DURATION_S = 5.0
 

@@ -14,7 +14,7 @@ from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
 from fleetmpc.gcs.station import GroundStation
 from fleetmpc.gcs.telemetry import MemorySink, RerunSink, open_sink
-from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.lockstep.flight import run_lockstep
 
 DURATION_S = 10.0
 

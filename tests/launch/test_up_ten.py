@@ -33,8 +33,8 @@ from helpers import Child, live_processes_naming, scenario_on_free_ports
 
 from fleetmpc.gcs.station import gate_failures
 from fleetmpc.launch.compose import ComposeOptions
+from fleetmpc.lockstep.suite import SLOT_RMS_MAX_M
 from fleetmpc.scenario import Scenario, load_scenario
-from fleetmpc.sim.suite import SLOT_RMS_MAX_M
 
 GRID10 = Path(__file__).resolve().parent / "data" / "grid10.toml"
 GRID25 = Path(__file__).resolve().parent / "data" / "grid25.toml"

@@ -10,8 +10,8 @@ from helpers import fly_up, live_processes_naming, scenario_on_free_ports
 
 from fleetmpc.gcs.metrics import compute_metrics
 from fleetmpc.gcs.rrd_reader import read_recording
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -49,6 +49,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from fleetmpc.gcs.metrics import compute_metrics  # noqa: E402
 from fleetmpc.launch.fleet import FleetOptions, fleet_processes  # noqa: E402
+from fleetmpc.lockstep.flight import run_lockstep  # noqa: E402
 from fleetmpc.protocol.codec import SCHEMA_VERSION, DecodeError, decode, encode  # noqa: E402
 from fleetmpc.protocol.key_expressions import epoch_key, plan_key  # noqa: E402
 from fleetmpc.protocol.local_frame import ned_from_geodetic  # noqa: E402
@@ -57,7 +58,6 @@ from fleetmpc.protocol.messages import FleetEpoch, MessageKind, PlanMessage, Rej
 from fleetmpc.protocol.plan import Plan  # noqa: E402
 from fleetmpc.protocol.zenoh_config import ZenohOptions, endpoint  # noqa: E402
 from fleetmpc.scenario import Scenario, load_scenario  # noqa: E402
-from fleetmpc.sim.lockstep import run_lockstep  # noqa: E402
 
 M = mavutil.mavlink
 SOURCE = ROOT / "scenarios" / "mixed-autopilots.toml"

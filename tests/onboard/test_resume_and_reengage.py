@@ -14,13 +14,13 @@ import pytest
 
 from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHubs
 from fleetmpc.clock import FleetClock
+from fleetmpc.lockstep.flight import build_agents
 from fleetmpc.onboard.core.agent import AgentInput
 from fleetmpc.onboard.core.unicycle import NOMINAL_BETA, advance
 from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import SetpointStreamer
 from fleetmpc.protocol.mavlink_map import FlightMode
-from fleetmpc.sim.lockstep import build_agents
 
 FLEET = "test"
 S = 1_000_000_000

@@ -11,12 +11,12 @@ import pytest
 from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHubs
 from fleetmpc.clock import ClockSync, EpochMismatchError, FleetClock
 from fleetmpc.errors import ConfigError
+from fleetmpc.lockstep.flight import build_agents
 from fleetmpc.onboard.fake_autopilot_link import FakeAutopilotLink
 from fleetmpc.onboard.runner import FleetRunner, RunnerSettings
 from fleetmpc.onboard.setpoints import SetpointStreamer, gap_stats_ms, wind_down
 from fleetmpc.protocol.mavlink_map import FlightMode
 from fleetmpc.protocol.messages import GROUND_STATION_ID
-from fleetmpc.sim.lockstep import build_agents
 
 FLEET = "test"
 TARGET_ID = 250

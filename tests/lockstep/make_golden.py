@@ -3,7 +3,7 @@ compares the lockstep runs with, and how closely (docs/testing.md).
 
 Run from the repository:
 
-    .venv/bin/python tests/sim/make_golden.py
+    .venv/bin/python tests/lockstep/make_golden.py
 
 Only when a change is meant to change the figures: see docs/testing.md. It flies every case of
 `golden.CASES` once for its figures, then again under each nudge of its arithmetic, and stores

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from fleetmpc.cli import main
+from fleetmpc.lockstep import suite
 from fleetmpc.scenario import load_scenario, parse_scenario
-from fleetmpc.sim import suite
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -82,7 +82,7 @@ ROW_KEYS = {
 def loose_gates(monkeypatch) -> None:
     """Limits any run of a sane controller meets: these tests are about the suite (tasks, pool,
     rows, table, JSON, exit status), not the controller, whose closed-loop quality
-    tests/sim/test_closed_loop.py holds (a 12 s run from rest can, for instance, show a few
+    tests/lockstep/test_closed_loop.py holds (a 12 s run from rest can, for instance, show a few
     yaw-rate reversals while the vehicles get going, many per vehicle-minute of so short a run).
     Minimum separation keeps its real gate."""
     for name, value in (

@@ -6,7 +6,7 @@ import json
 import numpy as np
 
 from fleetmpc.cli import main
-from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.sitl.wind import Turbulence
 
 

@@ -13,8 +13,8 @@ import pytest
 
 from fleetmpc.bus.faults import load_faults
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = load_scenario(ROOT / "scenarios" / "paper.toml")

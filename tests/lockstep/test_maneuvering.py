@@ -13,9 +13,8 @@ import pytest
 
 from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.scenario import load_scenario, parse_scenario
-from fleetmpc.sim.lockstep import run_lockstep
-from fleetmpc.sim.suite import (
+from fleetmpc.lockstep.flight import run_lockstep
+from fleetmpc.lockstep.suite import (
     CORNER_RECOVERY_MAX_S,
     EFFECTIVENESS_ERROR_MAX,
     LEARNING_RATIO_MAX,
@@ -27,6 +26,7 @@ from fleetmpc.sim.suite import (
     fly,
     suite_tasks,
 )
+from fleetmpc.scenario import load_scenario, parse_scenario
 
 SCENARIOS = sorted(Path("scenarios").glob("*.toml"))
 

@@ -7,10 +7,10 @@ last-bit difference of the arithmetic carries through that run: `golden.py`), fl
 integers exactly. A change that only reorganizes the code leaves every figure within it; a
 change of the control code by one part in 1e6 does not (tested here); a field missing from the
 run or from the file fails too. On the machine that runs the suite, the same run twice is the
-same bit for bit (tested here; `--jobs` and the recording read back: tests/sim/test_scale.py,
+same bit for bit (tested here; `--jobs` and the recording read back: tests/lockstep/test_scale.py,
 tests/gcs/test_live.py).
 
-Regenerate the files with ``.venv/bin/python tests/sim/make_golden.py``, and only when a change
+Regenerate the files with ``.venv/bin/python tests/lockstep/make_golden.py``, and only when a change
 is meant to change the figures (docs/testing.md).
 """
 
@@ -38,7 +38,7 @@ from golden import (
 def golden() -> dict[str, dict[str, np.ndarray]]:
     for path in (GOLDEN, TOLERANCES):
         if not path.exists():
-            pytest.fail(f"{path} is missing: write it with tests/sim/make_golden.py")
+            pytest.fail(f"{path} is missing: write it with tests/lockstep/make_golden.py")
     return load_golden()
 
 

@@ -12,8 +12,8 @@ import rerun as rr
 from fleetmpc.gcs.blueprint import TIMELINE
 from fleetmpc.gcs.recording import map_from_ned
 from fleetmpc.gcs.telemetry import MemorySink, RerunSink
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 from fleetmpc.targets.track import RecordedTrack
 
 ROOT = Path(__file__).resolve().parents[2]

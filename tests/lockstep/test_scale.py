@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import fleetmpc.sim.lockstep as lockstep
+import fleetmpc.lockstep.flight as lockstep
 from fleetmpc.bus.faults import load_faults
 from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.lockstep.agent_pool import AgentPool
 from fleetmpc.scenario import load_scenario, parse_scenario, pattern_slots
-from fleetmpc.sim.agent_pool import AgentPool
 
 GRID50 = Path("scenarios/scale/grid50.toml")
 

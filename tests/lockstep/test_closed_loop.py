@@ -5,7 +5,7 @@ import pytest
 
 from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.gcs.metrics import compute_metrics
-from fleetmpc.sim.lockstep import run_lockstep
+from fleetmpc.lockstep.flight import run_lockstep
 
 
 @pytest.fixture(scope="module")

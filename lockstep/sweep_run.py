@@ -1,7 +1,7 @@
 """One run of a sweep, in a worker: the scenario built from its spec, flown, its row.
 
-The row is `fleetmpc.sim.suite.fly_row`'s (the suite's runs are flown the same way) with the
-run's identity, the values set, its status and the code's version added; `fleetmpc.sim.
+The row is `fleetmpc.lockstep.suite.fly_row`'s (the suite's runs are flown the same way) with the
+run's identity, the values set, its status and the code's version added; `fleetmpc.lockstep.
 sweep_store` gives its columns and their types.
 """
 
@@ -11,8 +11,8 @@ import json
 import subprocess
 from pathlib import Path
 
-from fleetmpc.sim.suite import flew, fly_row
-from fleetmpc.sim.sweep_grid import RunSpec, build_run
+from fleetmpc.lockstep.suite import flew, fly_row
+from fleetmpc.lockstep.sweep_grid import RunSpec, build_run
 
 __all__ = ["code_version", "fly_spec", "spec_row"]
 

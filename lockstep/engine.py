@@ -13,7 +13,7 @@ handed back (`on_finished`) as soon as it ends, in the order runs end. A run who
 failed (`failed`), or whose worker died under it, is flown once more (`MAX_ATTEMPTS`), on another
 worker where the engine lets us choose (Dask: yes; the pool: whichever is free); after that its
 failed row is handed back with its error. With a time limit, a worker flies each run in its run
-process (`fleetmpc.sim.run_process`), killed when the run outlives the limit: a run that hangs
+process (`fleetmpc.lockstep.run_process`), killed when the run outlives the limit: a run that hangs
 anywhere, inside one control period too, fails with "time limit N s exceeded" and its worker
 goes on.
 """
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.sim.run_process import fly_within
+from fleetmpc.lockstep.run_process import fly_within
 
 __all__ = [
     "AHEAD_PER_WORKER",
@@ -127,7 +127,7 @@ WORKER_CONFIG = {
 """Dask settings of the cluster a sweep starts: no statistical profiler (a thread that samples
 the running run's stack every 10 ms and keeps an hour of it: time and memory a lockstep run
 needs for itself); worker processes that are not daemons, so that they may start their run
-processes (`fleetmpc.sim.run_process`; they still stop with their nanny); and logs of a hundred
+processes (`fleetmpc.lockstep.run_process`; they still stop with their nanny); and logs of a hundred
 entries where Dask keeps ten thousand and a thousand (its scheduler, in this process, kept about
 12 kB a run until they filled; with these, the coordinator is flat from about 700 runs on).
 Workers started by hand take them from the environment:
@@ -174,7 +174,7 @@ class _Flight:
 
 def _attempt(flight: _Flight, task: Any) -> tuple[dict | None, str | None]:
     """One flight of a task in a worker: (its row, None), or (None, the error) when it
-    outlived its time limit or lost its run process (`fleetmpc.sim.run_process`)."""
+    outlived its time limit or lost its run process (`fleetmpc.lockstep.run_process`)."""
     if flight.limit_s is None:
         return flight.fly(task), None
     return fly_within(flight.fly, task, limit_s=flight.limit_s)

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from fleetmpc.gcs.record import FlightRecord
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import Scenario, load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(__file__).resolve().parent / "data"

@@ -7,7 +7,7 @@ and swept away by the next start). A run's file name is its identity, so no run 
 written twice: a resumed sweep reads which identities are there and flies the others.
 
 ``OUT/results.parquet`` is the table of the sweep's runs in table order, with the gates
-applied (`fleetmpc.sim.suite.apply_gates`: ``learning_ratio`` and ``gates_failed``), rewritten
+applied (`fleetmpc.lockstep.suite.apply_gates`: ``learning_ratio`` and ``gates_failed``), rewritten
 at the end of every sweep, interrupted or not. Columns: `BASE_COLUMNS`, then one per varied
 field (named by its dotted path, typed by its values), then `OUTCOME_COLUMNS`,
 `CONTEXT_COLUMNS`, `METRIC_COLUMNS`, `PROVENANCE_COLUMNS` and `GATE_COLUMNS`.
@@ -23,7 +23,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.sim.sweep_grid import Axis
+from fleetmpc.lockstep.sweep_grid import Axis
 
 __all__ = [
     "BASE_COLUMNS",
@@ -102,7 +102,7 @@ GATE_COLUMNS: dict[str, tuple[pa.DataType, str]] = {
 """Only in results.parquet: they compare runs with each other."""
 
 _RENAMED = {"duration_s": "flown_s", "vehicles": "vehicle_count"}
-"""Keys of a flown row (`fleetmpc.sim.suite.fly_row`) that are columns under another name, so
+"""Keys of a flown row (`fleetmpc.lockstep.suite.fly_row`) that are columns under another name, so
 that no column is named like a scenario field a sweep can vary."""
 
 
@@ -169,7 +169,7 @@ class ResultStore:
         return out
 
     def record(self, row: dict) -> dict:
-        """The columns of a flown row (`fleetmpc.sim.sweep_run.fly_spec`, plus the engine's
+        """The columns of a flown row (`fleetmpc.lockstep.sweep_run.fly_spec`, plus the engine's
         attempts, first_error and worker), by `self.schema`."""
         flat = {_RENAMED.get(k, k): v for k, v in row.items() if k != "values"}
         for path, value in (row.get("values") or {}).items():

@@ -3,7 +3,7 @@ seeds on a cluster engine, keep one row per run, draw the figures (docs/sweeps.m
 
     fleetmpc sweep scenarios/paper.toml --vary controller.horizon=5,10,15 --seeds 20
 
-Every run is flown in lockstep (`fleetmpc.sim.suite.fly_row`, as the suite's) on Dask's
+Every run is flown in lockstep (`fleetmpc.lockstep.suite.fly_row`, as the suite's) on Dask's
 distributed scheduler (a local cluster of this machine's cores, or ``--scheduler ADDRESS``'s)
 or, with ``--engine local`` or without the ``cluster`` extra, a process pool. Each finished run
 is written at once to ``OUT/runs/<run id>.parquet``; at the end (also after Ctrl-C) the table
@@ -33,9 +33,8 @@ from rich.progress import (
 )
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.scenario import toml_files
-from fleetmpc.sim import suite
-from fleetmpc.sim.engine import (
+from fleetmpc.lockstep import suite
+from fleetmpc.lockstep.engine import (
     EngineLost,
     Finished,
     add_engine_arguments,
@@ -43,10 +42,11 @@ from fleetmpc.sim.engine import (
     engine_of,
     run_tasks,
 )
-from fleetmpc.sim.sweep_figures import write_sweep_figures
-from fleetmpc.sim.sweep_grid import Axis, RunSpec, parse_vary, plan_runs, split_values
-from fleetmpc.sim.sweep_run import code_version, fly_spec, spec_row
-from fleetmpc.sim.sweep_store import METRIC_COLUMNS, ResultStore
+from fleetmpc.lockstep.sweep_figures import write_sweep_figures
+from fleetmpc.lockstep.sweep_grid import Axis, RunSpec, parse_vary, plan_runs, split_values
+from fleetmpc.lockstep.sweep_run import code_version, fly_spec, spec_row
+from fleetmpc.lockstep.sweep_store import METRIC_COLUMNS, ResultStore
+from fleetmpc.scenario import toml_files
 
 __all__ = ["DEFAULT_OUT", "TIME_LIMIT_S", "add_arguments", "gated_rows", "run", "sweep"]
 

@@ -18,12 +18,12 @@ from helpers import ROOT, free_port, wait_until
 
 from fleetmpc.cli import main
 from fleetmpc.errors import ConfigError
-from fleetmpc.sim import sweep_figures
-from fleetmpc.sim.agent_pool import AgentPool
-from fleetmpc.sim.run_process import fly_within
-from fleetmpc.sim.sweep_grid import RunSpec, build_run, parse_vary, plan_runs, set_path
-from fleetmpc.sim.sweep_run import fly_spec
-from fleetmpc.sim.sweep_store import CONTEXT_COLUMNS, METRIC_COLUMNS
+from fleetmpc.lockstep import sweep_figures
+from fleetmpc.lockstep.agent_pool import AgentPool
+from fleetmpc.lockstep.run_process import fly_within
+from fleetmpc.lockstep.sweep_grid import RunSpec, build_run, parse_vary, plan_runs, set_path
+from fleetmpc.lockstep.sweep_run import fly_spec
+from fleetmpc.lockstep.sweep_store import CONTEXT_COLUMNS, METRIC_COLUMNS
 
 PAPER = str(ROOT / "scenarios" / "paper.toml")
 WEDGE = str(ROOT / "scenarios" / "wedge-circle.toml")

@@ -31,7 +31,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import binom  # noqa: E402
 
-from fleetmpc.sim import suite  # noqa: E402
+from fleetmpc.lockstep import suite  # noqa: E402
 
 __all__ = ["FIGURE_METRICS", "Factor", "median_band", "sweep_factors", "write_sweep_figures"]
 

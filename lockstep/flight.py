@@ -29,13 +29,13 @@ from fleetmpc.gcs.telemetry import (
     record_of,
     target_state_event,
 )
+from fleetmpc.lockstep.agent_pool import COUNTED, AgentPool, build_agents
 from fleetmpc.onboard.core.agent import reference_course_limit
 from fleetmpc.onboard.core.formation import Formation, FormationReference
 from fleetmpc.onboard.core.target_estimator import TargetEstimator
 from fleetmpc.onboard.core.target_watch import TRACKING
 from fleetmpc.protocol.messages import TARGET_ID
 from fleetmpc.scenario import Scenario
-from fleetmpc.sim.agent_pool import COUNTED, AgentPool, build_agents
 from fleetmpc.sitl.plant import TruthPlant
 from fleetmpc.sitl.wind import WindField
 
@@ -57,7 +57,7 @@ def run_lockstep(
 ) -> FlightRecord:
     """Fly the scenario in lockstep and return its record; the sinks (opened with `run_info`,
     closed at the end) get every period's sample; `faults` are injected into the plan bus; the
-    agents step in `jobs` processes (`fleetmpc.sim.agent_pool`: the same figures for any).
+    agents step in `jobs` processes (`fleetmpc.lockstep.agent_pool`: the same figures for any).
     `known_model`: every agent is told its vehicle's true effectiveness and the wind where it
     is, each period, instead of learning them (docs/design.md, "The known-model run")."""
     seed = scenario.seed if seed is None else seed
@@ -247,7 +247,7 @@ def _network_report(
 ) -> dict:
     """What the plan bus did: the faults injected and what the receivers counted (and, per agent
     and period, what each kept and what it dropped as beyond its neighbourhood); `buses` holds
-    each vehicle's counters and fault counts (`fleetmpc.sim.agent_pool.Share.report`)."""
+    each vehicle's counters and fault counts (`fleetmpc.lockstep.agent_pool.Share.report`)."""
     agent_periods = max(1, len(buses) * periods)
     received = {name: sum(counters[name] for counters, _ in buses) for name in COUNTED}
     report = {

@@ -3,7 +3,7 @@ and hold each run to the gates.
 
 Every ``*.toml`` in DIR (sorted) is flown in lockstep for seeds s, s + 1, ..., s + K - 1 (s the
 scenario's own seed) with learning on and off (only off when the file itself disables learning),
-one run per task on the engine of `fleetmpc sweep` (`fleetmpc.sim.engine`: a process pool, or
+one run per task on the engine of `fleetmpc sweep` (`fleetmpc.lockstep.engine`: a process pool, or
 Dask with --engine dask or --scheduler ADDRESS); the suite is a sweep of no varied field. Each
 task returns a row of plain numbers (the metrics the gates read, not the flight record), through
 `fly_row`, which flies every sweep's runs too. Gates (the constants below) are then applied to
@@ -52,10 +52,10 @@ from fleetmpc.bus.faults import FaultSchedule
 from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.lockstep import engine, fault_matrix
+from fleetmpc.lockstep.engine import Finished, run_tasks
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import Scenario, load_scenario, toml_files
-from fleetmpc.sim import engine, fault_matrix
-from fleetmpc.sim.engine import Finished, run_tasks
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = [
     "CORNER_RECOVERY_MAX_S",
@@ -228,7 +228,7 @@ def fly_row(
     """Fly the scenario (and faults) `load` gives: the run's row of plain numbers, or
     the row of its error (no numbers); `known_model`: the known-model run. `fleetmpc suite` and
     `fleetmpc sweep` fly every run through here (a run's time limit is the engine's:
-    `fleetmpc.sim.run_process`)."""
+    `fleetmpc.lockstep.run_process`)."""
     t0 = time.monotonic()
     check_error = None
     try:

@@ -13,8 +13,8 @@ from fleetmpc.gcs.figures import write_figures
 from fleetmpc.gcs.metrics import compute_metrics, format_summary
 from fleetmpc.gcs.progress import ProgressBar
 from fleetmpc.gcs.telemetry import add_telemetry_argument, open_sink
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import load_scenario
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["add_arguments", "run"]
 

@@ -21,8 +21,8 @@ import numpy as np
 
 from fleetmpc.bus.faults import FaultSchedule, load_faults
 from fleetmpc.gcs.metrics import compute_metrics
+from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import load_scenario, toml_files
-from fleetmpc.sim.lockstep import run_lockstep
 
 __all__ = ["DEFAULT_SCENARIOS", "FORMATION_FACTOR", "RECOVERED_M", "run"]
 
