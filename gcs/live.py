@@ -492,18 +492,8 @@ class LiveRecord:
 
     def constants(self) -> RunConstants:
         """What the record holds that is the same in every period."""
-        sc = self.scenario
-        return RunConstants(
-            scenario=sc.name,
-            vehicle_ids=self.ids,
-            desired_distance_m=self._scenario_rows.formation.desired_distances(),
-            trail_m=sc.formation.trail_m,
-            speed_max_m_s=sc.controller.speed_max_m_s,
-            yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
-            d_safe_m=sc.controller.d_safe_m,
-            prediction_horizon_periods=sc.controller.horizon,
-            plan_stale_s=sc.controller.plan_stale_s,
-        )
+        formation = self._scenario_rows.formation
+        return RunConstants.of_scenario(self.scenario, formation.desired_distances())
 
     def live_rows(self, start: int, periods: int, *, copy: bool = True) -> LiveRows:
         """Plans, setpoint rates, plan ages and the target predictions of periods `start` ..

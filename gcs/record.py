@@ -134,6 +134,22 @@ class RunConstants:
     as a stale plan. Not in a FlightRecord (None in the constants of one)."""
 
     @classmethod
+    def of_scenario(cls, sc, desired_distance_m: np.ndarray) -> "RunConstants":
+        """The constants of a run of scenario `sc` (a `fleetmpc.scenario.Scenario`) whose
+        formation has these desired distances between slots (N, N) [m]."""
+        return cls(
+            scenario=sc.name,
+            vehicle_ids=sc.vehicle_ids,
+            desired_distance_m=desired_distance_m,
+            trail_m=sc.formation.trail_m,
+            speed_max_m_s=sc.controller.speed_max_m_s,
+            yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
+            d_safe_m=sc.controller.d_safe_m,
+            prediction_horizon_periods=sc.controller.horizon,
+            plan_stale_s=sc.controller.plan_stale_s,
+        )
+
+    @classmethod
     def of(cls, rec: FlightRecord) -> "RunConstants":
         """The constants of a record."""
         return cls(**{name: getattr(rec, name) for name in _record_constants()})

@@ -112,17 +112,7 @@ def _fly(
     ids = sc.vehicle_ids
     feed = sc.target.feed(target_rng)
     """The target's observations: a script's at its rate, a recorded track's as recorded."""
-    constants = RunConstants(
-        scenario=sc.name,
-        vehicle_ids=ids,
-        desired_distance_m=truth_formation.desired_distances(),
-        trail_m=sc.formation.trail_m,
-        speed_max_m_s=sc.controller.speed_max_m_s,
-        yaw_rate_max_rad_s=sc.controller.yaw_rate_max_rad_s,
-        d_safe_m=sc.controller.d_safe_m,
-        prediction_horizon_periods=sc.controller.horizon,
-        plan_stale_s=sc.controller.plan_stale_s,
-    )
+    constants = RunConstants.of_scenario(sc, truth_formation.desired_distances())
     for sink in sinks:
         sink.open(constants, run_info or {})
     flush_every = max(1, round(FLUSH_S * 1e9 / period_ns))
