@@ -9,6 +9,7 @@ from fleetmpc.gcs.record import FlightRecord
 __all__ = [
     "format_summary",
     "judged_metrics",
+    "known_model_figures",
     "CORNER_MIN_SPEED_M_S",
     "CORNER_RECOVERED_M",
     "CORNER_SPEED_STEP_M_S",
@@ -280,6 +281,14 @@ def judged_metrics(
     if target_source != "script":
         metrics |= dict.fromkeys(TARGET_FIGURES)
     return metrics
+
+
+def known_model_figures(metrics: dict, known_rms_m: float) -> dict:
+    """The known-model run's formation RMS beside a run's `metrics`, and their ratio
+    (`learned_over_known`; NaN when the known model's is 0)."""
+    rms = metrics["formation_rms_m"]
+    ratio = rms / known_rms_m if rms is not None and known_rms_m > 0 else float("nan")
+    return {"known_model_formation_rms_m": known_rms_m, "learned_over_known": ratio}
 
 
 def _metres(x: float | None) -> str:

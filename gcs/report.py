@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 
 from fleetmpc.gcs.figures import write_figures
-from fleetmpc.gcs.metrics import judged_metrics
+from fleetmpc.gcs.metrics import judged_metrics, known_model_figures
 from fleetmpc.gcs.rrd_reader import read_recording
 
 __all__ = ["METRICS_FILE", "add_arguments", "run"]
@@ -42,6 +42,9 @@ def run(args: argparse.Namespace) -> int:
         ),
         **{k: v for k, v in loaded.run_end.items() if k != "network"},
     }
+    known_rms = loaded.run_info.get("known_model_formation_rms_m")
+    if known_rms is not None:
+        metrics |= known_model_figures(metrics, known_rms)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / METRICS_FILE

@@ -10,7 +10,7 @@ from fleetmpc.bus.faults import load_faults
 from fleetmpc.check.feasibility import check_scenario
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs.figures import write_figures
-from fleetmpc.gcs.metrics import compute_metrics, format_summary
+from fleetmpc.gcs.metrics import compute_metrics, format_summary, known_model_figures
 from fleetmpc.gcs.progress import ProgressBar
 from fleetmpc.gcs.telemetry import add_telemetry_argument, open_sink
 from fleetmpc.lockstep.flight import run_lockstep
@@ -84,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
         "feasible": report.feasible,
         "seed": sc.seed if args.seed is None else args.seed,
     }
+    known = {}
+    if args.known_model:  # (first, so that its figure is in the recording's run_info too)
+        known = {"known_model_formation_rms_m": _known_model_rms(sc, args, duration, faults)}
     bar = None if args.quiet else ProgressBar(f"sim {sc.name}")
     try:
         rec = run_lockstep(
@@ -93,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             progress=bar,
             sinks=sinks,
-            run_info={**run_info, "source": "lockstep"},
+            run_info={**run_info, **known, "source": "lockstep"},
             jobs=args.jobs,
             faults=faults,
         )
@@ -106,8 +109,8 @@ def run(args: argparse.Namespace) -> int:
         "duration_s": float(rec.t_s[-1]),
         **compute_metrics(rec),
     }
-    if args.known_model:
-        metrics.update(_known_model_metrics(sc, args, duration, faults, metrics))
+    if known:
+        metrics |= known_model_figures(metrics, known["known_model_formation_rms_m"])
     print(format_summary(metrics))
     if args.metrics:
         path = Path(args.metrics)
@@ -122,20 +125,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _known_model_metrics(sc, args, duration, faults, learned: dict) -> dict:
-    """The known-model run's formation RMS beside the run's, and their ratio."""
-    known = compute_metrics(
-        run_lockstep(
-            sc,
-            duration_s=duration,
-            seed=args.seed,
-            jobs=args.jobs,
-            faults=faults,
-            known_model=True,
-        )
+def _known_model_rms(sc, args, duration, faults) -> float:
+    """The formation RMS of the run flown with every agent told its truth."""
+    known = run_lockstep(
+        sc, duration_s=duration, seed=args.seed, jobs=args.jobs, faults=faults, known_model=True
     )
-    rms = known["formation_rms_m"]
-    return {
-        "known_model_formation_rms_m": rms,
-        "learned_over_known": learned["formation_rms_m"] / rms if rms > 0 else float("nan"),
-    }
+    return compute_metrics(known)["formation_rms_m"]

@@ -207,9 +207,11 @@ def _same(got, want) -> bool:
 
 def test_report_gives_every_metric_sim_gives_for_the_same_run(tmp_path, capsys):
     """`fleetmpc report` of a `sim --rrd` recording: every key of `sim --metrics`, equal (the
-    target prediction RMS, the plan ages and what the plan bus did included), and the figures."""
+    target prediction RMS, the plan ages, what the plan bus did and the known-model figures
+    included), and the figures."""
     rrd, sim_metrics, out = tmp_path / "run.rrd", tmp_path / "sim.json", tmp_path / "report"
     args = ["sim", "scenarios/paper.toml", "--duration", "3", "--quiet", "--seed", "11"]
+    args.append("--known-model")
     assert main([*args, "--metrics", str(sim_metrics), "--rrd", str(rrd)]) == 0
     assert main(["report", str(rrd), "--out", str(out)]) == 0
     for name in FIGURE_FILES:
@@ -218,6 +220,7 @@ def test_report_gives_every_metric_sim_gives_for_the_same_run(tmp_path, capsys):
     reported = json.loads((out / METRICS_FILE).read_text())
     assert direct["target_prediction_rms_m"] > 0 and direct["plan_age_s"]["max"] > 0
     assert direct["network"]["received"]["accepted"] > 0 and direct["seed"] == 11
+    assert direct["learned_over_known"] > 0
     assert set(direct) <= set(reported), sorted(set(direct) - set(reported))
     for key, want in direct.items():
         assert _same(reported[key], want), (key, reported[key], want)
