@@ -103,6 +103,18 @@ def _rrd_entities(path: Path) -> set[str]:
     return {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream()}
 
 
+def _rrd_events(path: Path) -> list[tuple[str, str]]:
+    """(level, text) of every event in a recording."""
+    out = []
+    for chunk in rr.chunk.RrdReader(path).stream():
+        if chunk.entity_path == "/events" and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            levels = batch.column(batch.schema.names.index("TextLog:level")).to_pylist()
+            texts = batch.column(batch.schema.names.index("TextLog:text")).to_pylist()
+            out += [(level[0], text[0]) for level, text in zip(levels, texts, strict=True)]
+    return out
+
+
 def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     run_dir, rrd, metrics = tmp_path / "run", tmp_path / "run.rrd", tmp_path / "metrics.json"
     up = launch(scenario, run_dir, "--duration", "30", "--rrd", str(rrd), "--metrics", str(metrics))
@@ -123,6 +135,7 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     # The recording holds every entity family the ground station logs.
     entities = _rrd_entities(rrd)
     expected = {"/map/target", "/map/target_prediction", "/map/formation_links"}
+    expected |= {"/map/target_observations", "/map/target_estimate"}
     expected |= {"/series/centre_distance", "/events", "/flight_record", "/meta"}
     expected |= {"/map/vehicles", "/map/trails", "/map/slots", "/map/plans"}
     for family in ("separation", "formation_error", "c_norm", "solve_time_ms"):
@@ -131,6 +144,9 @@ def test_up_flies_the_paper_fleet_within_the_gates(scenario, launch, tmp_path):
     expected |= {"/series/beta/effectiveness", "/series/beta/drift_m_s"}
     assert expected <= entities, sorted(expected - entities)
     assert rr.chunk.RrdReader(rrd).blueprints(), "no blueprint in the recording"
+    events = _rrd_events(rrd)
+    assert any("run start" in text for _, text in events), events
+    assert [e for e in events if e[0] != "INFO"] == [], events  # a clean run warns of nothing
 
     # `report` regenerates the figures and the metrics from the recording alone.
     out = tmp_path / "report"
