@@ -559,8 +559,9 @@ def killed_plan_as_seen_by(flight: Flight, vid: int) -> dict:
 
 def test_a_killed_agent_holds_its_vehicle_and_goes_stale_for_the_others(flight: Flight) -> None:
     """SIGKILL agent 3: its SITL fails safe to HOLD; agents 1 and 2 see its plan age run away
-    within 0.5 s and drop its formation term past the staleness bound; no two vehicles come
-    closer than d_safe, from the epoch to the shutdown."""
+    at their first step after it is older than it ever was, and drop its formation term past
+    the staleness bound; no two vehicles come closer than d_safe, from the epoch to the
+    shutdown."""
     kill, stop = flight.kill_s, flight.stop_s
     settings = flight.scenario.controller
     assert set(flight.modes(KILLED, 0.0, kill)) == {(FlightMode.OFFBOARD, True)}
@@ -574,10 +575,12 @@ def test_a_killed_agent_holds_its_vehicle_and_goes_stale_for_the_others(flight: 
         assert seen["normal_max_s"] < PLAN_AGE_REACTION_S, seen["normal_max_s"]
         after = seen["after"]
         assert after[-1][0] >= kill + WATCH_AFTER_KILL_S - 0.5, after[-1]
-        # Within 0.5 s the age leaves its normal range, and from then on it grows with time:
-        # nothing newer than the kill ever arrives.
+        # At the first step after the plan got older than it ever was (its normal largest age
+        # and one period: a step's phase; 0.1 s of scheduling), the age leaves its normal
+        # range, and from then on it grows with time: nothing newer than the kill arrives.
         assert seen["stale_after_s"] is not None, after
-        assert seen["stale_after_s"] <= PLAN_AGE_REACTION_S, seen["stale_after_s"]
+        reaction_s = seen["normal_max_s"] + settings.period_s + 0.1
+        assert seen["stale_after_s"] <= reaction_s, (seen["stale_after_s"], reaction_s)
         assert all(a >= t - kill - 0.05 for t, a, _ in after if t >= kill + 0.2), after
         # Past plan_stale_s its formation term is dropped; the live neighbour's stays.
         assert seen["terms_before"] == {2}, seen["terms_before"]
