@@ -23,9 +23,12 @@ CHORD_HALF_M = 4.0
 an estimated path's jitter of a few centimetres tilts its course by under a hundredth of a
 radian, and on a steady turn the course is the tangent's at the middle, without lag."""
 
-FOLD_SHARE = 0.5
-"""A chord shorter than this share of the arc it spans folds back on itself (the target turned
-straight back): it tells no course there, and the reference course holds."""
+FOLD_SHARE = 0.25
+"""A window of path whose halves' means lie closer than this share of a straight path's folds
+back on itself (the target turned straight back, by more than about 150 degrees): it tells no
+course there, and the reference course holds. (At half, a 120-degree corner sat on the line: an estimate that rounded it
+inside folded, the truth's did not, and the agents' reference stalled for two seconds behind
+the judge's.)"""
 
 START_MIN_M = 0.5
 """An estimated path begins once it is this long; one that loses its course (its target stops)
@@ -42,17 +45,10 @@ estimated path's jitter."""
 
 
 def _piece_moments(x0, y0, x1, y1) -> tuple:
-    """The integrals of 1, x, y, xx, yy, xy along the straight piece from (x0, y0) to (x1, y1):
-    six floats, or six arrays for arrays of pieces."""
+    """The integrals of 1, x and y along the straight piece from (x0, y0) to (x1, y1): three
+    floats, or three arrays for arrays of pieces."""
     w = ((x1 - x0) ** 2 + (y1 - y0) ** 2) ** 0.5
-    return (
-        w,
-        w * (x0 + x1) / 2.0,
-        w * (y0 + y1) / 2.0,
-        w * (x0 * x0 + x0 * x1 + x1 * x1) / 3.0,
-        w * (y0 * y0 + y0 * y1 + y1 * y1) / 3.0,
-        w * (2.0 * x0 * y0 + x0 * y1 + x1 * y0 + 2.0 * x1 * y1) / 6.0,
-    )
+    return (w, w * (x0 + x1) / 2.0, w * (y0 + y1) / 2.0)
 
 
 class TargetPath:
@@ -229,53 +225,63 @@ class TargetPath:
         return xs[i - 1] + f * (xs[i] - xs[i - 1]), ys[i - 1] + f * (ys[i] - ys[i - 1])
 
     def _running_moments(self) -> tuple[list[list[float]], float, float]:
-        """The integrals of 1, x, y, xx, yy, xy along the path from its first point to each
-        point (K, 6), about an origin at its newest point (kept small, for precision), and that
+        """The integrals of 1, x and y along the path from its first point to each point
+        (K, 3), about an origin at its newest point (kept small, for precision), and that
         origin; computed once per change of the path."""
         if self._moments is None:
             ox, oy = self.xs[-1], self.ys[-1]
             x, y = np.asarray(self.xs) - ox, np.asarray(self.ys) - oy
             pieces = np.column_stack(_piece_moments(x[:-1], y[:-1], x[1:], y[1:]))
-            running = np.vstack([np.zeros((1, 6)), np.cumsum(pieces, axis=0)])
+            running = np.vstack([np.zeros((1, 3)), np.cumsum(pieces, axis=0)])
             self._moments = (running.tolist(), ox, oy)
         return self._moments
 
     def at(self, s: float) -> tuple[tuple[float, float], float | None]:
         """The path smoothed at arc length s: the mean of the path from CHORD_HALF_M before s
         to CHORD_HALF_M after it (no further than the newest point, unless s lies beyond it),
-        and the course of the straight line fitted to it there (least squares, orthogonal), the
-        way the path goes. The mean takes out the jitter of estimated positions and moves
-        smoothly round a waypoint's corner; on a turn of radius R it lies CHORD_HALF_M^2 / (6 R)
-        inside the path (5 cm at 50 m), the same for every agent and the judge. The course is
-        None where it is not known: on a tail not yet set, or where the path folds back on
-        itself (its chord shorter than FOLD_SHARE of its arc: a target that turned straight
-        back)."""
+        and its course there, from the mean of the window's half before s to the mean of its
+        half after it. The means take out the jitter of estimated positions and move smoothly
+        round a waypoint's corner; on a turn of radius R the mean lies CHORD_HALF_M^2 / (6 R)
+        inside the path (5 cm at 50 m), the same for every agent and the judge; on a steady
+        turn the course is the tangent's at s, and at a corner it bisects the turn. The course
+        is None where it is not known: on a tail not yet set, or where the path folds back on
+        itself (the halves' means closer than FOLD_SHARE of a straight path's: a target that
+        turned straight back)."""
         lo = s - CHORD_HALF_M
         hi = s + CHORD_HALF_M if s >= self.length_m else min(s + CHORD_HALF_M, self.length_m)
         if self.tail_course is None and lo < self.ss[0]:
             return self.point_at(s), None
-        # The path between the window's ends, each piece weighed by its length (so that the fit
-        # moves smoothly as the ends slide along): its mean, and the principal axis of its
-        # spread, from the pieces' moments: the whole pieces' from the running sums, the two
-        # partial ones at the ends on their own.
-        (ax, ay), (bx, by) = self.point_at(lo), self.point_at(hi)
-        i, j = bisect.bisect_right(self.ss, lo), bisect.bisect_left(self.ss, hi)
-        running, ox, oy = self._running_moments()
-        if i < j:
-            whole = [a - b for a, b in zip(running[j - 1], running[i], strict=True)]
-            first = _piece_moments(ax - ox, ay - oy, self.xs[i] - ox, self.ys[i] - oy)
-            last = _piece_moments(self.xs[j - 1] - ox, self.ys[j - 1] - oy, bx - ox, by - oy)
-            m = [a + b + c for a, b, c in zip(whole, first, last, strict=True)]
-        else:
-            m = _piece_moments(ax - ox, ay - oy, bx - ox, by - oy)
-        if m[0] < PATH_SPACING_M:  # (a target that has not moved)
+        before, after = self._moments_between(lo, s), self._moments_between(s, hi)
+        weight = before[0] + after[0]
+        if weight < PATH_SPACING_M:  # (a target that has not moved)
             return self.point_at(s), None
-        mx, my = m[1] / m[0], m[2] / m[0]
-        sxx, syy, sxy = m[3] / m[0] - mx * mx, m[4] / m[0] - my * my, m[5] / m[0] - mx * my
-        axis = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-        ux, uy = math.cos(axis), math.sin(axis)
-        point = (ox + mx, oy + my)
+        _, ox, oy = self._running_moments()
+        point = (ox + (before[1] + after[1]) / weight, oy + (before[2] + after[2]) / weight)
+        (ax, ay), (bx, by) = (self._mean(m, edge) for m, edge in ((before, lo), (after, hi)))
         dx, dy = bx - ax, by - ay
-        if math.hypot(dx, dy) < max(FOLD_SHARE * (hi - lo), PATH_SPACING_M):
+        if math.hypot(dx, dy) < max(FOLD_SHARE * (hi - lo) / 2.0, PATH_SPACING_M):
             return point, None
-        return point, axis if ux * dx + uy * dy >= 0.0 else wrap(axis + math.pi)
+        return point, math.atan2(dy, dx)
+
+    def _moments_between(self, a: float, b: float) -> list[float]:
+        """The integrals of 1, x and y along the path from arc length a to b (a <= b), about
+        the running moments' origin: the whole pieces' from the running sums, the two partial
+        ones at the ends on their own, each piece weighed by its length (so they move smoothly
+        as the ends slide along)."""
+        (ax, ay), (bx, by) = self.point_at(a), self.point_at(b)
+        i, j = bisect.bisect_right(self.ss, a), bisect.bisect_left(self.ss, b)
+        running, ox, oy = self._running_moments()
+        if i >= j:
+            return list(_piece_moments(ax - ox, ay - oy, bx - ox, by - oy))
+        whole = [p - q for p, q in zip(running[j - 1], running[i], strict=True)]
+        first = _piece_moments(ax - ox, ay - oy, self.xs[i] - ox, self.ys[i] - oy)
+        last = _piece_moments(self.xs[j - 1] - ox, self.ys[j - 1] - oy, bx - ox, by - oy)
+        return [p + q + r for p, q, r in zip(whole, first, last, strict=True)]
+
+    def _mean(self, moments: list[float], edge: float) -> tuple[float, float]:
+        """The mean position the moments give, or the point at arc length `edge` where they
+        hold no length."""
+        if moments[0] <= 0.0:
+            return self.point_at(edge)
+        _, ox, oy = self._running_moments()
+        return ox + moments[1] / moments[0], oy + moments[2] / moments[0]

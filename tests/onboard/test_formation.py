@@ -110,8 +110,9 @@ def test_a_reversal_sweeps_to_starboard_whichever_side_the_noise_puts_it(side):
     p, v = np.vstack([out, back]), np.vstack([v_out, v_back])
     centres, courses = _fly(_reference(trail_m=5.0, rate=0.05), p, v)
     steps = np.diff(courses)
-    # (The way back beside the way out tilts the path's course there by a few milliradians.)
-    assert courses.min() > -0.01 and courses[-1] == pytest.approx(math.pi, abs=0.01)
+    # (The way back beside the way out tilts the path's course there, as the window's halves
+    # close in on the fold, by up to the lateral offset over a metre: 0.04 rad here.)
+    assert courses.min() > -0.05 and courses[-1] == pytest.approx(math.pi, abs=0.01)
     assert np.sum(np.isclose(steps, 0.05 * DT)) > 100  # to starboard, at the limit
     # The centre goes on to where the target turned and comes back behind it.
     assert centres[:, 0].max() == pytest.approx(50.0 - DT, abs=CHORD_HALF_M / 2)
