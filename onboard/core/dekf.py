@@ -65,7 +65,10 @@ class _Noise:
     excitation: tuple[float, ...]
     lag_s: float
     speed_excitation_m_s: float
-    velocity_var: float
+    R_velocity: np.ndarray
+    """The ground velocity's measurement noise (2, 2)."""
+    velocity_weights: np.ndarray
+    """How far the commanded velocity's recent and slow means move per period (2, 1)."""
 
     @classmethod
     def from_settings(cls, s: LearningSettings, tau: float) -> "_Noise":
@@ -92,7 +95,8 @@ class _Noise:
             excitation=tuple(e * tau for e in s.excitation_min) + (0.0, 0.0),
             lag_s=s.input_lag_s,
             speed_excitation_m_s=s.speed_excitation_m_s,
-            velocity_var=s.measurement_velocity_std_m_s**2,
+            R_velocity=np.eye(2) * s.measurement_velocity_std_m_s**2,
+            velocity_weights=np.array([[tau / VELOCITY_FAST_S], [tau / VELOCITY_SLOW_S]]),
         )
 
 
@@ -160,9 +164,9 @@ def flown_input(
     return u + gap * (lag_s / tau * (1.0 - fade)), u + gap * fade
 
 
-def _velocity_means(means: np.ndarray, velocity: np.ndarray, tau: float) -> np.ndarray:
-    """The recent and slow means (2, 2) of the commanded velocity, moved on by one period."""
-    weights = np.array([[tau / VELOCITY_FAST_S], [tau / VELOCITY_SLOW_S]])
+def _velocity_means(means: np.ndarray, velocity: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The recent and slow means (2, 2) of the commanded velocity, moved on by one period
+    (`_Noise.velocity_weights`)."""
     return means + weights * (velocity - means)
 
 
@@ -195,8 +199,8 @@ def _consider_update(
     hold: list[int],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with the gain rows of the held parameters zeroed (Joseph form)."""
-    S = H.dot(P).dot(H.T) + R
-    K = P.dot(H.T).dot(np.linalg.inv(S))
+    PHt = P.dot(H.T)  # (P H' twice: in S and in the gain)
+    K = PHt.dot(np.linalg.inv(H.dot(PHt) + R))
     K[hold] = 0.0
     I_K = _EYE6 - K.dot(H)
     return theta + K.dot(innovation), I_K.dot(P).dot(I_K.T) + K.dot(R).dot(K.T)
@@ -215,7 +219,7 @@ def _velocity_model(
     d_x, d_y = float(theta[2] + theta[4]), float(theta[3] + theta[5])
     H_v = np.array(((speed * c, 0.0, 1.0, 0.0, 1.0, 0.0), (speed * s, 0.0, 0.0, 1.0, 0.0, 1.0)))
     across = (a_v * speed) ** 2 * heading_var
-    R_v = np.array(((s * s, -s * c), (-s * c, c * c))) * across + np.eye(2) * noise.velocity_var
+    R_v = np.array(((s * s, -s * c), (-s * c, c * c))) * across + noise.R_velocity
     return np.array((a_v * speed * c + d_x, a_v * speed * s + d_y)), H_v, R_v
 
 
@@ -281,7 +285,9 @@ class DualEkf:
         H_p = _with_gust(G)
         P_own = J_s.dot(self.P_s).dot(J_s.T) + n.Q_s  # the prediction's uncertainty but beta's
         P_s_m = P_own + H_p.dot(self.P_p).dot(H_p.T) if learn else P_own
-        self._velocity_means = _velocity_means(self._velocity_means, G[:2, 0] / self.tau, self.tau)
+        self._velocity_means = _velocity_means(
+            self._velocity_means, G[:2, 0] / self.tau, n.velocity_weights
+        )
         innovation = y[:3] - z_m
         innovation[2] = wrap(innovation.item(2))
         S_inv = _inverse_3x3(P_s_m + n.R_s)

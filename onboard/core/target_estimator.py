@@ -154,6 +154,8 @@ class TargetEstimator:
         self._nis = 2.0
         """The averaged normalized innovation squared (its mean while the models hold)."""
         self.observations = 0
+        self._velocity_std: float | None = None
+        """`velocity_std_m_s` since the last observation, None until it is asked for."""
 
     @property
     def ready(self) -> bool:
@@ -166,9 +168,15 @@ class TargetEstimator:
         return _mixed_covariance(self.probabilities[:, None], self._xs, self._Ps, self.x[None])[0]
 
     def velocity_std_m_s(self) -> float:
-        """Standard deviation of the velocity estimate (the larger axis's) [m/s]."""
-        P = self.P
-        return math.sqrt(max(P[2, 2], P[3, 3]))
+        """Standard deviation of the velocity estimate (the larger axis's) [m/s]: the combined
+        covariance's two velocity variances (`P`'s diagonal entries, each model's variance and
+        its spread about the combined estimate), once per observation."""
+        if self._velocity_std is None:
+            spread = self._xs[:, 2:4] - self.x[2:4]
+            own = self._Ps[:, (2, 3), (2, 3)]  # (models, 2): each model's velocity variances
+            variances = self.probabilities.dot(own + spread * spread)
+            self._velocity_std = math.sqrt(max(variances.tolist()))
+        return self._velocity_std
 
     @property
     def manoeuvring(self) -> bool:
@@ -206,6 +214,7 @@ class TargetEstimator:
         self._xs = np.stack([self.x] * len(self.models))
         self._Ps = np.stack([P] * len(self.models))
         self._stamp_ns = stamp_ns
+        self._velocity_std = None
 
     def observe(self, stamp_ns: int, position_m: np.ndarray) -> bool:
         """Fuse an observation taken at stamp_ns; non-finite or out-of-order ones are ignored."""
@@ -253,6 +262,7 @@ class TargetEstimator:
         observed_nis = float(prior.dot(nis))
         self._nis += MANEUVER_AVERAGING * (observed_nis - self._nis)
         self._stamp_ns = stamp_ns
+        self._velocity_std = None
         self.observations += 1
         return True
 

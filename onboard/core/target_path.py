@@ -10,8 +10,6 @@ import math
 
 import numpy as np
 
-from fleetmpc.onboard.core.unicycle import wrap
-
 __all__ = ["CHORD_HALF_M", "START_MIN_M", "TargetPath"]
 
 PATH_SPACING_M = 0.05
@@ -26,9 +24,9 @@ radian, and on a steady turn the course is the tangent's at the middle, without 
 FOLD_SHARE = 0.25
 """A window of path whose halves' means lie closer than this share of a straight path's folds
 back on itself (the target turned straight back, by more than about 150 degrees): it tells no
-course there, and the reference course holds. (At half, a 120-degree corner sat on the line: an estimate that rounded it
-inside folded, the truth's did not, and the agents' reference stalled for two seconds behind
-the judge's.)"""
+course there, and the reference course holds. (A chord shorter than half its arc, the test
+before, put a 120-degree corner on the line: an estimate that rounded it inside folded, the
+truth's did not, and the agents' reference stalled for two seconds behind the judge's.)"""
 
 START_MIN_M = 0.5
 """An estimated path begins once it is this long; one that loses its course (its target stops)
@@ -84,7 +82,8 @@ class TargetPath:
         """True from a stop until the target has got `start_m` clear of where it stopped."""
         self._moments: tuple[list[list[float]], float, float] | None = None
         """The running moments of the points (`_running_moments`), None when out of date; a
-        point added at the end adds its piece to them."""
+        point added at the end adds its piece to them, points dropped at the start take their
+        entries out (`_drop_moments`)."""
         self._kept = 0
         """How many of the points stay (the rest: the newest position, too close to stay)."""
 
@@ -147,7 +146,7 @@ class TargetPath:
             drop = bisect.bisect_left(ss, ss[-1] - self._keep_m) - 1
             del xs[:drop], ys[:drop], ss[:drop]
             self._kept -= drop
-            self._moments = None
+            self._drop_moments(drop)
 
     def _locate(self, x: float, y: float) -> float:
         """Where a stopped target at (x, y) is on the path [m of arc]: the nearest point of the
@@ -224,10 +223,23 @@ class TargetPath:
         f = (s - ss[i - 1]) / (ss[i] - ss[i - 1])
         return xs[i - 1] + f * (xs[i] - xs[i - 1]), ys[i - 1] + f * (ys[i] - ys[i - 1])
 
+    def _drop_moments(self, drop: int) -> None:
+        """The running moments less those of the first `drop` points, dropped: a window's
+        moments are differences of running sums, which the dropped pieces' share leaves as they
+        are. Their origin stays where it was until the newest point is `keep_m` from it; then
+        they are computed afresh about the newest point (kept small, for precision)."""
+        if self._moments is None:
+            return
+        running, ox, oy = self._moments
+        del running[:drop]
+        if math.hypot(self.xs[-1] - ox, self.ys[-1] - oy) > self._keep_m:
+            self._moments = None
+
     def _running_moments(self) -> tuple[list[list[float]], float, float]:
         """The integrals of 1, x and y along the path from its first point to each point
-        (K, 3), about an origin at its newest point (kept small, for precision), and that
-        origin; computed once per change of the path."""
+        (K, 3), about an origin near its newest point (kept small, for precision), and that
+        origin; computed afresh when the path is begun, cut or has moved `keep_m` away from the
+        origin, otherwise kept up as points come and go (`extend`, `_drop_moments`)."""
         if self._moments is None:
             ox, oy = self.xs[-1], self.ys[-1]
             x, y = np.asarray(self.xs) - ox, np.asarray(self.ys) - oy

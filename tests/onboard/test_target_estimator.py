@@ -100,3 +100,14 @@ def test_out_of_order_and_non_finite_observations_are_ignored():
     assert not est.observe(2 * PERIOD_NS, np.array([math.nan, 0.0]))
     assert est.observations == 1
     assert est.x[:2].tolist() == [1.0, 2.0]
+
+
+def test_the_velocity_std_is_the_combined_covariances_after_every_observation():
+    rng = np.random.default_rng(1)
+    estimator = TargetEstimator(observation_std_m=0.05)
+    for k in range(40):  # (a turn that tightens: the models disagree, their spread counts)
+        p = np.array([0.2 * k, 0.01 * k * k]) + 0.05 * rng.standard_normal(2)
+        estimator.observe(k * 200_000_000, p)
+        P = estimator.P
+        expected = math.sqrt(max(P[2, 2], P[3, 3]))
+        assert estimator.velocity_std_m_s() == pytest.approx(expected, rel=1e-12)
