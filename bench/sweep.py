@@ -12,6 +12,10 @@
    (the workers) sampled at every tenth of the runs, then the table and the figures timed.
    Reported: the samples, the growth from the first tenth to the end, and over the last half,
    once Dask's bounded logs (`engine.WORKER_CONFIG`) have filled (issue 41's gate: flat).
+3. The engines' own cost: the throughput's three engines again with runs that only sleep
+   (`IDLE_RUN_S`, about a paper run's wall time) in their run processes, so that the load of a
+   shared machine, which moves the flown runs' times, hardly moves theirs. Reported: each
+   engine's median time over the ideal (runs x sleep / workers): start-up, round trips, close.
 
 Wall-clock times on this machine, whose load is reported with them; nothing is asserted.
 """
@@ -24,7 +28,7 @@ import time
 from pathlib import Path
 
 from fleetmpc.bench.step import load_average
-from fleetmpc.lockstep.engine import dask_available, local_cluster
+from fleetmpc.lockstep.engine import dask_available, local_cluster, run_tasks
 from fleetmpc.lockstep.sweep import gated_rows, sweep
 from fleetmpc.lockstep.sweep_figures import write_sweep_figures
 from fleetmpc.lockstep.sweep_grid import Axis, plan_runs
@@ -34,6 +38,9 @@ __all__ = ["run"]
 
 THROUGHPUT_RUNS = 48
 GATE_RATIO = 1.25
+IDLE_RUN_S = 0.175
+"""What a run of the engines' own cost does: sleep this long [s] (a 30-s paper run's wall time
+on a quiet core)."""
 
 
 def _rss_mb() -> tuple[float, float]:
@@ -82,6 +89,45 @@ def _throughput(scenario: str, *, jobs: int, repeats: int, tmp: Path) -> dict:
         "ratio_dask": med["dask"] / med["local"],
         "ratio_dask_running": med["dask_running"] / med["local"],
     }
+
+
+def _idle_run(spec) -> dict:
+    """A run that costs no CPU: the engine's part of a sweep is what remains."""
+    time.sleep(IDLE_RUN_S)
+    return {"run_id": spec.run_id}
+
+
+def _idle_sweep(specs, **engine) -> float:
+    done = []
+    t0 = time.monotonic()
+    run_tasks(
+        _idle_run,
+        specs,
+        failed=lambda row: None,
+        error_row=lambda spec, error: {"run_id": spec.run_id, "error": error},
+        on_finished=done.append,
+        time_limit_s=600.0,  # run processes, as the sweep's
+        **engine,
+    )
+    if len(done) != len(specs):
+        raise RuntimeError(f"{len(done)} of {len(specs)} idle runs came back")
+    return time.monotonic() - t0
+
+
+def _engine_cost(scenario: str, *, jobs: int, repeats: int) -> dict:
+    specs = plan_runs(
+        [scenario], [Axis("controller.horizon", (4, 5, 6))], seeds=THROUGHPUT_RUNS // 3
+    )
+    ideal_s = len(specs) * IDLE_RUN_S / jobs
+    times: dict[str, list[float]] = {"local": [], "dask": [], "dask_running": []}
+    with local_cluster(jobs) as cluster:
+        for _ in range(repeats):
+            for name in times:
+                engine = {"engine": "local" if name == "local" else "dask", "jobs": jobs}
+                engine["scheduler"] = cluster.scheduler_address if name == "dask_running" else None
+                times[name].append(_idle_sweep(specs, **engine))
+    over = {name: statistics.median(v) - ideal_s for name, v in times.items()}
+    return {"runs": len(specs), "ideal_s": ideal_s, "wall_s": times, "over_ideal_s": over}
 
 
 def _memory(scenario: str, *, runs: int, jobs: int, tmp: Path) -> dict:
@@ -148,6 +194,15 @@ def run(args: argparse.Namespace) -> int:
                 f" included) {med['dask']:.2f} s = {t['ratio_dask']:.2f}x, dask (running"
                 f" cluster) {med['dask_running']:.2f} s = {t['ratio_dask_running']:.2f}x"
                 f" (gate: at most {GATE_RATIO}x)"
+            )
+            c = _engine_cost(args.scenario, jobs=args.jobs, repeats=args.repeats)
+            out["engine_cost"] = c
+            over = c["over_ideal_s"]
+            print(
+                f"engines' own cost ({c['runs']} runs that sleep {IDLE_RUN_S} s, ideal"
+                f" {c['ideal_s']:.2f} s): median over it: pool {over['local']:.2f} s, dask (local"
+                f" cluster) {over['dask']:.2f} s, dask (running cluster)"
+                f" {over['dask_running']:.2f} s"
             )
         else:
             print("throughput: skipped, Dask is not installed (pip install 'fleetmpc[cluster]')")
