@@ -25,6 +25,14 @@ cross it from side to side (its cells filled row by row, in the blueprint's orde
 container's active tab below its bar of tab names (the others are not shown). A collapsed side
 panel leaves the viewport the window's edge.
 
+How fast the viewer redraws after an input: `FRAME_PROBE`, put in the page before it loads,
+notes every animation frame (its start and end on the page's clock, and its WebGL draw calls)
+and every pointer and key press. The viewer asks for a frame every display frame but draws only
+in those where something changed; `Viewer.redraw_after` gives an idle viewer an input (a
+click, a key), waits until its frames have drawn nothing for `QUIET_S`, and times the redraw
+from the press to the start of the first frame after the last that drew (`Redraw`): the
+browser begins no frame while the one before is still being drawn, so then the last is shown.
+
 Nothing leaves the machine: the viewer binds 127.0.0.1, its usage analytics are disabled in a
 private HOME before it starts, and Chromium resolves no host name but 127.0.0.1 and sends
 everything else to a proxy that does not exist. The page asks for more than the recording (web
@@ -401,7 +409,8 @@ calls) only in those where something changed; the probe notes each frame's start
 page's clock and its draw calls, and the time of every pointer and key press."""
 
 QUIET_S = 1.5
-"""The viewer has redrawn what an input asked for when it has drawn nothing for this long [s]."""
+"""The viewer has redrawn what an input asked for when its frames have drawn nothing for this
+long [s]."""
 
 REDRAW_TIMEOUT_S = 60.0
 """Longest wait for the viewer to stop drawing after an input [s]."""
@@ -425,9 +434,10 @@ def scrub_points(count: int) -> list[tuple[int, int]]:
 @dataclass(frozen=True)
 class Redraw:
     """What the viewer drew after one input [ms from the input's press, on the page's clock]:
-    the frames that drew, and `done_ms`, the start of the first frame after the last that drew:
-    the browser begins a frame once the one before is on the screen, so by then the last drawn
-    frame is shown. `done_ms` is the redraw time."""
+    the frames that drew, and `done_ms`, the redraw time: the start of the first frame after
+    the last that drew (the browser begins no frame while the one before is still being drawn;
+    with software rendering a frame of the viewer takes most of a second, and the next one
+    begins that much later)."""
 
     drawn: int
     done_ms: float
@@ -649,13 +659,16 @@ class Viewer:
         return self.evaluate(f"__redrawProbe.frames.slice({since})")
 
     def idle(self, *, after_ms: float = 0.0, timeout_s: float = REDRAW_TIMEOUT_S) -> int:
-        """Wait until the viewer has drawn nothing for `QUIET_S`, counted from `after_ms` on the
-        page's clock at the earliest; the probe's frame count then. Needs `FRAME_PROBE`."""
+        """Wait until the viewer has gone `QUIET_S` of frames without drawing, counted from
+        `after_ms` on the page's clock at the earliest (frames, not the clock: while a frame
+        takes long to draw, the browser begins none); the probe's frame count then. Needs
+        `FRAME_PROBE` in the page."""
         deadline = time.monotonic() + timeout_s
         while True:
-            count, now = self.evaluate("[__redrawProbe.frames.length, performance.now()]")
-            drawn = [f[1] for f in self._frames(max(0, count - 600)) if f[2]]  # the last 10 s
-            if now - max([after_ms, *drawn]) >= QUIET_S * 1000.0:
+            count = self.evaluate("__redrawProbe.frames.length")
+            frames = self._frames(max(0, count - 600))  # the last 10 s
+            drawn = [f[1] for f in frames if f[2]]
+            if frames and frames[-1][0] - max([after_ms, *drawn]) >= QUIET_S * 1000.0:
                 return count
             if time.monotonic() > deadline:
                 raise ViewerError(f"the viewer kept drawing for {timeout_s:g} s")
@@ -673,7 +686,7 @@ class Viewer:
             raise ViewerError("the page saw no input")
         t0 = presses[0][1]
         self.idle(after_ms=t0, timeout_s=timeout_s)
-        frames = [f for f in self._frames(since) if f[0] >= t0]
+        frames = [f for f in self._frames(since) if f[1] >= t0]
         drew = [i for i, f in enumerate(frames) if f[2]]
         if not drew:
             return Redraw(0, 0.0)

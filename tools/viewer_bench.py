@@ -84,8 +84,8 @@ def vehicles_of(rrd: Path) -> int:
     raise SystemExit(f"{rrd}: no map view")
 
 
-def redraws(rrd: Path, workdir: Path, env: dict[str, str], inputs: int) -> list[float]:
-    """Redraw times [ms] of `inputs` clicks on the time slider, the viewer paused."""
+def redraws(rrd: Path, workdir: Path, env: dict[str, str], inputs: int) -> list[viewer.Redraw]:
+    """The redraws of `inputs` clicks on the time slider, the viewer paused."""
     blueprint = viewer.recorded_blueprint(rrd)
     with viewer.open_viewer(rrd, workdir, env, on_new_document=viewer.FRAME_PROBE) as page:
         settled, _ = page.settle(blueprint, timeout_s=300.0)
@@ -95,15 +95,17 @@ def redraws(rrd: Path, workdir: Path, env: dict[str, str], inputs: int) -> list[
             redraw = page.redraw_after(lambda x=x, y=y: page.click(x, y))
             if redraw.drawn == 0:
                 raise SystemExit(f"{rrd}: the viewer drew nothing after a click at {x}, {y}")
-            times.append(redraw.done_ms)
+            times.append(redraw)
         moved = page.screenshot()
         if np.array_equal(moved, settled):
             raise SystemExit(f"{rrd}: the clicks on the time slider changed nothing")
     return times
 
 
-def _summary(times: list[float]) -> dict:
+def _summary(redraws: list[viewer.Redraw]) -> dict:
+    times = [r.done_ms for r in redraws]
     return {
+        "frames_drawn_median": float(np.median([r.drawn for r in redraws])),
         "redraw_median_ms": float(np.median(times)),
         "redraw_p99_ms": float(np.percentile(times, 99)),
         "redraw_max_ms": float(np.max(times)),
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             rrds[label] = work / f"{scenario.stem}-{label.replace(' ', '-')}.rrd"
             record(tree, scenario, rrds[label], args.duration)
-        times: dict[str, list[float]] = {label: [] for label in trees}
+        times: dict[str, list[viewer.Redraw]] = {label: [] for label in trees}
         for r in range(args.rounds):
             order = list(trees) if r % 2 == 0 else list(reversed(trees))
             for label in order:
@@ -157,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{row['fleet']:>14} ({n:3d} UAVs, {label}): "
                 f"{row['bytes_per_vehicle_minute'] / 1e3:7.1f} kB per vehicle-minute; redraw "
                 f"median {row['redraw_median_ms']:5.0f} ms, p99 {row['redraw_p99_ms']:5.0f} ms,"
-                f" max {row['redraw_max_ms']:5.0f} ms ({len(times[label])} inputs)",
+                f" max {row['redraw_max_ms']:5.0f} ms ({len(times[label])} inputs, median"
+                f" {row['frames_drawn_median']:g} frames drawn each)",
                 flush=True,
             )
     load = [round(x, 2) for x in os.getloadavg()]
