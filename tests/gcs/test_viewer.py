@@ -64,10 +64,10 @@ def home(tmp_path_factory) -> dict[str, str]:
     return rerun_home(tmp_path_factory.mktemp("viewer-home"))
 
 
-def _sim(scenario: Path, rrd: Path, *, timeout_s: float) -> Path:
-    """`scenario` flown `DURATION_S` in lockstep into the recording `rrd`."""
+def _sim(scenario: Path, rrd: Path, *, jobs: int = 1, timeout_s: float) -> Path:
+    """`scenario` flown `DURATION_S` in lockstep (agents in `jobs` processes) into `rrd`."""
     argv = [sys.executable, "-m", "fleetmpc.cli", "sim", str(scenario), "--rrd", str(rrd)]
-    argv += ["--quiet", "--duration", f"{DURATION_S:g}", "--jobs", "2"]
+    argv += ["--quiet", "--duration", f"{DURATION_S:g}", "--jobs", str(jobs)]
     done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
     assert done.returncode == 0, done.stdout + done.stderr
     return rrd
@@ -82,7 +82,7 @@ def sim_rrd(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def grid50_rrd(tmp_path_factory) -> Path:
     """Fifty vehicles, lockstep."""
-    return _sim(GRID50, tmp_path_factory.mktemp("grid50") / "grid50.rrd", timeout_s=300)
+    return _sim(GRID50, tmp_path_factory.mktemp("grid50") / "grid50.rrd", jobs=2, timeout_s=300)
 
 
 @pytest.fixture(scope="module")
@@ -197,6 +197,10 @@ def test_fifty_vehicles_are_drawn_and_redrawn_after_clicks_on_the_time_slider(
         after = Seen(
             viewer.save(image, "grid50-scrubbed"), {v: panel_ink(image, views[v]) for v in checked}
         )
+        answered = viewer.off_loopback(answered=True)
+    assert answered == [], f"the page got answers from off this machine: {answered}"
+    left = live_processes_naming(str(tmp_path))
+    assert left == [], f"processes left running: {left}"
     print(
         f"fifty vehicles, redraw after a click on the time slider: {', '.join(map(str, redraws))}"
     )
