@@ -30,8 +30,8 @@ notes every animation frame (its start and end on the page's clock, and its WebG
 and every pointer and key press. The viewer asks for a frame every display frame but draws only
 in those where something changed; `Viewer.redraw_after` gives an idle viewer an input (a
 click, a key), waits until its frames have drawn nothing for `QUIET_S`, and times the redraw
-from the press to the start of the first frame after the last that drew (`Redraw`): the
-browser begins no frame while the one before is still being drawn, so then the last is shown.
+from the press to the start of the second frame after the last that drew (`Redraw`): the
+browser keeps one frame in flight, so then the last is shown.
 
 Nothing leaves the machine: the viewer binds 127.0.0.1, its usage analytics are disabled in a
 private HOME before it starts, and Chromium resolves no host name but 127.0.0.1 and sends
@@ -434,10 +434,11 @@ def scrub_points(count: int) -> list[tuple[int, int]]:
 @dataclass(frozen=True)
 class Redraw:
     """What the viewer drew after one input [ms from the input's press, on the page's clock]:
-    the frames that drew, and `done_ms`, the redraw time: the start of the first frame after
-    the last that drew (the browser begins no frame while the one before is still being drawn;
-    with software rendering a frame of the viewer takes most of a second, and the next one
-    begins that much later)."""
+    the frames that drew, and `done_ms`, the redraw time: the start of the second frame after
+    the last that drew. The browser keeps one frame in flight: it may begin the next frame
+    while the last drawn one is still being drawn, but not the one after (with software
+    rendering a frame of the viewer takes most of a second, and that one begins that much
+    later), so by then the last drawn frame is on the screen."""
 
     drawn: int
     done_ms: float
@@ -690,9 +691,8 @@ class Viewer:
         drew = [i for i, f in enumerate(frames) if f[2]]
         if not drew:
             return Redraw(0, 0.0)
-        after = frames[drew[-1] + 1 : drew[-1] + 2]
-        end = after[0][0] if after else frames[drew[-1]][1]
-        return Redraw(len(drew), end - t0)
+        after = frames[drew[-1] + 1 : drew[-1] + 3]  # (the quiet frames: at least two)
+        return Redraw(len(drew), after[-1][0] - t0)
 
     def save(self, image: np.ndarray, name: str) -> Path:
         """Write `image` as ``<shots>/<name>.png``; its path."""
