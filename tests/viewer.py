@@ -25,6 +25,14 @@ cross it from side to side (its cells filled row by row, in the blueprint's orde
 container's active tab below its bar of tab names (the others are not shown). A collapsed side
 panel leaves the viewport the window's edge.
 
+How fast the viewer redraws after an input: `FRAME_PROBE`, put in the page before it loads,
+notes every animation frame (its start and end on the page's clock, and its WebGL draw calls)
+and every pointer and key press. The viewer asks for a frame every display frame but draws only
+in those where something changed; `Viewer.redraw_after` gives an idle viewer an input (a
+click, a key), waits until its frames have drawn nothing for `QUIET_S`, and times the redraw
+from the press to the start of the second frame after the last that drew (`Redraw`): the
+browser keeps one frame in flight, so then the last is shown.
+
 Nothing leaves the machine: the viewer binds 127.0.0.1, its usage analytics are disabled in a
 private HOME before it starts, and Chromium resolves no host name but 127.0.0.1 and sends
 everything else to a proxy that does not exist. The page asks for more than the recording (web
@@ -65,7 +73,9 @@ __all__ = [
     "WINDOW",
     "Container",
     "Ink",
+    "FRAME_PROBE",
     "LayoutNotFound",
+    "Redraw",
     "Rect",
     "View",
     "Viewer",
@@ -77,6 +87,7 @@ __all__ = [
     "recorded_blueprint",
     "rerun_binary",
     "rerun_home",
+    "scrub_points",
 ]
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -364,6 +375,78 @@ def panel_ink(image: np.ndarray, rect: Rect) -> Ink:
     return Ink(int(coloured.sum()), int(strokes.sum()), float(strokes.any(axis=0).mean()))
 
 
+# --- redraw after input ----------------------------------------------------------------------
+
+FRAME_PROBE = r"""
+(() => {
+  const frames = [];  // [start, end, draw calls] of every animation-frame callback [ms]
+  let draws = 0;
+  for (const cls of [window.WebGL2RenderingContext, window.WebGLRenderingContext]) {
+    if (!cls) continue;
+    for (const name of ["drawArrays", "drawElements", "drawArraysInstanced",
+                        "drawElementsInstanced", "drawRangeElements"]) {
+      const draw = cls.prototype[name];
+      if (!draw) continue;
+      cls.prototype[name] = function (...args) { draws += 1; return draw.apply(this, args); };
+    }
+  }
+  const request = window.requestAnimationFrame.bind(window);
+  window.requestAnimationFrame = (callback) => request((t) => {
+    const start = performance.now();
+    draws = 0;
+    try { callback(t); } finally { frames.push([start, performance.now(), draws]); }
+  });
+  const inputs = [];  // [type, timeStamp] of every pointer press and key press
+  for (const type of ["pointerdown", "keydown"])
+    window.addEventListener(type, (e) => inputs.push([type, e.timeStamp]), true);
+  window.__redrawProbe = {frames, inputs};
+})();
+"""
+"""Page script (`open_viewer(on_new_document=FRAME_PROBE)`) that times the viewer's frames.
+
+The viewer asks for an animation frame every display frame, drawn or not, and draws (WebGL draw
+calls) only in those where something changed; the probe notes each frame's start and end on the
+page's clock and its draw calls, and the time of every pointer and key press."""
+
+QUIET_S = 1.5
+"""The viewer has redrawn what an input asked for when its frames have drawn nothing for this
+long [s]."""
+
+REDRAW_TIMEOUT_S = 60.0
+"""Longest wait for the viewer to stop drawing after an input [s]."""
+
+TIME_SLIDER_Y = WINDOW[1] - 14
+"""Row of the collapsed time panel's time slider [px] (the recording's blueprint collapses the
+panel to one row at the window's foot)."""
+TIME_SLIDER_X = (400, 1300)
+"""Columns of the time slider that are safe to click [px], between its controls and its time
+field."""
+
+
+def scrub_points(count: int) -> list[tuple[int, int]]:
+    """`count` points on the time slider, each far from the one before (alternately in its
+    left and right halves), none twice."""
+    lo, hi = TIME_SLIDER_X
+    fractions = [0.5 + (-1) ** i * (0.1 + 0.35 * ((i * 0.618) % 1.0)) for i in range(count)]
+    return [(round(lo + f * (hi - lo)), TIME_SLIDER_Y) for f in fractions]
+
+
+@dataclass(frozen=True)
+class Redraw:
+    """What the viewer drew after one input [ms from the input's press, on the page's clock]:
+    the frames that drew, and `done_ms`, the redraw time: the start of the second frame after
+    the last that drew. The browser keeps one frame in flight: it may begin the next frame
+    while the last drawn one is still being drawn, but not the one after (with software
+    rendering a frame of the viewer takes most of a second, and that one begins that much
+    later), so by then the last drawn frame is on the screen."""
+
+    drawn: int
+    done_ms: float
+
+    def __str__(self) -> str:
+        return f"{self.done_ms:.0f} ms ({self.drawn} frames drawn)"
+
+
 # --- Chromium over the DevTools protocol -----------------------------------------------------
 
 
@@ -550,6 +633,67 @@ class Viewer:
                 raise ViewerError(f"the page kept changing for {timeout_s:g} s; see {path}")
             time.sleep(0.25)
 
+    def evaluate(self, expression: str):
+        """The value of a JavaScript expression in the page."""
+        answer = self.devtools.call("Runtime.evaluate", expression=expression, returnByValue=True)
+        if "exceptionDetails" in answer:
+            raise ViewerError(f"{expression}: {answer['exceptionDetails']}")
+        return answer["result"].get("value")
+
+    def click(self, x: int, y: int) -> None:
+        """A left click at (x, y) [px], as the mouse would: press, release."""
+        for kind in ("mousePressed", "mouseReleased"):
+            self.devtools.call(
+                "Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1
+            )
+
+    def press(self, key: str, code: str, key_code: int, text: str = "") -> None:
+        """A key pressed and released (`key`, `code`: the DOM's names; `key_code`: Windows's)."""
+        for kind in ("keyDown", "keyUp"):
+            extra = {"text": text} if text and kind == "keyDown" else {}
+            self.devtools.call(
+                "Input.dispatchKeyEvent",
+                type=kind, key=key, code=code, windowsVirtualKeyCode=key_code, **extra,
+            )  # fmt: skip
+
+    def _frames(self, since: int) -> list[tuple[float, float, int]]:
+        return self.evaluate(f"__redrawProbe.frames.slice({since})")
+
+    def idle(self, *, after_ms: float = 0.0, timeout_s: float = REDRAW_TIMEOUT_S) -> int:
+        """Wait until the viewer has gone `QUIET_S` of frames without drawing, counted from
+        `after_ms` on the page's clock at the earliest (frames, not the clock: while a frame
+        takes long to draw, the browser begins none); the probe's frame count then. Needs
+        `FRAME_PROBE` in the page."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            count = self.evaluate("__redrawProbe.frames.length")
+            frames = self._frames(max(0, count - 600))  # the last 10 s
+            drawn = [f[1] for f in frames if f[2]]
+            if frames and frames[-1][0] - max([after_ms, *drawn]) >= QUIET_S * 1000.0:
+                return count
+            if time.monotonic() > deadline:
+                raise ViewerError(f"the viewer kept drawing for {timeout_s:g} s")
+            time.sleep(0.2)
+
+    def redraw_after(self, act, *, timeout_s: float = REDRAW_TIMEOUT_S) -> Redraw:
+        """Run `act()` (an input: `click`, `press`) on an idle viewer, wait until the viewer
+        has drawn nothing for `QUIET_S`, and say how long its redraw took (`Redraw`). Needs
+        `FRAME_PROBE` in the page."""
+        since = self.idle(timeout_s=timeout_s)
+        pressed_before = self.evaluate("__redrawProbe.inputs.length")
+        act()
+        presses = self.evaluate(f"__redrawProbe.inputs.slice({pressed_before})")
+        if not presses:
+            raise ViewerError("the page saw no input")
+        t0 = presses[0][1]
+        self.idle(after_ms=t0, timeout_s=timeout_s)
+        frames = [f for f in self._frames(since) if f[1] >= t0]
+        drew = [i for i, f in enumerate(frames) if f[2]]
+        if not drew:
+            return Redraw(0, 0.0)
+        after = frames[drew[-1] + 1 : drew[-1] + 3]  # (the quiet frames: at least two)
+        return Redraw(len(drew), after[-1][0] - t0)
+
     def save(self, image: np.ndarray, name: str) -> Path:
         """Write `image` as ``<shots>/<name>.png``; its path."""
         self.shots.mkdir(parents=True, exist_ok=True)
@@ -635,7 +779,9 @@ def _kill_naming(text: str, *, timeout_s: float = 10.0) -> None:
 
 
 @contextlib.contextmanager
-def open_viewer(rrd: Path, workdir: Path, env: dict[str, str]) -> Iterator[Viewer]:
+def open_viewer(
+    rrd: Path, workdir: Path, env: dict[str, str], *, on_new_document: str = ""
+) -> Iterator[Viewer]:
     """Serve `rrd` with the web viewer on free loopback ports and open it in headless Chromium.
 
     `env`: from `rerun_home`, for the viewer. The browser gets a HOME of its own in `workdir`,
@@ -701,6 +847,8 @@ def open_viewer(rrd: Path, workdir: Path, env: dict[str, str]) -> Iterator[Viewe
             "Emulation.setEmulatedMedia",
             features=[{"name": "prefers-color-scheme", "value": "light"}],
         )
+        if on_new_document:
+            page.call("Page.addScriptToEvaluateOnNewDocument", source=on_new_document)
         proxy = urllib.parse.quote(f"rerun+http://127.0.0.1:{grpc_port}/proxy", safe="")
         url = f"http://127.0.0.1:{web_port}/?url={proxy}"
         page.call("Page.navigate", url=url)

@@ -5,7 +5,10 @@ Chromium, waits until the page has loaded and stopped changing, finds the views 
 recording's own blueprint on a screenshot and says which drew data (`viewer` explains how).
 The recordings: a lockstep `fleetmpc sim` run, a live `fleetmpc up` fleet at x4 (both of the
 paper scenario, 20 s), and the live one with the map's and one series' entities dropped, which
-must show exactly those views empty: the check sees an empty view as empty.
+must show exactly those views empty: the check sees an empty view as empty. And fifty vehicles
+(`scenarios/scale/grid50.toml`, 20 s in lockstep), whose redraw after clicks on the time slider
+is timed and printed (`viewer.Redraw`; the figures of `tools/viewer_bench.py`): the test asserts
+only that each click is redrawn and the view still draws its data after, not how fast.
 
 Screenshots of every page checked are kept in the test's tmp_path (under /tmp); a failure
 names the file. Needs Chromium (Debian: `apt-get install chromium`); skipped without it.
@@ -24,6 +27,7 @@ import rerun as rr
 from helpers import ROOT, ProcessGroup, live_processes_naming, scenario_on_free_ports
 from viewer import (
     CHROMIUM,
+    FRAME_PROBE,
     Container,
     Ink,
     View,
@@ -32,6 +36,7 @@ from viewer import (
     recorded_blueprint,
     rerun_binary,
     rerun_home,
+    scrub_points,
 )
 
 pytestmark = [
@@ -42,6 +47,9 @@ pytestmark = [
 ]
 
 PAPER = ROOT / "scenarios" / "paper.toml"
+GRID50 = ROOT / "scenarios" / "scale" / "grid50.toml"
+SCRUBS = 3
+"""Clicks on the time slider timed in the fifty-vehicle recording."""
 DURATION_S = 20.0
 SPEED = 4.0
 CHECKED = ("2D", "TimeSeries")
@@ -56,15 +64,25 @@ def home(tmp_path_factory) -> dict[str, str]:
     return rerun_home(tmp_path_factory.mktemp("viewer-home"))
 
 
+def _sim(scenario: Path, rrd: Path, *, jobs: int = 1, timeout_s: float) -> Path:
+    """`scenario` flown `DURATION_S` in lockstep (agents in `jobs` processes) into `rrd`."""
+    argv = [sys.executable, "-m", "fleetmpc.cli", "sim", str(scenario), "--rrd", str(rrd)]
+    argv += ["--quiet", "--duration", f"{DURATION_S:g}", "--jobs", str(jobs)]
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return rrd
+
+
 @pytest.fixture(scope="module")
 def sim_rrd(tmp_path_factory) -> Path:
     """The paper scenario, lockstep."""
-    rrd = tmp_path_factory.mktemp("sim") / "sim.rrd"
-    argv = [sys.executable, "-m", "fleetmpc.cli", "sim", str(PAPER), "--rrd", str(rrd)]
-    argv += ["--quiet", "--duration", f"{DURATION_S:g}"]
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stdout + done.stderr
-    return rrd
+    return _sim(PAPER, tmp_path_factory.mktemp("sim") / "sim.rrd", timeout_s=120)
+
+
+@pytest.fixture(scope="module")
+def grid50_rrd(tmp_path_factory) -> Path:
+    """Fifty vehicles, lockstep."""
+    return _sim(GRID50, tmp_path_factory.mktemp("grid50") / "grid50.rrd", jobs=2, timeout_s=300)
 
 
 @pytest.fixture(scope="module")
@@ -158,3 +176,34 @@ def test_views_whose_data_is_missing_are_seen_empty(live_rrd, home, tmp_path):
 
     seen = look(rrd, tmp_path, home, "without-map-and-c")
     assert seen.empty() == expected, f"{expected} should be the empty views in {seen}"
+
+
+def test_fifty_vehicles_are_drawn_and_redrawn_after_clicks_on_the_time_slider(
+    grid50_rrd, home, tmp_path
+):
+    blueprint = recorded_blueprint(grid50_rrd)
+    checked = _checked_views(blueprint)
+    with open_viewer(grid50_rrd, tmp_path, home, on_new_document=FRAME_PROBE) as viewer:
+        image, views = viewer.settle(blueprint, timeout_s=300.0)
+        before = Seen(
+            viewer.save(image, "grid50"), {v: panel_ink(image, views[v]) for v in checked}
+        )
+        viewer.redraw_after(lambda: viewer.press(" ", "Space", 32, " "))  # pause the playback
+        redraws = [
+            viewer.redraw_after(lambda x=x, y=y: viewer.click(x, y))
+            for x, y in scrub_points(SCRUBS)
+        ]
+        image, views = viewer.settle(blueprint, timeout_s=300.0)
+        after = Seen(
+            viewer.save(image, "grid50-scrubbed"), {v: panel_ink(image, views[v]) for v in checked}
+        )
+        answered = viewer.off_loopback(answered=True)
+    assert answered == [], f"the page got answers from off this machine: {answered}"
+    left = live_processes_naming(str(tmp_path))
+    assert left == [], f"processes left running: {left}"
+    print(
+        f"fifty vehicles, redraw after a click on the time slider: {', '.join(map(str, redraws))}"
+    )
+    print(before, after, sep="\n")
+    assert before.empty() == [] and after.empty() == [], f"empty views in {before} or {after}"
+    assert all(r.drawn > 0 for r in redraws), f"a click the viewer did not redraw: {redraws}"
