@@ -19,12 +19,13 @@ estimate's jitter about a target that hovers adds no length."""
 CHORD_HALF_M = 4.0
 """The path is smoothed at a point over this much arc before it and after it (`TargetPath.at`):
 an estimated path's jitter of a few centimetres tilts its course by under a hundredth of a
-radian, and on a steady turn the course is the tangent's at the middle, without lag."""
+radian (its chord's ends move by it over 8 m), and on a steady turn the course is the tangent's
+at the middle, without lag."""
 
 FOLD_SHARE = 0.25
-"""A window of path whose halves' means lie closer than this share of a straight path's folds
-back on itself (the target turned straight back, by more than about 150 degrees): it tells no
-course there, and the reference course holds. (A chord shorter than half its arc, the test
+"""A chord shorter than this share of the arc it spans folds back on itself (the target turned
+straight back, by more than about 150 degrees): it tells no course there, and the reference
+course holds. (A chord shorter than half its arc, the test
 before, put a 120-degree corner on the line: an estimate that rounded it inside folded, the
 truth's did not, and the agents' reference stalled for two seconds behind the judge's.)"""
 
@@ -251,49 +252,35 @@ class TargetPath:
     def at(self, s: float) -> tuple[tuple[float, float], float | None]:
         """The path smoothed at arc length s: the mean of the path from CHORD_HALF_M before s
         to CHORD_HALF_M after it (no further than the newest point, unless s lies beyond it),
-        and its course there, from the mean of the window's half before s to the mean of its
-        half after it. The means take out the jitter of estimated positions and move smoothly
-        round a waypoint's corner; on a turn of radius R the mean lies CHORD_HALF_M^2 / (6 R)
-        inside the path (5 cm at 50 m), the same for every agent and the judge; on a steady
-        turn the course is the tangent's at s, and at a corner it bisects the turn. The course
-        is None where it is not known: on a tail not yet set, or where the path folds back on
-        itself (the halves' means closer than FOLD_SHARE of a straight path's: a target that
-        turned straight back)."""
+        and its course there, the direction of the chord between the window's ends (the mean
+        of the path's direction over the window, weighed by length). The mean takes out the
+        jitter of estimated positions and moves smoothly round a waypoint's corner; on a turn
+        of radius R it lies CHORD_HALF_M^2 / (6 R) inside the path (5 cm at 50 m), the same for
+        every agent and the judge; on a steady turn the chord is the tangent at s, and at a
+        corner it bisects the turn. The course is None where it is not known: on a tail not yet
+        set, or where the path folds back on itself (its chord shorter than FOLD_SHARE of its
+        arc: a target that turned straight back)."""
         lo = s - CHORD_HALF_M
         hi = s + CHORD_HALF_M if s >= self.length_m else min(s + CHORD_HALF_M, self.length_m)
         if self.tail_course is None and lo < self.ss[0]:
             return self.point_at(s), None
-        before, after = self._moments_between(lo, s), self._moments_between(s, hi)
-        weight = before[0] + after[0]
-        if weight < PATH_SPACING_M:  # (a target that has not moved)
+        # The path between the window's ends, each piece weighed by its length (so that the
+        # mean moves smoothly as the ends slide along): its mean from the pieces' moments, the
+        # whole pieces' from the running sums, the two partial ones at the ends on their own.
+        (ax, ay), (bx, by) = self.point_at(lo), self.point_at(hi)
+        i, j = bisect.bisect_right(self.ss, lo), bisect.bisect_left(self.ss, hi)
+        running, ox, oy = self._running_moments()
+        if i < j:
+            whole = [a - b for a, b in zip(running[j - 1], running[i], strict=True)]
+            first = _piece_moments(ax - ox, ay - oy, self.xs[i] - ox, self.ys[i] - oy)
+            last = _piece_moments(self.xs[j - 1] - ox, self.ys[j - 1] - oy, bx - ox, by - oy)
+            m = [a + b + c for a, b, c in zip(whole, first, last, strict=True)]
+        else:
+            m = _piece_moments(ax - ox, ay - oy, bx - ox, by - oy)
+        if m[0] < PATH_SPACING_M:  # (a target that has not moved)
             return self.point_at(s), None
-        _, ox, oy = self._running_moments()
-        point = (ox + (before[1] + after[1]) / weight, oy + (before[2] + after[2]) / weight)
-        (ax, ay), (bx, by) = (self._mean(m, edge) for m, edge in ((before, lo), (after, hi)))
+        point = (ox + m[1] / m[0], oy + m[2] / m[0])
         dx, dy = bx - ax, by - ay
-        if math.hypot(dx, dy) < max(FOLD_SHARE * (hi - lo) / 2.0, PATH_SPACING_M):
+        if math.hypot(dx, dy) < max(FOLD_SHARE * (hi - lo), PATH_SPACING_M):
             return point, None
         return point, math.atan2(dy, dx)
-
-    def _moments_between(self, a: float, b: float) -> list[float]:
-        """The integrals of 1, x and y along the path from arc length a to b (a <= b), about
-        the running moments' origin: the whole pieces' from the running sums, the two partial
-        ones at the ends on their own, each piece weighed by its length (so they move smoothly
-        as the ends slide along)."""
-        (ax, ay), (bx, by) = self.point_at(a), self.point_at(b)
-        i, j = bisect.bisect_right(self.ss, a), bisect.bisect_left(self.ss, b)
-        running, ox, oy = self._running_moments()
-        if i >= j:
-            return list(_piece_moments(ax - ox, ay - oy, bx - ox, by - oy))
-        whole = [p - q for p, q in zip(running[j - 1], running[i], strict=True)]
-        first = _piece_moments(ax - ox, ay - oy, self.xs[i] - ox, self.ys[i] - oy)
-        last = _piece_moments(self.xs[j - 1] - ox, self.ys[j - 1] - oy, bx - ox, by - oy)
-        return [p + q + r for p, q, r in zip(whole, first, last, strict=True)]
-
-    def _mean(self, moments: list[float], edge: float) -> tuple[float, float]:
-        """The mean position the moments give, or the point at arc length `edge` where they
-        hold no length."""
-        if moments[0] <= 0.0:
-            return self.point_at(edge)
-        _, ox, oy = self._running_moments()
-        return ox + moments[1] / moments[0], oy + moments[2] / moments[0]
