@@ -171,3 +171,14 @@ def test_the_hard_cases_are_feasible_scenarios_whose_first_slots_are_near_their_
     assert check_scenario(sc).feasible
     starts = np.array([v.initial[:2] for v in sc.vehicles])
     assert np.hypot(*(starts - _slots_at_start(sc)).T).max() < 40.0
+
+
+CORNERS = sorted((ROOT / "scenarios" / "corners").glob("*.toml"))
+"""Compact formations at sharp corners, kept to measure against (their headers say how they fly)."""
+
+
+@pytest.mark.parametrize("path", CORNERS, ids=lambda p: p.stem)
+def test_the_corner_studies_are_feasible_course_frame_rings(path):
+    sc = load_scenario(path)
+    assert check_scenario(sc).feasible, path
+    assert sc.formation.frame == "course" and len(sc.vehicles) == 6
