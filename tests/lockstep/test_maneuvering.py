@@ -216,4 +216,4 @@ def test_check_reports_a_steady_turn_the_course_frame_falls_behind_on():
     report = check_scenario(parse_scenario(doc))
     assert report.feasible  # (its slots can be flown; the formation turns slower than the path)
     lagging = [line for line in report.lines if line.startswith("reference course")]
-    assert len(lagging) == 1 and "for 56 s" in lagging[0] and "up to 17 deg" in lagging[0]
+    assert len(lagging) == 1 and "for 50 s" in lagging[0] and "up to 15 deg" in lagging[0]
