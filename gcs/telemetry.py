@@ -27,6 +27,7 @@ import numpy as np
 from fleetmpc.errors import ConfigError
 from fleetmpc.gcs import blueprint, recording
 from fleetmpc.gcs.record import PERIOD_FIELDS, FlightRecord, LiveRows, RunConstants, period_rows
+from fleetmpc.onboard.core.target_watch import REACQUIRING, TRACKING
 
 __all__ = [
     "FLUSH_S",
@@ -62,7 +63,7 @@ class TargetFix(NamedTuple):
 def target_state_event(vehicle_id: int, state: str) -> tuple[str, str]:
     """The level and text of the event that a vehicle's target state changed to `state`
     (tracking, predicting, holding, reacquiring: docs/design.md, "Target lost")."""
-    level = "INFO" if state in ("tracking", "reacquiring") else "WARN"
+    level = "INFO" if state in (TRACKING, REACQUIRING) else "WARN"
     return level, f"UAV {vehicle_id}: target {state}"
 
 

@@ -25,9 +25,9 @@ at the middle, without lag."""
 FOLD_SHARE = 0.25
 """A chord shorter than this share of the arc it spans folds back on itself (the target turned
 straight back, by more than about 150 degrees): it tells no course there, and the reference
-course holds. (A chord shorter than half its arc, the test
-before, put a 120-degree corner on the line: an estimate that rounded it inside folded, the
-truth's did not, and the agents' reference stalled for two seconds behind the judge's.)"""
+course holds. (At half its arc, the test before, a 120-degree corner sat on the line: an
+estimate that rounded it inside folded, the truth's did not, and the agents' reference stalled
+for two seconds behind the judge's.)"""
 
 START_MIN_M = 0.5
 """An estimated path begins once it is this long; one that loses its course (its target stops)
