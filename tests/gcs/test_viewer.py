@@ -137,15 +137,26 @@ def look(rrd: Path, workdir: Path, env: dict[str, str], name: str) -> Seen:
     kinds = [view.kind for view in _checked_views(blueprint)]
     assert kinds.count("2D") == 1 and "TimeSeries" in kinds, f"{rrd}: a blueprint of {kinds}"
     with open_viewer(rrd, workdir, env) as viewer:
-        image, views = viewer.settle(blueprint)
-        shot = viewer.save(image, name)
+        seen = _settled(viewer, blueprint, name)
         answered = viewer.off_loopback(answered=True)
+    _left_clean(answered, workdir)
+    print(seen)
+    return seen
+
+
+def _settled(viewer, blueprint: Container, name: str, *, timeout_s: float = 90.0) -> Seen:
+    """Wait until the viewer settles, keep the screenshot as `name`.png: what each checked
+    view drew."""
+    image, views = viewer.settle(blueprint, timeout_s=timeout_s)
+    shot = viewer.save(image, name)
+    return Seen(shot, {view: panel_ink(image, views[view]) for view in _checked_views(blueprint)})
+
+
+def _left_clean(answered: list, workdir: Path) -> None:
+    """Nothing off this machine answered the page, and nothing the viewer needed is running."""
     assert answered == [], f"the page got answers from off this machine: {answered}"
     left = live_processes_naming(str(workdir))
     assert left == [], f"processes left running: {left}"
-    seen = Seen(shot, {view: panel_ink(image, views[view]) for view in _checked_views(blueprint)})
-    print(seen)
-    return seen
 
 
 def test_a_sim_recording_draws_the_map_and_every_time_series(sim_rrd, home, tmp_path):
@@ -182,25 +193,16 @@ def test_fifty_vehicles_are_drawn_and_redrawn_after_clicks_on_the_time_slider(
     grid50_rrd, home, tmp_path
 ):
     blueprint = recorded_blueprint(grid50_rrd)
-    checked = _checked_views(blueprint)
     with open_viewer(grid50_rrd, tmp_path, home, on_new_document=FRAME_PROBE) as viewer:
-        image, views = viewer.settle(blueprint, timeout_s=300.0)
-        before = Seen(
-            viewer.save(image, "grid50"), {v: panel_ink(image, views[v]) for v in checked}
-        )
+        before = _settled(viewer, blueprint, "grid50", timeout_s=300.0)
         viewer.redraw_after(lambda: viewer.press(" ", "Space", 32, " "))  # pause the playback
         redraws = [
             viewer.redraw_after(lambda x=x, y=y: viewer.click(x, y))
             for x, y in scrub_points(SCRUBS)
         ]
-        image, views = viewer.settle(blueprint, timeout_s=300.0)
-        after = Seen(
-            viewer.save(image, "grid50-scrubbed"), {v: panel_ink(image, views[v]) for v in checked}
-        )
+        after = _settled(viewer, blueprint, "grid50-scrubbed", timeout_s=300.0)
         answered = viewer.off_loopback(answered=True)
-    assert answered == [], f"the page got answers from off this machine: {answered}"
-    left = live_processes_naming(str(tmp_path))
-    assert left == [], f"processes left running: {left}"
+    _left_clean(answered, tmp_path)
     print(
         f"fifty vehicles, redraw after a click on the time slider: {', '.join(map(str, redraws))}"
     )
