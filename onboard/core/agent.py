@@ -120,7 +120,8 @@ class AgentOutput:
     c: np.ndarray
     """The QP's decision variables (M, 2) (zeros on fallback)."""
     qp_ok: bool
-    """True when the QP solved and passed its checks."""
+    """False when this period flew the fallback law (its QP failed or did not pass its checks);
+    a waiting period solves no QP and falls back from none, so it is True too."""
     status: str
     """"solved", the failure behind a fallback, or why the agent is waiting."""
     state_estimate: np.ndarray
@@ -262,7 +263,7 @@ class Agent:
             inputs=np.zeros((M, 2)),
             states=np.repeat(z[None, :], M + 1, 0),
             c=np.zeros((M, 2)),
-            ok=False,
+            ok=True,
             status=why,
             standing=True,
         )

@@ -92,7 +92,8 @@ class Decision:
     c: np.ndarray
     """The QP's decision variables (M, 2) (zeros on fallback)."""
     ok: bool
-    """True when the QP solved and passed its checks."""
+    """False when the fallback law stands in for a QP that failed or did not pass its checks
+    (a waiting period's standing plan is no fallback: True)."""
     status: str
     """"solved", the failure behind a fallback, or why the agent is waiting."""
     standing: bool = False

@@ -66,6 +66,7 @@ def test_waits_for_target_then_flies(paper):
     agent = _agent(paper)
     out = agent.step(AgentInput(0, np.array([0.0, 0.0, 0.0]), None))
     assert out.status == "waiting for target" and np.all(out.command == 0)
+    assert out.qp_ok and agent.fallbacks == 0  # waiting is no fallback (no warning at start)
     out = agent.step(AgentInput(PERIOD_NS, np.array([0.0, 0.0, 0.0]), np.array([5.0, 5.0])))
     assert out.qp_ok and np.any(out.command != 0)
 
