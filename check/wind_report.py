@@ -9,7 +9,18 @@ from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.wind import Gust, Wind, von_karman_correlation
 
-__all__ = ["wind_lines"]
+__all__ = ["CROSS_TRACK_GAIN_PER_M", "cross_track_time_s", "wind_lines"]
+
+CROSS_TRACK_GAIN_PER_M = 0.7
+"""kappa of the controller's cross-track loop, omega_y = sqrt(kappa V) at airspeed V [1/m]: a
+unicycle moves sideways only by turning, so it answers a change of cross wind through its
+heading, a double integrator whose gain grows with the speed. Identified from known-model
+lockstep runs at 0.7 and 1.4 m/s (docs/design.md, "What the controller leaves of the wind")."""
+
+
+def cross_track_time_s(airspeed_m_s: float) -> float:
+    """1 / omega_y: how long the controller takes to answer a change of cross wind [s]."""
+    return 1.0 / math.sqrt(CROSS_TRACK_GAIN_PER_M * max(airspeed_m_s, 0.1))
 
 
 def wind_lines(sc: Scenario) -> list[str]:
@@ -41,6 +52,8 @@ def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
     if wind.turbulence.sigma_m_s > 0:
         lines.append(_turbulence_line(wind, sc, whose))
     lines += [_gust_line(g, whose) for g in wind.gusts]
+    if not wind.is_steady:
+        lines += _limit_lines(wind, sc, whose)
     if not wind.is_steady and sc.learning.enabled:
         lines.append(_learner_line(sc, whose))
     return lines
@@ -86,6 +99,31 @@ def _turbulence_line(wind: Wind, sc: Scenario, whose: str) -> str:
         f"the air a vehicle sees it change over {t_c:.1f} s, by {per_period:.3f} m/s RMS "
         f"per control period{together}"
     )
+
+
+def _limit_lines(wind: Wind, sc: Scenario, whose: str) -> list[str]:
+    """What the wind costs the formation even known: its change over the cross-track loop's
+    time t_y, which puts the vehicle half of it times t_y off (the mean of a ramp)."""
+    airspeed = sc.controller.reference_speed_m_s
+    t_y = cross_track_time_s(airspeed)
+    change = wind.change_m_s(airspeed, t_y)
+    lines = []
+    if change > 0.0:
+        lines.append(
+            f"wind{whose}: even known, it costs about {0.5 * t_y * change:.3f} m of slot RMS "
+            f"(add it to the calm-air figure in quadrature; a learned run flies above it): the "
+            f"cross-track loop answers in {t_y:.1f} s at {airspeed:.2f} m/s, over which it "
+            f"changes by {change:.3f} m/s RMS"
+        )
+    for gust in wind.gusts:
+        # A 1 - cos gust of A over D seconds changes by at most A sin(pi t / D) in t.
+        step = math.hypot(*gust.amplitude_m_s) * math.sin(math.pi * min(t_y / gust.duration_s, 0.5))
+        lines.append(
+            f"wind{whose}: even known, the gust at t = {gust.onset_s:g} s puts a vehicle about "
+            f"{0.5 * t_y * step:.3f} m off its slot at its steepest (cross-track loop: "
+            f"{t_y:.1f} s at {airspeed:.2f} m/s)"
+        )
+    return lines
 
 
 def _gust_line(gust: Gust, whose: str) -> str:

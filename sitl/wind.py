@@ -163,6 +163,23 @@ class Wind:
             )
         return math.sqrt(sum(p * p for p in parts))
 
+    def change_m_s(self, airspeed_m_s: float, lag_s: float) -> float:
+        """How much the wind a vehicle flying at `airspeed_m_s` through the air feels changes
+        over `lag_s`, RMS on each axis [m/s]: the square root of the structure function
+        D(s) = 2 sigma^2 (1 - f(V s / L) e^(-s / T)) of the turbulence (its von Kármán
+        correlation along the flight, f, and its eddies' decay) plus A^2 (1 - cos(2 pi s / P))
+        of the sinusoid; the discrete gusts, which blow once, are left out."""
+        turb, square = self.turbulence, 0.0
+        if turb.sigma_m_s > 0.0:
+            along = float(
+                von_karman_correlation(np.array(airspeed_m_s * lag_s / turb.length_scale_m))
+            )
+            kept = along * math.exp(-lag_s / turb.time_scale_s)
+            square += 2.0 * turb.sigma_m_s**2 * (1.0 - kept)
+        a = self.gust_amplitude_m_s
+        square += a * a * (1.0 - math.cos(2.0 * math.pi * lag_s / self.gust_period_s))
+        return math.sqrt(square)
+
     def gust_std_m_s(self) -> float:
         """Standard deviation on each axis of the wind's changing parts [m/s]: the turbulence's
         sigma, the sinusoid's A / sqrt(2) and a quarter of the largest gust's peak (a 1 - cos

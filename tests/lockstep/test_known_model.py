@@ -42,3 +42,42 @@ def test_sim_reports_the_learned_run_over_the_known_model_run(tmp_path, paper):
     m = json.loads(out.read_text())
     assert 0.0 < m["known_model_formation_rms_m"] < 0.1
     assert m["learned_over_known"] == m["formation_rms_m"] / m["known_model_formation_rms_m"]
+
+
+SEEDS = range(1, 9)
+
+
+def _settled_slot_rms(scenario, seeds) -> float:
+    """Slot RMS of known-model runs over every vehicle, from t = 20 s on [m]."""
+    squares = []
+    for seed in seeds:
+        rec = run_lockstep(scenario, known_model=True, seed=seed)
+        error = np.linalg.norm(rec.truth[:, :, :2] - rec.slots, axis=2)
+        squares.append(np.mean(error[rec.t_s >= 20.0] ** 2))
+    return float(np.sqrt(np.mean(squares)))
+
+
+def test_checks_wind_limit_is_what_the_known_model_run_loses_to_the_wind():
+    """docs/design.md, "What the controller leaves of the wind": a case that did not fix the
+    cross-track gain (five vehicles on a circle at 1 m/s, turbulence of other scales)."""
+    from fleetmpc.check.wind_report import cross_track_time_s
+    from fleetmpc.scenario import load_scenario
+
+    calm = load_scenario("scenarios/wedge-circle.toml")
+    turbulence = Turbulence(sigma_m_s=0.12, length_scale_m=15.0, time_scale_s=4.0)
+    windy_vehicles, calm_vehicles = [], []
+    for v in calm.vehicles:
+        wind = dataclasses.replace(v.truth.wind, gust_amplitude_m_s=0.0)
+        for out, w in (
+            (calm_vehicles, wind),
+            (windy_vehicles, dataclasses.replace(wind, turbulence=turbulence)),
+        ):
+            out.append(dataclasses.replace(v, truth=dataclasses.replace(v.truth, wind=w)))
+    windy = dataclasses.replace(calm, vehicles=tuple(windy_vehicles))
+    calm = dataclasses.replace(calm, vehicles=tuple(calm_vehicles))
+    t_y = cross_track_time_s(1.0)
+    predicted = 0.5 * t_y * windy.vehicles[0].truth.wind.change_m_s(1.0, t_y)
+    flown = np.sqrt(_settled_slot_rms(windy, SEEDS) ** 2 - _settled_slot_rms(calm, SEEDS) ** 2)
+    assert abs(predicted - 0.061) < 0.001
+    print(f"wind share flown {flown:.4f} m, check {predicted:.4f} m")
+    assert 0.8 < flown / predicted < 1.2, (flown, predicted)

@@ -184,6 +184,34 @@ def test_check_says_what_the_wind_means_at_the_vehicle(paper):
     assert "turbulence" not in calm and "gust" not in calm
 
 
+def test_the_winds_change_over_a_lag_is_its_structure_function():
+    gauss_markov = Wind(turbulence=Turbulence(sigma_m_s=0.15, length_scale_m=1e9, time_scale_s=5.0))
+    assert gauss_markov.change_m_s(1.0, 1.0) == pytest.approx(
+        0.15 * math.sqrt(2 * (1 - math.exp(-0.2))), rel=1e-5
+    )
+    sinusoid = Wind(gust_amplitude_m_s=0.2, gust_period_s=20.0)
+    assert sinusoid.change_m_s(0.8, 5.0) == pytest.approx(0.2)  # A sqrt(1 - cos(pi / 2))
+    assert sinusoid.change_m_s(0.8, 20.0) == pytest.approx(0.0, abs=1e-12)
+    assert Wind(mean_m_s=(1.0, 0.0)).change_m_s(1.0, 1.0) == 0.0
+    # Flying through the eddies adds the spatial decorrelation: more change at speed.
+    frozen = Wind(turbulence=Turbulence(sigma_m_s=0.15, length_scale_m=20.0, time_scale_s=1e9))
+    assert 0.0 < frozen.change_m_s(0.5, 1.0) < frozen.change_m_s(2.0, 1.0)
+
+
+def test_check_says_what_the_wind_costs_the_formation_even_known():
+    from fleetmpc.check.feasibility import check_scenario
+    from fleetmpc.scenario import load_scenario
+
+    def text(name):
+        return check_scenario(load_scenario(f"scenarios/{name}.toml")).render()
+
+    # t_y = 1 / sqrt(0.7 * 1.4142) = 1.0 s; half of it times the wind's change over it.
+    assert "even known, it costs about 0.058 m of slot RMS" in text("turbulence-moderate")
+    assert "cross-track loop answers in 1.0 s at 1.41 m/s" in text("turbulence-moderate")
+    assert "the gust at t = 38 s puts a vehicle about 0.064 m off its slot" in text("gust-in-turn")
+    assert "even known" not in text("paper")
+
+
 def test_check_says_how_well_the_learned_drift_can_follow_the_wind():
     from fleetmpc.check.feasibility import check_scenario
     from fleetmpc.scenario import load_scenario
