@@ -2,6 +2,7 @@
 "Wind")."""
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -9,7 +10,14 @@ from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.wind import Gust, Wind, von_karman_correlation
 
-__all__ = ["CROSS_TRACK_GAIN_PER_M", "cross_track_time_s", "wind_lines"]
+__all__ = [
+    "CROSS_TRACK_GAIN_PER_M",
+    "DriftFilter",
+    "cross_track_time_s",
+    "drift_filter",
+    "wind_lines",
+    "wind_share_m",
+]
 
 CROSS_TRACK_GAIN_PER_M = 0.7
 """kappa of the controller's cross-track loop, omega_y = sqrt(kappa V) at airspeed V [1/m]: a
@@ -21,6 +29,45 @@ lockstep runs at 0.7 and 1.4 m/s (docs/design.md, "What the controller leaves of
 def cross_track_time_s(airspeed_m_s: float) -> float:
     """1 / omega_y: how long the controller takes to answer a change of cross wind [s]."""
     return 1.0 / math.sqrt(CROSS_TRACK_GAIN_PER_M * max(airspeed_m_s, 0.1))
+
+
+def wind_share_m(wind: Wind, airspeed_m_s: float, lag_s: float = 0.0) -> float:
+    """The wind's share of the slot RMS [m]: its change over the cross-track loop's time t_y
+    (plus `lag_s`, how late the controller learns of it), half of it times that time (the mean
+    of a ramp; docs/design.md, "What the controller leaves of the wind")."""
+    t = cross_track_time_s(airspeed_m_s) + lag_s
+    return 0.5 * t * wind.change_m_s(airspeed_m_s, t)
+
+
+@dataclass(frozen=True)
+class DriftFilter:
+    """The learned drift's gust part as a steady-state scalar Kalman filter: a Gauss-Markov gust
+    (sigma, T) measured each period by the ground velocity with noise sigma_v."""
+
+    sigma_m_s: float
+    time_constant_s: float
+    noise_m_s: float
+    bandwidth_rad_s: float
+    """-ln(phi (1 - K)) / tau: how fast the estimate follows the wind; its inverse is its lag."""
+    error_m_s: float
+    """The estimate's steady-state error, RMS."""
+
+
+def drift_filter(sc: Scenario) -> DriftFilter | None:
+    """The learned drift's filter (docs/design.md, "The wind's two parts"); None without a gust
+    part (the drift is then a slow random walk only)."""
+    s, tau = sc.learning, sc.controller.period_s
+    sigma, T, R = s.gust_std_m_s, s.gust_time_constant_s, s.measurement_velocity_std_m_s**2
+    if sigma == 0.0:
+        return None
+    phi = math.exp(-tau / T)
+    P = sigma * sigma  # (iterate the Riccati recursion to its fixed point)
+    for _ in range(1000):
+        prior = phi * phi * P + sigma * sigma * (1.0 - phi * phi)
+        P = prior * R / (prior + R)
+    gain = prior / (prior + R)
+    bandwidth = -math.log(phi * (1.0 - gain)) / tau
+    return DriftFilter(sigma, T, math.sqrt(R), bandwidth, math.sqrt(P))
 
 
 def wind_lines(sc: Scenario) -> list[str]:
@@ -60,25 +107,15 @@ def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
 
 
 def _learner_line(sc: Scenario, whose: str) -> str:
-    """How well the learned drift can follow the wind from the reported ground velocity
-    (docs/design.md, "The wind's two parts"): the steady state of the scalar Kalman filter of a
-    Gauss-Markov gust (sigma, T) measured each period with noise sigma_v, its error and the
-    bandwidth -ln(phi (1 - K)) / tau at which it follows."""
-    s, tau = sc.learning, sc.controller.period_s
-    sigma, T, R = s.gust_std_m_s, s.gust_time_constant_s, s.measurement_velocity_std_m_s**2
-    if sigma == 0.0:
+    """How well the learned drift can follow the wind from the reported ground velocity."""
+    f = drift_filter(sc)
+    if f is None:
         return f"wind{whose}: the learned drift follows it as a slow random walk only"
-    phi = math.exp(-tau / T)
-    P = sigma * sigma  # (iterate the Riccati recursion to its fixed point)
-    for _ in range(1000):
-        prior = phi * phi * P + sigma * sigma * (1.0 - phi * phi)
-        P = prior * R / (prior + R)
-    gain = prior / (prior + R)
-    bandwidth = -math.log(phi * (1.0 - gain)) / tau
     return (
-        f"wind{whose}: the learned drift's gust part is {sigma:.3f} m/s over {T:.1f} s; from "
-        f"the ground velocity (noise {math.sqrt(R):.2f} m/s) it follows the wind with a "
-        f"bandwidth of {bandwidth:.2f} rad/s and an error of about {math.sqrt(P):.3f} m/s RMS"
+        f"wind{whose}: the learned drift's gust part is {f.sigma_m_s:.3f} m/s over "
+        f"{f.time_constant_s:.1f} s; from the ground velocity (noise {f.noise_m_s:.2f} m/s) it "
+        f"follows the wind with a bandwidth of {f.bandwidth_rad_s:.2f} rad/s and an error of "
+        f"about {f.error_m_s:.3f} m/s RMS"
     )
 
 
@@ -102,28 +139,37 @@ def _turbulence_line(wind: Wind, sc: Scenario, whose: str) -> str:
 
 
 def _limit_lines(wind: Wind, sc: Scenario, whose: str) -> list[str]:
-    """What the wind costs the formation even known: its change over the cross-track loop's
-    time t_y, which puts the vehicle half of it times t_y off (the mean of a ramp)."""
+    """What the wind costs the formation even known, and learned (`wind_share_m`); each gust's
+    largest offset likewise."""
     airspeed = sc.controller.reference_speed_m_s
     t_y = cross_track_time_s(airspeed)
-    change = wind.change_m_s(airspeed, t_y)
+    f = drift_filter(sc) if sc.learning.enabled else None
+    lag = None if f is None else 1.0 / f.bandwidth_rad_s
+    learned = "" if lag is None else f"; learned (the drift lags it by {lag:.2f} s), about "
     lines = []
+    change = wind.change_m_s(airspeed, t_y)
     if change > 0.0:
         lines.append(
-            f"wind{whose}: even known, it costs about {0.5 * t_y * change:.3f} m of slot RMS "
-            f"(add it to the calm-air figure in quadrature; a learned run flies above it): the "
-            f"cross-track loop answers in {t_y:.1f} s at {airspeed:.2f} m/s, over which it "
-            f"changes by {change:.3f} m/s RMS"
+            f"wind{whose}: known, it costs about {wind_share_m(wind, airspeed):.3f} m of slot RMS "
+            f"(add it to the calm-air figure in quadrature): the cross-track loop answers in "
+            f"{t_y:.1f} s at {airspeed:.2f} m/s, over which it changes by {change:.3f} m/s RMS"
+            + ("" if lag is None else f"{learned}{wind_share_m(wind, airspeed, lag):.3f} m")
         )
     for gust in wind.gusts:
-        # A 1 - cos gust of A over D seconds changes by at most A sin(pi t / D) in t.
-        step = math.hypot(*gust.amplitude_m_s) * math.sin(math.pi * min(t_y / gust.duration_s, 0.5))
         lines.append(
-            f"wind{whose}: even known, the gust at t = {gust.onset_s:g} s puts a vehicle about "
-            f"{0.5 * t_y * step:.3f} m off its slot at its steepest (cross-track loop: "
+            f"wind{whose}: known, the gust at t = {gust.onset_s:g} s puts a vehicle about "
+            f"{_gust_offset_m(gust, t_y):.3f} m off its slot at its steepest (cross-track loop: "
             f"{t_y:.1f} s at {airspeed:.2f} m/s)"
+            + ("" if lag is None else f"{learned}{_gust_offset_m(gust, t_y + lag):.3f} m")
         )
     return lines
+
+
+def _gust_offset_m(gust: Gust, t_s: float) -> float:
+    """Half of t_s times the most a 1 - cos gust of A over D seconds changes in t_s,
+    A sin(pi t / D) (the whole gust beyond D / 2) [m]."""
+    rise = math.hypot(*gust.amplitude_m_s) * math.sin(math.pi * min(t_s / gust.duration_s, 0.5))
+    return 0.5 * t_s * rise
 
 
 def _gust_line(gust: Gust, whose: str) -> str:

@@ -1,11 +1,12 @@
-"""What the wind costs the formation with the wind known: `fleetmpc check`'s figure against
-known-model lockstep runs (docs/design.md, "What the controller leaves of the wind").
+"""What the wind costs the formation: `fleetmpc check`'s figures against lockstep runs
+(docs/design.md, "What the controller leaves of the wind").
 
-Each case is a scenario with some settings changed; each is flown with the known model in its
-wind and in its mean wind alone, over the seeds, and the wind's share of the slot RMS (all
-vehicles, from t = 20 s on) is the quadrature difference of the two.
+Each case is a scenario with some settings changed; each is flown with the known model (or, with
+--learned, learning as usual) in its wind and in its mean wind alone, over the seeds, and the
+wind's share of the slot RMS (all vehicles, from t = 20 s on) is the quadrature difference of
+the two.
 
-    python tools/wind_limit.py [--seeds 4]
+    python tools/wind_limit.py [--seeds 4] [--learned]
 """
 
 import argparse
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetmpc.check.wind_report import cross_track_time_s
+from fleetmpc.check.wind_report import cross_track_time_s, drift_filter, wind_share_m
 from fleetmpc.lockstep.flight import run_lockstep
 from fleetmpc.scenario import parse_scenario
 
@@ -56,10 +57,10 @@ def _merged(doc: dict, changes: dict) -> dict:
     return out
 
 
-def _slot_errors(doc: dict, seed: int, *, in_track_frame: bool = False):
-    """Sample times (K,) and each vehicle's offset from its slot (K, N, 2), known model;
-    `in_track_frame`: along and across the vehicle's heading instead of North and East."""
-    rec = run_lockstep(parse_scenario(doc), known_model=True, seed=seed)
+def _slot_errors(doc: dict, seed: int, *, in_track_frame: bool = False, known: bool = True):
+    """Sample times (K,) and each vehicle's offset from its slot (K, N, 2), known model (or
+    learned); `in_track_frame`: along and across the vehicle's heading, not North and East."""
+    rec = run_lockstep(parse_scenario(doc), known_model=known, seed=seed)
     error = rec.truth[:, :, :2] - rec.slots
     if in_track_frame:
         c, s = np.cos(rec.truth[:, :, 2]), np.sin(rec.truth[:, :, 2])
@@ -81,10 +82,10 @@ def along_and_across(name: str, seeds: list[int]) -> list[tuple[float, float]]:
     return rows
 
 
-def _slot_rms(doc: dict, seeds: list[int]) -> float:
+def _slot_rms(doc: dict, seeds: list[int], known: bool) -> float:
     squares = []
     for seed in seeds:
-        t_s, error = _slot_errors(doc, seed)
+        t_s, error = _slot_errors(doc, seed, known=known)
         squares.append(np.mean(np.sum(error[t_s >= SETTLED_S] ** 2, axis=-1)))
     return math.sqrt(float(np.mean(squares)))
 
@@ -99,12 +100,13 @@ def _case(name: str, changes: dict) -> tuple[dict, dict, float, float]:
     return doc, calm, cross_track_time_s(airspeed), airspeed
 
 
-def measure(name: str, changes: dict, seeds: list[int]) -> tuple[float, float]:
+def measure(name: str, changes: dict, seeds: list[int], known: bool) -> tuple[float, float]:
     """(check's figure, the measured share) for one case [m]."""
-    doc, calm, t_y, airspeed = _case(name, changes)
-    wind = parse_scenario(doc).vehicles[0].truth.wind
-    predicted = 0.5 * t_y * wind.change_m_s(airspeed, t_y)
-    windy_rms, calm_rms = _slot_rms(doc, seeds), _slot_rms(calm, seeds)
+    doc, calm, _, airspeed = _case(name, changes)
+    scenario = parse_scenario(doc)
+    lag = 0.0 if known else 1.0 / drift_filter(scenario).bandwidth_rad_s
+    predicted = wind_share_m(scenario.vehicles[0].truth.wind, airspeed, lag)
+    windy_rms, calm_rms = _slot_rms(doc, seeds, known), _slot_rms(calm, seeds, known)
     return predicted, math.sqrt(max(windy_rms**2 - calm_rms**2, 0.0))
 
 
@@ -122,12 +124,15 @@ def gust_peaks(seeds: list[int]) -> np.ndarray:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=4, help="seeds 1..N per case (default 4)")
+    parser.add_argument("--learned", action="store_true", help="learned runs, not known-model")
     args = parser.parse_args()
     seeds = list(range(1, args.seeds + 1))
     print(f"{'case':<48} {'check':>7} {'flown':>7} {'ratio':>6}")
     for label, name, changes in CASES:
-        predicted, flown = measure(name, changes, seeds)
+        predicted, flown = measure(name, changes, seeds, not args.learned)
         print(f"{label:<48} {predicted:7.3f} {flown:7.3f} {flown / predicted:6.2f}", flush=True)
+    if args.learned:
+        return
     (along, across), (calm_along, calm_across) = along_and_across("turbulence-moderate", seeds)
     print(
         f"turbulence-moderate: along the track {along:.3f} m, across {across:.3f} m "

@@ -198,18 +198,22 @@ def test_the_winds_change_over_a_lag_is_its_structure_function():
     assert 0.0 < frozen.change_m_s(0.5, 1.0) < frozen.change_m_s(2.0, 1.0)
 
 
-def test_check_says_what_the_wind_costs_the_formation_even_known():
+def test_check_says_what_the_wind_costs_the_formation_known_and_learned():
     from fleetmpc.check.feasibility import check_scenario
     from fleetmpc.scenario import load_scenario
 
     def text(name):
         return check_scenario(load_scenario(f"scenarios/{name}.toml")).render()
 
-    # t_y = 1 / sqrt(0.7 * 1.4142) = 1.0 s; half of it times the wind's change over it.
-    assert "even known, it costs about 0.058 m of slot RMS" in text("turbulence-moderate")
-    assert "cross-track loop answers in 1.0 s at 1.41 m/s" in text("turbulence-moderate")
-    assert "the gust at t = 38 s puts a vehicle about 0.064 m off its slot" in text("gust-in-turn")
-    assert "even known" not in text("paper")
+    # t_y = 1 / sqrt(0.7 * 1.4142) = 1.0 s; half of it times the wind's change over it; a
+    # learned drift lags by 1 / its bandwidth (4.76 rad/s), which adds to t_y.
+    moderate = text("turbulence-moderate")
+    assert "known, it costs about 0.058 m of slot RMS" in moderate
+    assert "cross-track loop answers in 1.0 s at 1.41 m/s" in moderate
+    assert "learned (the drift lags it by 0.21 s), about 0.075 m" in moderate
+    gust = text("gust-in-turn")
+    assert "the gust at t = 38 s puts a vehicle about 0.064 m off its slot" in gust
+    assert "known, it costs" not in text("paper")
 
 
 def test_check_says_how_well_the_learned_drift_can_follow_the_wind():
