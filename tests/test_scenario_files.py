@@ -1,5 +1,6 @@
 """Every file in scenarios/ validates; the suite's scenarios hold what their headers promise."""
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -182,3 +183,15 @@ def test_the_corner_studies_are_feasible_course_frame_rings(path):
     sc = load_scenario(path)
     assert check_scenario(sc).feasible, path
     assert sc.formation.frame == "course" and len(sc.vehicles) == 6
+
+
+def test_check_gives_each_vehicles_slack_to_its_separation_margin():
+    # A pair keeps d_safe + s + 2 r_M = 2 + (2 * 2 * 0.2)^2 / 16 + 2 * 0.174 = 2.39 m.
+    ring = load_scenario(ROOT / "scenarios" / "corners" / "compact-ring.toml")
+    text = check_scenario(ring).render()
+    assert "the closest slots, 3.00 m apart, leave each vehicle 0.31 m to its margin" in text
+    assert "(a pair keeps 2.39 m)" in text
+    tight = dataclasses.replace(ring, controller=dataclasses.replace(ring.controller, d_safe_m=2.8))
+    report = check_scenario(tight)
+    assert not report.feasible
+    assert any("can never both be on their slots" in p for p in report.problems), report.problems
