@@ -434,17 +434,19 @@ def scrub_points(count: int) -> list[tuple[int, int]]:
 @dataclass(frozen=True)
 class Redraw:
     """What the viewer drew after one input [ms from the input's press, on the page's clock]:
-    the frames that drew, and `done_ms`, the redraw time: the start of the second frame after
-    the last that drew. The browser keeps one frame in flight: it may begin the next frame
-    while the last drawn one is still being drawn, but not the one after (with software
+    the frames that drew; `done_ms`, the redraw time: the start of the second frame after the
+    last that drew; and `first_ms`, the same for the first that drew (when the input's effect
+    is first on the screen). The browser keeps one frame in flight: it may begin the next
+    frame while the last drawn one is still being drawn, but not the one after (with software
     rendering a frame of the viewer takes most of a second, and that one begins that much
     later), so by then the last drawn frame is on the screen."""
 
     drawn: int
     done_ms: float
+    first_ms: float = 0.0
 
     def __str__(self) -> str:
-        return f"{self.done_ms:.0f} ms ({self.drawn} frames drawn)"
+        return f"{self.done_ms:.0f} ms, first {self.first_ms:.0f} ms ({self.drawn} frames drawn)"
 
 
 # --- Chromium over the DevTools protocol -----------------------------------------------------
@@ -692,7 +694,8 @@ class Viewer:
         if not drew:
             return Redraw(0, 0.0)
         after = frames[drew[-1] + 1 : drew[-1] + 3]  # (the quiet frames: at least two)
-        return Redraw(len(drew), after[-1][0] - t0)
+        shown = frames[drew[0] + 1 : drew[0] + 3]
+        return Redraw(len(drew), after[-1][0] - t0, shown[-1][0] - t0)
 
     def save(self, image: np.ndarray, name: str) -> Path:
         """Write `image` as ``<shots>/<name>.png``; its path."""

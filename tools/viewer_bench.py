@@ -110,6 +110,8 @@ def _summary(redraws: list[viewer.Redraw]) -> dict:
         "redraw_p99_ms": float(np.percentile(times, 99)),
         "redraw_max_ms": float(np.max(times)),
         "redraw_ms": [round(t, 1) for t in times],
+        "first_frame_median_ms": float(np.median([r.first_ms for r in redraws])),
+        "first_frame_max_ms": float(np.max([r.first_ms for r in redraws])),
     }
 
 
@@ -159,8 +161,10 @@ def main(argv: list[str] | None = None) -> int:
                 f"{row['fleet']:>14} ({n:3d} UAVs, {label}): "
                 f"{row['bytes_per_vehicle_minute'] / 1e3:7.1f} kB per vehicle-minute; redraw "
                 f"median {row['redraw_median_ms']:5.0f} ms, p99 {row['redraw_p99_ms']:5.0f} ms,"
-                f" max {row['redraw_max_ms']:5.0f} ms ({len(times[label])} inputs, median"
-                f" {row['frames_drawn_median']:g} frames drawn each)",
+                f" max {row['redraw_max_ms']:5.0f} ms; first frame median"
+                f" {row['first_frame_median_ms']:5.0f} ms, max {row['first_frame_max_ms']:5.0f} ms"
+                f" ({len(times[label])} inputs, median {row['frames_drawn_median']:g} frames"
+                " drawn each)",
                 flush=True,
             )
     load = [round(x, 2) for x in os.getloadavg()]
