@@ -27,8 +27,7 @@ from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
 from fleetmpc.onboard.core.formation import CourseRateLimit, Formation, true_reference
-from fleetmpc.onboard.core.neighbourhood import safety_radius
-from fleetmpc.onboard.core.separation import intersample_allowance
+from fleetmpc.onboard.core.neighbourhood import safety_radius, shared_margin_m
 from fleetmpc.onboard.core.target_path import CHORD_HALF_M
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.scenario import Scenario, load_scenario
@@ -374,23 +373,17 @@ def _slack_lines(
     (docs/design.md, "What the lines cost a compact formation"); a problem if negative."""
     if len(sc.vehicles) < 2:
         return []
-    c = sc.controller
-    between = intersample_allowance(
-        speed_max_m_s=c.speed_max_m_s, period_s=c.period_s, d_safe_m=c.d_safe_m
-    )
-    keeps = c.d_safe_m + between + 2.0 * tube_radius_m
-    d = formation.desired_distances()
-    np.fill_diagonal(d, np.inf)
-    a, b = np.unravel_index(int(np.argmin(d)), d.shape)
-    slack = 0.5 * (float(d[a, b]) - keeps)
+    keeps = 2.0 * shared_margin_m(sc.controller, tube_radius_m)
+    a, b, apart = formation.closest_slots()
+    slack = 0.5 * (apart - keeps)
     if slack < 0.0:
         problems.append(
             f"the slots of vehicles {sc.vehicles[a].id} and {sc.vehicles[b].id} are "
-            f"{d[a, b]:.2f} m apart, closer than a pair keeps ({keeps:.2f} m: d_safe_m, the "
+            f"{apart:.2f} m apart, closer than a pair keeps ({keeps:.2f} m: d_safe_m, the "
             f"inter-sample allowance and the tube): they can never both be on their slots"
         )
     return [
-        f"separation: the closest slots, {d[a, b]:.2f} m apart, leave each vehicle {slack:.2f} m"
+        f"separation: the closest slots, {apart:.2f} m apart, leave each vehicle {slack:.2f} m"
         f" to its margin (a pair keeps {keeps:.2f} m): from its slot, a vehicle behind a "
         "neighbour may plan no farther ahead than that over its horizon"
     ]

@@ -101,8 +101,8 @@ def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
     lines += [_gust_line(g, whose) for g in wind.gusts]
     if not wind.is_steady:
         lines += _limit_lines(wind, sc, whose)
-    if not wind.is_steady and sc.learning.enabled:
-        lines.append(_learner_line(sc, whose))
+        if sc.learning.enabled:
+            lines.append(_learner_line(sc, whose))
     return lines
 
 
@@ -187,6 +187,4 @@ def _gust_line(gust: Gust, whose: str) -> str:
 def _nearest_slot_spacing_m(sc: Scenario) -> float | None:
     if len(sc.formation.slots_m) < 2:
         return None
-    d = Formation(sc.formation).desired_distances()
-    np.fill_diagonal(d, np.inf)
-    return float(d.min())
+    return Formation(sc.formation).closest_slots()[2]

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetmpc.check.wind_report import cross_track_time_s, drift_filter, wind_share_m
+from fleetmpc.check.wind_report import drift_filter, wind_share_m
 from fleetmpc.lockstep.flight import run_lockstep
-from fleetmpc.scenario import parse_scenario
+from fleetmpc.scenario import Scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SETTLED_S = 20.0
@@ -90,21 +90,20 @@ def _slot_rms(doc: dict, seeds: list[int], known: bool) -> float:
     return math.sqrt(float(np.mean(squares)))
 
 
-def _case(name: str, changes: dict) -> tuple[dict, dict, float, float]:
-    """The case's document, the same in its mean wind alone, and check's t_y and airspeed."""
+def _case(name: str, changes: dict) -> tuple[dict, dict, Scenario]:
+    """The case's document, the same in its mean wind alone, and the case's scenario."""
     doc = _merged(tomllib.loads((ROOT / "scenarios" / f"{name}.toml").read_text()), changes)
     scenario = parse_scenario(doc)
     mean = list(scenario.vehicles[0].truth.wind.mean_m_s)
-    airspeed = scenario.controller.reference_speed_m_s
     calm = _merged(doc, {"truth": {"wind": {"mean_m_s": mean}}})
-    return doc, calm, cross_track_time_s(airspeed), airspeed
+    return doc, calm, scenario
 
 
 def measure(name: str, changes: dict, seeds: list[int], known: bool) -> tuple[float, float]:
     """(check's figure, the measured share) for one case [m]."""
-    doc, calm, _, airspeed = _case(name, changes)
-    scenario = parse_scenario(doc)
+    doc, calm, scenario = _case(name, changes)
     lag = 0.0 if known else 1.0 / drift_filter(scenario).bandwidth_rad_s
+    airspeed = scenario.controller.reference_speed_m_s
     predicted = wind_share_m(scenario.vehicles[0].truth.wind, airspeed, lag)
     windy_rms, calm_rms = _slot_rms(doc, seeds, known), _slot_rms(calm, seeds, known)
     return predicted, math.sqrt(max(windy_rms**2 - calm_rms**2, 0.0))
@@ -113,7 +112,7 @@ def measure(name: str, changes: dict, seeds: list[int], known: bool) -> tuple[fl
 def gust_peaks(seeds: list[int]) -> np.ndarray:
     """scenarios/gust-in-turn.toml: each vehicle's largest offset that the gust alone causes
     (the gusty run's slot error less the mean-wind run's, same seed) [m], over the seeds."""
-    doc, calm, _, _ = _case("gust-in-turn", {})
+    doc, calm, _ = _case("gust-in-turn", {})
     peaks = [
         np.linalg.norm(_slot_errors(doc, seed)[1] - _slot_errors(calm, seed)[1], axis=-1)
         for seed in seeds

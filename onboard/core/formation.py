@@ -119,6 +119,13 @@ class Formation:
         d = self._offsets[:, None, :] - self._offsets[None, :, :]
         return np.hypot(d[..., 0], d[..., 1])
 
+    def closest_slots(self) -> tuple[int, int, float]:
+        """The two nearest slots (indices) and their distance [m]; needs two slots or more."""
+        d = self.desired_distances()
+        np.fill_diagonal(d, np.inf)
+        a, b = np.unravel_index(int(np.argmin(d)), d.shape)
+        return int(a), int(b), float(d[a, b])
+
 
 def _nearest_links(distances: np.ndarray, count: int) -> tuple[tuple[int, ...], ...]:
     """Each slot linked to its `count` nearest slots (ties broken by index)."""

@@ -24,7 +24,19 @@ from fleetmpc.onboard.core.separation import (
 )
 from fleetmpc.protocol.plan import Plan
 
-__all__ = ["Neighbourhood", "safety_radius"]
+__all__ = ["Neighbourhood", "safety_radius", "shared_margin_m"]
+
+
+def shared_margin_m(controller: ControllerSettings, tube_radius_m: float) -> float:
+    """Distance a vehicle keeps from a line it shares with a fresh neighbour, before the
+    plan-age inflation: half of d_safe and the inter-sample allowance, and its tube's widest
+    radius (`fleetmpc.onboard.core.separation`) [m]. A pair keeps twice this apart."""
+    between = intersample_allowance(
+        speed_max_m_s=controller.speed_max_m_s,
+        period_s=controller.period_s,
+        d_safe_m=controller.d_safe_m,
+    )
+    return 0.5 * (controller.d_safe_m + between) + tube_radius_m
 
 
 def safety_radius(controller: ControllerSettings, tube_radius_m: float) -> float:
@@ -68,9 +80,8 @@ class Neighbourhood:
             period_s=controller.period_s,
             d_safe_m=controller.d_safe_m,
         )
-        self.margin_m = 0.5 * (controller.d_safe_m + between) + tube_radius_m
-        """Distance kept from a shared separation line before the plan-age inflation
-        (`fleetmpc.onboard.core.separation`) [m]."""
+        self.margin_m = shared_margin_m(controller, tube_radius_m)
+        """Distance kept from a shared separation line before the plan-age inflation [m]."""
         self._alone_margin_m = controller.d_safe_m + between + tube_radius_m
         """Distance kept from a stale neighbour's position before the plan-age inflation [m]."""
         self.radius_m = safety_radius(controller, tube_radius_m)
