@@ -212,8 +212,7 @@ def format_summary(metrics: dict) -> str:
         ("feasible", "yes" if metrics["feasible"] else "NO (the target outruns the team)"),
         ("duration", f"{metrics['duration_s']:.1f} s"),
     ]
-    for (a, b), e in zip(metrics["separation_pairs"], metrics["separation_error_m"], strict=True):
-        rows.append((f"separation error {a}-{b}", f"{e:.4f} m"))
+    rows += _separation_rows(metrics)
     rows += [
         ("centre distance error", _metres(metrics["centre_distance_error_m"])),
         ("formation RMS", _metres(metrics["formation_rms_m"])),
@@ -231,19 +230,59 @@ def format_summary(metrics: dict) -> str:
     if "periods_recorded" in metrics:  # a live run's ground station
         recorded, expected = metrics["periods_recorded"], metrics["periods_expected"]
         rows.append(("periods recorded", f"{recorded} of {expected}"))
-    for b in metrics["beta_error"]:
-        rows.append(
+    rows += _beta_rows(metrics["beta_error"])
+    for vid in metrics.get("beta_error_without_truth", ()):
+        rows.append((f"beta error UAV {vid}", "unknown: no simulated truth (a real autopilot)"))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+SUMMARY_LISTED_MAX = 10
+"""Up to this many pairs (or vehicles) the summary lists each one; a larger fleet's gets the
+worst and the median (`--metrics` holds every one)."""
+
+
+def _separation_rows(metrics: dict) -> list[tuple[str, str]]:
+    pairs, errors = metrics["separation_pairs"], metrics["separation_error_m"]
+    if len(pairs) <= SUMMARY_LISTED_MAX:
+        return [
+            (f"separation error {a}-{b}", f"{e:.4f} m")
+            for (a, b), e in zip(pairs, errors, strict=True)
+        ]
+    worst = int(np.argmax(errors))
+    a, b = pairs[worst]
+    return [
+        (
+            f"separation error, {len(pairs)} pairs",
+            f"worst {a}-{b} {errors[worst]:.4f} m, median {np.median(errors):.4f} m",
+        )
+    ]
+
+
+def _beta_rows(beta_error: list[dict]) -> list[tuple[str, str]]:
+    if len(beta_error) <= SUMMARY_LISTED_MAX:
+        return [
             (
                 f"beta error UAV {b['vehicle']}",
                 f"a_V {100 * b['speed_effectiveness']:.1f} %, "
                 f"a_w {100 * b['yaw_rate_effectiveness']:.1f} %, "
                 f"drift {b['drift_m_s']:.3f} m/s",
             )
+            for b in beta_error
+        ]
+
+    def worst(key: str) -> dict:
+        return max(beta_error, key=lambda b: b[key])
+
+    v, w, d = worst("speed_effectiveness"), worst("yaw_rate_effectiveness"), worst("drift_m_s")
+    return [
+        (
+            f"beta error, {len(beta_error)} UAVs",
+            f"worst a_V {100 * v['speed_effectiveness']:.1f} % (UAV {v['vehicle']}), "
+            f"a_w {100 * w['yaw_rate_effectiveness']:.1f} % (UAV {w['vehicle']}), "
+            f"drift {d['drift_m_s']:.3f} m/s (UAV {d['vehicle']})",
         )
-    for vid in metrics.get("beta_error_without_truth", ()):
-        rows.append((f"beta error UAV {vid}", "unknown: no simulated truth (a real autopilot)"))
-    width = max(len(k) for k, _ in rows)
-    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+    ]
 
 
 NOT_JUDGED = "not judged: the target is not the scenario's (fleetmpc up --target)"

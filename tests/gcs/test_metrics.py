@@ -177,3 +177,30 @@ def test_the_summary_shows_the_new_rows():
     assert re.search(r"corner recovery \(worst\) +4\.0 s", text)
     m["corners"], m["corner_recovery_s"] = 0, None
     assert "corner recovery" not in format_summary(m)
+
+
+def test_a_large_fleets_summary_gives_its_worst_and_median_not_every_pair():
+    rec = _square_corner_record()
+    m = {"scenario": "synthetic", "learning": True, "feasible": True, "duration_s": 1.0}
+    m.update(compute_metrics(rec))
+    n = 12
+    m["separation_pairs"] = [(a, b) for a in range(1, n + 1) for b in range(a + 1, n + 1)]
+    m["separation_error_m"] = [0.01] * len(m["separation_pairs"])
+    m["separation_error_m"][5] = 0.09  # the pair 1-7
+    m["beta_error"] = [
+        {
+            "vehicle": v,
+            "speed_effectiveness": 0.01 * v,
+            "yaw_rate_effectiveness": 0.02,
+            "drift_m_s": 0.05 if v == 3 else 0.01,
+        }
+        for v in range(1, n + 1)
+    ]
+    text = format_summary(m)
+    assert "separation error 1-2" not in text and "beta error UAV 1 " not in text
+    assert re.search(r"separation error, 66 pairs +worst 1-7 0\.0900 m, median 0\.0100 m\n", text)
+    assert re.search(
+        r"beta error, 12 UAVs +worst a_V 12\.0 % \(UAV 12\), a_w 2\.0 % \(UAV 1\), "
+        r"drift 0\.050 m/s \(UAV 3\)",
+        text,
+    )
