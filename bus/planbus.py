@@ -32,7 +32,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Self
 
 from fleetmpc.errors import ConfigError, FleetMpcError
-from fleetmpc.protocol.codec import DecodeError, decode, encode
+from fleetmpc.protocol.codec import DecodeError, decode, encode, plan_start
 from fleetmpc.protocol.key_expressions import (
     KeyFormatError,
     all_plans_key,
@@ -188,9 +188,37 @@ class _Inbox:
         x, y = message.plan.states[0, :2].tolist()
         return math.hypot(x - cx, y - cy) > radius
 
+    def _far_unread(self, key: str, payload: bytes) -> bool:
+        """True for a plan that can be dropped without decoding it: framed as a plan of the
+        sender its key names, starting beyond the interest, from a sender of whom nothing is
+        held (the plan that would make this bus forget one is decoded first: "listen_near")."""
+        interest = self._interest
+        if interest is None:
+            return False
+        cx, cy, radius, always = interest
+        try:
+            parsed = _parse_key(key)
+        except KeyFormatError:
+            return False
+        sender = parsed.vehicle_id
+        if parsed.kind != MessageKind.PLAN or sender in always or sender == self._own:
+            return False
+        start = plan_start(payload)
+        if start is None or start[0] != sender or parsed.fleet != self._fleet:
+            return False
+        with self._lock:
+            if (MessageKind.PLAN, sender) in self._latest:
+                return False
+        return math.hypot(start[1] - cx, start[2] - cy) > radius
+
     def receive(self, key: str, payload: bytes) -> None:
         """Handle one payload that arrived on `key`; never raises."""
         try:
+            if self._far_unread(key, payload):
+                with self._lock:
+                    self._received += 1
+                    self._filtered += 1
+                return
             reason, message = self._check(key, payload)
         except Exception:  # a bug in the checks must not kill a transport thread
             reason, message = RejectReason.INTERNAL, None
@@ -452,11 +480,14 @@ class PlanBus(ABC):
         self, centre: tuple[float, float], radius_m: float, always: frozenset[int] = frozenset()
     ) -> None:
         """Subscribe by distance: from now on the plans of vehicles (other than those in
-        `always`) that start farther than `radius_m` from `centre` are dropped once checked
-        (counted as `filtered`, never stored), and such a vehicle's last plan is forgotten. An
-        agent calls it every period with where its vehicle is, so that what it holds and reads
-        grows with its neighbourhood, not with the fleet. (Only a plan that decodes and matches
-        its key makes a vehicle forget: a forged far payload cannot erase a neighbour.)"""
+        `always`) that start farther than `radius_m` from `centre` are dropped (counted as
+        `filtered`, never stored), and such a vehicle's last plan is forgotten. An agent calls
+        it every period with where its vehicle is, so that what it holds and reads grows with
+        its neighbourhood, not with the fleet. A far plan from a vehicle of which nothing is
+        held is dropped unread (its first position read from its bytes, `plan_start`), so that
+        a far vehicle costs the agent a look at a few bytes, not a decode; only a plan that
+        decodes and matches its key makes a vehicle forget (a forged far payload cannot erase
+        a neighbour)."""
         self._inbox.listen_near(centre, radius_m, always)
 
     def latest_plans(self, now_ns: int, max_age_ns: int) -> dict[int, Plan]:

@@ -293,7 +293,7 @@ class FleetRunner:
         listen_for(self.agent, self.bus)
         self._publish(state, out, stamp_ns, step_ns)
         if self._record is not None:
-            self._record(self._row(state, out, stamp_ns, step_ns * 1e-6))
+            self._record(self._row(state, out, stamp_ns, step_ns * 1e-6, late_ns * 1e-6))
         return out
 
     def setpoint_rate_hz(self) -> float:
@@ -343,7 +343,9 @@ class FleetRunner:
         except Exception as e:
             self._log(f"publish failed: {type(e).__name__}: {e}")
 
-    def _row(self, state: LinkState, out: AgentOutput, stamp_ns: int, step_ms: float) -> dict:
+    def _row(
+        self, state: LinkState, out: AgentOutput, stamp_ns: int, step_ms: float, late_ms: float
+    ) -> dict:
         def clean(a) -> list:
             return [float(x) if math.isfinite(x) else None for x in np.ravel(a)]
 
@@ -366,6 +368,7 @@ class FleetRunner:
             "mode": state.mode_name,
             "mode_lost": state.mode_lost,
             "step_ms": step_ms,
+            "late_ms": late_ms,
             "setpoint_rate_hz": self.setpoint_rate_hz(),
         }
 

@@ -95,6 +95,7 @@ __all__ = [
     "decode",
     "decode_or_none",
     "encode",
+    "plan_start",
 ]
 
 MAGIC = b"FM"
@@ -106,6 +107,9 @@ _STATUS_FIXED = struct.Struct("<BBB4ddIId")
 _NEIGHBOUR = struct.Struct("<Bq")
 _TARGET = struct.Struct("<B5d")
 _EPOCH = struct.Struct("<qd")
+_START = struct.Struct("<2d")
+"""A plan's first position (x North, y East), right after its fixed part."""
+_PLAN_START_END = _HEADER.size + _PLAN_FIXED.size + _START.size
 _STATUS_SIZE = _HEADER.size + _STATUS_FIXED.size + MAX_NEIGHBOURS * _NEIGHBOUR.size
 _TARGET_SIZE = _HEADER.size + _TARGET.size
 _EPOCH_SIZE = _HEADER.size + _EPOCH.size
@@ -191,6 +195,11 @@ def _read_f64(data: bytes, offset: int, count: int, cols: int) -> np.ndarray:
     return a
 
 
+def _plan_size(m: int) -> int:
+    """Bytes of a plan of horizon `m`."""
+    return _HEADER.size + _PLAN_FIXED.size + 8 * (3 * (m + 1) + 2 * m)
+
+
 def _decode_plan(data: bytes, sender: int, seq: int, stamp: int) -> PlanMessage:
     base = _HEADER.size + _PLAN_FIXED.size
     if len(data) < base:
@@ -198,7 +207,7 @@ def _decode_plan(data: bytes, sender: int, seq: int, stamp: int) -> PlanMessage:
     period, m, mode, flags, c_norm, solve_us = _PLAN_FIXED.unpack_from(data, _HEADER.size)
     if not 1 <= m <= MAX_HORIZON:
         raise _reject(RejectReason.RANGE, f"horizon must be in [1, {MAX_HORIZON}], got {m}")
-    size = base + 8 * (3 * (m + 1) + 2 * m)
+    size = _plan_size(m)
     if len(data) != size:
         raise _reject(RejectReason.SIZE, f"plan of horizon {m} is {size} bytes, got {len(data)}")
     if flags & ~0b11:
@@ -309,6 +318,22 @@ def decode(payload: bytes, *, expect: MessageKind | None = None) -> Message:
         return _DECODERS[MessageKind(kind)](data, sender, seq, stamp)
     except FieldError as e:
         raise _reject(e.reason, str(e)) from None
+
+
+def plan_start(payload: bytes) -> tuple[int, float, float] | None:
+    """(sender id, x North, y East) of a plan's first state, read from its bytes without
+    decoding them, or None if the payload is not framed as a plan (magic, version, kind,
+    horizon and size). Nothing else is checked: for a receiver that drops the plans of vehicles
+    far away, so that it spends a look at a few bytes on them, not a decode."""
+    if not isinstance(payload, bytes) or len(payload) < _PLAN_START_END:
+        return None
+    magic, version, kind, sender, _, _, _ = _HEADER.unpack_from(payload)
+    m = _PLAN_FIXED.unpack_from(payload, _HEADER.size)[1]
+    framed = (magic, version, kind) == (MAGIC, SCHEMA_VERSION, MessageKind.PLAN)
+    if not framed or not 1 <= m <= MAX_HORIZON or len(payload) != _plan_size(m):
+        return None
+    x, y = _START.unpack_from(payload, _HEADER.size + _PLAN_FIXED.size)
+    return sender, x, y
 
 
 def decode_or_none(

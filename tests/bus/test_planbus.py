@@ -19,11 +19,12 @@ from fleetmpc.bus.memory import InMemoryPlanBus, MemoryHub, MemoryHubs
 from fleetmpc.bus.open_bus import open_plan_bus
 from fleetmpc.bus.planbus import PlanBus, PlanBusClosedError, PlanBusError
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.codec import encode
+from fleetmpc.protocol.codec import decode, encode
 from fleetmpc.protocol.key_expressions import plan_key, target_observation_key
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
     LearnedParams,
+    MessageKind,
     PlanMessage,
     PlanStatus,
     RejectReason,
@@ -119,6 +120,34 @@ def test_a_bus_listening_near_drops_far_plans_unread_and_forgets_their_senders(h
     c = bus.counters()
     assert (c.filtered, c.rejected_total) == (2, 1)
     check_balance(bus)
+
+
+def test_far_plans_of_vehicles_not_held_are_dropped_without_a_decode() -> None:
+    decoded = []
+
+    def counting(payload: bytes, kind: MessageKind):
+        decoded.append(kind)
+        return decode(payload, expect=kind)
+
+    hub = MemoryHub("sim")
+    hub.decode = counting  # (the decoder its buses are built with)
+    with InMemoryPlanBus(hub, fleet=FLEET, vehicle_id=1) as bus:
+        bus.listen_near((0.0, 0.0), 20.0)
+        for seq, offset in enumerate((0.0, 50.0, 60.0), start=1):  # near, then far twice
+            hub.put(
+                plan_key(FLEET, 7),
+                encode(PlanMessage(seq=seq, plan=make_plan(7, S, offset=offset))),
+            )
+        for seq in (1, 2):  # never near: never decoded
+            hub.put(
+                plan_key(FLEET, 8), encode(PlanMessage(seq=seq, plan=make_plan(8, S, offset=50.0)))
+            )
+        # The first far plan of vehicle 7, which was held, is decoded (it makes the bus forget).
+        assert len(decoded) == 2
+        assert bus.latest_plans(S, S) == {}
+        c = bus.counters()
+        assert (c.received, c.accepted, c.filtered) == (5, 1, 4)
+        check_balance(bus)
 
 
 def test_statuses_reach_the_ground_station_and_not_the_agents() -> None:

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.codec import DecodeError, decode, decode_or_none, encode
+from fleetmpc.protocol.codec import DecodeError, decode, decode_or_none, encode, plan_start
 from fleetmpc.protocol.messages import (
     FleetEpoch,
     LearnedParams,
@@ -327,6 +327,29 @@ def test_random_bytes_never_raise(payload: bytes) -> None:
     counters: dict[RejectReason, int] = {}
     out = decode_or_none(payload, counters)
     assert (out is None) == (sum(counters.values()) == 1)
+    start = plan_start(payload)  # (never raises either)
+    assert start is None or (len(payload) - 18 - 24 - 24) % 40 == 0
+
+
+@given(message=plan_messages)
+def test_a_plans_start_is_read_from_its_bytes_as_decoded(message: PlanMessage) -> None:
+    payload = encode(message)
+    sender, x, y = plan_start(payload)
+    assert sender == message.plan.vehicle_id
+    assert bits([x, y]) == bits(message.plan.states[0, :2])
+
+
+def test_a_plans_start_is_none_for_what_is_not_framed_as_a_plan() -> None:
+    plan = plan_bytes(5)
+    assert plan_start(plan) is not None
+    assert plan_start(plan[:-1]) is None  # size not that of its horizon
+    assert plan_start(plan + b"\0") is None
+    assert plan_start(b"XX" + plan[2:]) is None  # magic
+    assert plan_start(plan[:2] + b"\x01" + plan[3:]) is None  # schema version
+    assert plan_start(status_bytes()) is None and plan_start(target_bytes()) is None
+    no_horizon = bytearray(plan)
+    no_horizon[26:28] = bytes(2)
+    assert plan_start(bytes(no_horizon)) is None
 
 
 @settings(max_examples=300)
