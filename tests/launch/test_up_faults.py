@@ -58,7 +58,7 @@ def test_a_frozen_agent_takes_its_vehicle_back(fly):
     _formation_back(m)
 
 
-@pytest.mark.parametrize("speed", [1, 4])
+@pytest.mark.parametrize("speed", [pytest.param(1, marks=pytest.mark.slow), 4])
 def test_a_restarted_router_is_rejoined(fly, speed):
     """The router is down for 3 s of fleet time and its restart takes some wall time more (at
     x4 four times as much fleet time); the vehicles fly the silence on their slots (each keeps
