@@ -180,36 +180,39 @@ class _Inbox:
 
     def _far(self, message: Message) -> bool:
         """True for a plan beyond the interest."""
-        if self._interest is None or message.kind != MessageKind.PLAN:
+        if message.kind != MessageKind.PLAN:
             return False
-        cx, cy, radius, always = self._interest
-        if message.sender_id in always:
+        return self._beyond(message.sender_id, *message.plan.states[0, :2].tolist())
+
+    def _beyond(self, sender: int, x: float, y: float) -> bool:
+        """True for a plan of `sender` starting at (x, y) beyond the interest (never for a
+        sender always heard, nor before there is an interest)."""
+        interest = self._interest
+        if interest is None:
             return False
-        x, y = message.plan.states[0, :2].tolist()
-        return math.hypot(x - cx, y - cy) > radius
+        cx, cy, radius, always = interest
+        return sender not in always and math.hypot(x - cx, y - cy) > radius
 
     def _far_unread(self, key: str, payload: bytes) -> bool:
         """True for a plan that can be dropped without decoding it: framed as a plan of the
         sender its key names, starting beyond the interest, from a sender of whom nothing is
         held (the plan that would make this bus forget one is decoded first: "listen_near")."""
-        interest = self._interest
-        if interest is None:
+        if self._interest is None:
             return False
-        cx, cy, radius, always = interest
         try:
             parsed = _parse_key(key)
         except KeyFormatError:
             return False
         sender = parsed.vehicle_id
-        if parsed.kind != MessageKind.PLAN or sender in always or sender == self._own:
+        if parsed.kind != MessageKind.PLAN or parsed.fleet != self._fleet or sender == self._own:
             return False
         start = plan_start(payload)
-        if start is None or start[0] != sender or parsed.fleet != self._fleet:
+        if start is None or start[0] != sender:
             return False
         with self._lock:
             if (MessageKind.PLAN, sender) in self._latest:
                 return False
-        return math.hypot(start[1] - cx, start[2] - cy) > radius
+        return self._beyond(*start)
 
     def receive(self, key: str, payload: bytes) -> None:
         """Handle one payload that arrived on `key`; never raises."""
