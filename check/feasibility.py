@@ -305,7 +305,6 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         )
     spare = v_bound - float(speeds.max())
     formation = Formation(sc.formation)
-    slack = _closest_slack(sc, formation, float(mpc.tube_radius_m[-1]))[3]
     for corner in needs.corners:
         sweep = "a world-frame formation does not turn"
         if sc.formation.frame == "course":
@@ -321,7 +320,6 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"t = {corner.start_s:.1f} s for {corner.duration_s:.1f} s; a slot's velocity turns "
             f"{math.degrees(corner.turn_rad):.0f} deg, its vehicle falls up to about "
             f"{corner.behind_m:.1f} m behind, {back} ({sweep})"
-            + _slack_caveat(slack, corner.behind_m)
         )
     radius = safety_radius(c, float(mpc.tube_radius_m[-1]))
     within = (formation.desired_distances() <= radius).sum(axis=1) - 1  # (not itself)
@@ -372,7 +370,7 @@ def _slack_lines(
     sc: Scenario, formation: Formation, tube_radius_m: float, problems: list[str]
 ) -> list[str]:
     """How far each vehicle of the closest pair of slots is from its separation margin there
-    (docs/design.md, "What the lines cost a compact formation"); a problem if negative."""
+    (docs/design.md, "What the lines leave a compact formation"); a problem if negative."""
     if len(sc.vehicles) < 2:
         return []
     a, b, apart, slack = _closest_slack(sc, formation, tube_radius_m)
@@ -385,8 +383,8 @@ def _slack_lines(
         )
     return [
         f"separation: the closest slots, {apart:.2f} m apart, leave each vehicle {slack:.2f} m"
-        f" to its margin (a pair keeps {keeps:.2f} m): from its slot, a vehicle behind a "
-        "neighbour may plan no farther ahead than that over its horizon"
+        f" to its margin (a pair keeps {keeps:.2f} m): how far either may stray toward the other"
+        " from its slot"
     ]
 
 
@@ -401,17 +399,3 @@ def _closest_slack(
     keeps = 2.0 * shared_margin_m(sc.controller, tube_radius_m)
     a, b, apart = formation.closest_slots()
     return a, b, apart, 0.5 * (apart - keeps)
-
-
-def _slack_caveat(slack_m: float, behind_m: float) -> str:
-    """What the corner's estimate leaves out when a vehicle falls behind its slot by more
-    than the closest slots leave to their separation margins: the separation lines, which stay
-    where the vehicles are over the horizon, then bound how fast the formation closes up
-    (docs/design.md, "What the lines cost a compact formation")."""
-    if behind_m <= slack_m:
-        return ""
-    return (
-        f"; but the closest slots leave each vehicle only {slack_m:.2f} m to its separation "
-        f"margin, less than that lag: the separation lines then bound how fast the formation "
-        "closes up, and this estimate, which leaves them out, is optimistic"
-    )

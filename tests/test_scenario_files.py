@@ -195,18 +195,3 @@ def test_check_gives_each_vehicles_slack_to_its_separation_margin():
     report = check_scenario(tight)
     assert not report.feasible
     assert any("can never both be on their slots" in p for p in report.problems), report.problems
-
-
-def test_check_says_when_the_separation_lines_bound_a_corners_recovery():
-    """The compact ring (0.31 m of slack) falls behind its slots by 0.9-2.5 m at its corners:
-    each corner's estimate is called optimistic; with d_safe 0.2 m (slack 1.03 m) only those
-    whose lag exceeds that are."""
-    ring = load_scenario(ROOT / "scenarios" / "corners" / "compact-ring.toml")
-    corners = [line for line in check_scenario(ring).lines if line.startswith("corner at")]
-    assert len(corners) == 3
-    assert all("this estimate, which leaves them out, is optimistic" in c for c in corners)
-    relaxed = dataclasses.replace(
-        ring, controller=dataclasses.replace(ring.controller, d_safe_m=0.2)
-    )
-    corners = [line for line in check_scenario(relaxed).lines if line.startswith("corner at")]
-    assert ["optimistic" in c for c in corners] == [True, False, True], corners

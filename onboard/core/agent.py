@@ -360,9 +360,8 @@ class Agent:
         inflations = hood.inflations(ages, inp.late_s)
         here, drift = (x, y), (beta[2], beta[3])
         neighbours = hood.nearest(start_ns, plans, here, inflations, ages, centres[0], offsets[0])
-        held = hood.held(neighbours, plans)
         planes, lines = hood.planes(
-            start_ns, neighbours, self._last_plan, here, drift, ages, inflations, held=held
+            start_ns, neighbours, plans, self._last_plan, here, drift, ages, inflations
         )
         weight = s.q_position + n_terms * s.q_formation
         goal = hood.goal(reference.slots[1 : s.horizon + 1], pull, n_terms, weight)

@@ -12,7 +12,7 @@ kept in the vehicle's own cell. Plain floats throughout: the horizon is a handfu
 """
 
 import math
-from collections.abc import Collection, Mapping
+from collections.abc import Mapping
 
 from fleetmpc.onboard.core.config import ControllerSettings
 from fleetmpc.onboard.core.separation import (
@@ -51,6 +51,14 @@ def safety_radius(controller: ControllerSettings, tube_radius_m: float) -> float
     )
     closing = 2.0 * controller.speed_max_m_s * (controller.horizon + 1) * controller.period_s
     return controller.d_safe_m + between + 2.0 * tube_radius_m + closing
+
+
+def _carried(
+    point: tuple[float, float], drift: tuple[float, float], period_s: float, horizon: int
+) -> list[tuple[float, float]]:
+    """`point` carried by `drift` at j = 0..horizon."""
+    (x, y), (dx, dy) = point, drift
+    return [(x + dx * j * period_s, y + dy * j * period_s) for j in range(horizon + 1)]
 
 
 class Neighbourhood:
@@ -197,53 +205,58 @@ class Neighbourhood:
             n_terms += 1
         return pull, n_terms
 
-    @staticmethod
-    def held(neighbours: Mapping[int, object], plans: Mapping[int, Plan]) -> set[int]:
-        """The neighbours whose plan `holds`: their autopilots hold them where they are, so the
-        wind does not carry them (`planes`; docs/design.md, "Held neighbours do not drift")."""
-        return {nid for nid in neighbours if plans[nid].holds}
-
     def planes(
         self,
         stamp_ns: int,
         neighbours: Mapping[int, tuple[float, float]],
+        neighbour_plans: Mapping[int, Plan],
         last_plan: Plan | None,
         here: tuple[float, float],
         drift: tuple[float, float],
         ages: Mapping[int, float],
         inflations: Mapping[int, float],
-        *,
-        held: Collection[int] = (),
     ) -> tuple[list[list[Plane]], list[list[Plane]]]:
         """Separation half-planes against each of `neighbours` at j = 1..M (`separation_lines`,
-        `held_inside`), between where this vehicle's previous plan `last_plan` (or, without one,
-        the vehicle) and where `nearest` took the neighbour to be now: its plan's position, or
-        for a silent one the point of its region nearest this vehicle, kept silent_allowance_m
-        farther from. The distance is shared while the neighbour's plan is at most two periods
-        old. Padded to K neighbours with no planes. With them, the margins' own lines (the same
-        where the vehicle is not inside its margin), which `draw_out` keeps the goal behind.
-        The lines drift with `drift`, as the wind carries both vehicles, except against a
-        neighbour the wind does not carry: a silent one (it flies its slot, or its autopilot
-        holds it) and one in `held` (`Neighbourhood.held`)."""
+        `held_inside`). Against a neighbour whose plan is the latest (at most a period old),
+        each step's line lies between where this vehicle's previous plan `last_plan` (or,
+        without one, the vehicle) and the neighbour's plan put them then. Against an older
+        plan, the line lies between where they put them now, and drifts with `drift` as the
+        wind carries both vehicles, except against a neighbour the wind does not carry: a
+        silent one (taken to be at the point of its region nearest this vehicle, `nearest`,
+        and kept silent_allowance_m farther from) and one whose plan `holds`. The distance is
+        shared while the neighbour's plan is at most two periods old. Padded to K neighbours
+        with no planes. With them, the margins' own lines (the same where the vehicle is not
+        inside its margin), which `draw_out` keeps the goal behind."""
         s, M = self.settings, self.settings.horizon
-        own = here if last_plan is None else last_plan.position_at(stamp_ns)
-        drift_steps = [
-            (drift[0] * j * s.period_s, drift[1] * j * s.period_s) for j in range(1, M + 1)
-        ]
-        no_drift = [(0.0, 0.0)] * M
+        own = self._steps(last_plan, stamp_ns) if last_plan is not None else [here] * (M + 1)
         planes, lines = [], []
         for nid in sorted(neighbours, key=self._fleet_index.__getitem__):  # (in fleet order)
-            shared = ages[nid] <= 2.0 * s.period_s + 1e-9
+            age, plan = ages[nid], neighbour_plans[nid]
+            shared = age <= 2.0 * s.period_s + 1e-9
             margin = (self.margin_m if shared else self._alone_margin_m) + inflations[nid]
-            silent = self.silent(ages[nid])
-            if silent:
+            if self.silent(age):
                 margin += s.silent_allowance_m
-            theirs, steps = neighbours[nid], no_drift if silent or nid in held else drift_steps
-            lines.append(separation_lines(own, theirs, margin, here, steps, shared=shared))
-            planes.append(held_inside(lines[-1], here, steps))
+            if age <= s.period_s + 1e-9 and not plan.holds:
+                mine, theirs = own, self._steps(plan, stamp_ns)
+            else:
+                carried = (0.0, 0.0) if self.silent(age) or plan.holds else drift
+                mine, theirs = (
+                    _carried(p, carried, s.period_s, M) for p in (own[0], neighbours[nid])
+                )
+            steps = separation_lines(mine, theirs, margin, here, shared=shared)
+            lines.append(steps[1:])
+            planes.append(held_inside(steps, here))
         planes.extend([self._no_planes] * (self.size - len(planes)))
         lines.extend([self._no_planes] * (self.size - len(lines)))
         return planes, lines
+
+    def _steps(self, plan: Plan, stamp_ns: int) -> list[tuple[float, float]]:
+        """Where `plan` puts its vehicle at j = 0..M from `stamp_ns`, extrapolated past its end
+        as every vehicle extrapolates it (plan_extrapolation_s)."""
+        s = self.settings
+        return plan.position_list(
+            stamp_ns, s.horizon + 1, max_extrapolation_s=s.plan_extrapolation_s
+        )
 
     @staticmethod
     def draw_out(

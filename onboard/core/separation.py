@@ -1,27 +1,27 @@
 """Minimum separation as buffered half-planes between plans (docs/design.md, "Safety").
 
-For a pair of vehicles i, k, both know the same two positions now: where i's previous plan puts
-i (a) and where k's previous plan puts k (b), since each broadcast its plan. The line through
-their midpoint, normal to a - b, splits the plane between them (a buffered Voronoi cell); over
-the horizon each vehicle keeps its predicted positions on its own side, at least its margin away
-from the line:
-    n' (p_j - (a + b) / 2 - d j tau) >= d_safe / 2 + r_M + s / 2 + v_max (age - tau),
-    n = (a - b) / |a - b|,   j = 1..M,
-with d the learned drift (the wind carries both vehicles and their line alike), r_M the tube's
-widest position radius (the true position stays within it of the predicted one), s the
-inter-sample allowance (how much two vehicles can close between two control instants beyond
-what the instants show) and age the neighbour's plan age beyond the one period a plan always has
-(the neighbour may have moved v_max per second of it). Both vehicles compute the same line with
-opposite normals, so while both keep to their sides the true distance is at least d_safe + s,
-whatever each of them replans: no vehicle has to trust the other's new plan. The cells move
-with the vehicles every period, so two vehicles slide past each other over several periods.
+For a pair of vehicles i, k, both know the same two plans, i's previous plan and k's, since each
+broadcast its plan. At each step j of the horizon, the line through the midpoint of where the two
+plans put the pair then (a_j and b_j), normal to a_j - b_j, splits the plane between them (a
+buffered Voronoi cell of that step); each vehicle keeps its predicted position of step j on its
+own side, at least its margin away from the line:
+    n_j' (p_j - (a_j + b_j) / 2) >= d_safe / 2 + r_M + s / 2 + v_max (age - tau),
+    n_j = (a_j - b_j) / |a_j - b_j|,   j = 1..M,
+with r_M the tube's widest position radius (the true position stays within it of the predicted
+one), s the inter-sample allowance (how much two vehicles can close between two control instants
+beyond what the instants show) and age the neighbour's plan age beyond the one period a plan
+always has (the neighbour may have moved v_max per second of it). Both vehicles compute the same
+lines with opposite normals, so while both keep to their sides the true distance is at least
+d_safe + s, whatever each of them replans: no vehicle has to trust the other's new plan. The
+caller chooses the positions: against an older plan, where the two may not hold the same plans,
+it passes where they are now, carried by the wind (`fleetmpc.onboard.core.neighbourhood`).
 
-A vehicle found inside its margin (pushed there by what the model does not know, beyond the
-tube's W) keeps to the line through where it is: it may not close further, rather than being
-asked for a jump out that no plan can make. (A vehicle still closing on the line at speed may
-not be able to stop within the speed-rate limit; its problem is then infeasible and the
-fallback takes over.) Its goal is drawn back onto the margin's line meanwhile
-(`fleetmpc.onboard.core.neighbourhood`), so the cost takes it out again.
+A vehicle found inside its margin of the line now (pushed there by what the model does not know,
+beyond the tube's W) is allowed that shortfall at every step: it keeps to the line through where
+it is as the line moves, rather than being asked for a jump out that no plan can make. (A vehicle
+still closing on the line at speed may not be able to stop within the speed-rate limit; its
+problem is then infeasible and the fallback takes over.) Its goal is drawn back onto the
+margin's line meanwhile (`fleetmpc.onboard.core.neighbourhood`), so the cost takes it out again.
 
 A neighbour whose plan is stale (older than two periods: it may not be getting ours either) is
 not trusted to keep to its half: the line then passes through the neighbour's position itself,
@@ -43,6 +43,8 @@ __all__ = [
 Plane = tuple[float, float, float]
 """A half-plane (n_x, n_y, b): positions p with n' p >= b; a non-finite b means none."""
 
+Point = tuple[float, float]
+
 NO_PLANE: Plane = (0.0, 0.0, math.inf)
 
 
@@ -55,27 +57,31 @@ def intersample_allowance(*, speed_max_m_s: float, period_s: float, d_safe_m: fl
 
 
 def separation_lines(
-    own: tuple[float, float],
-    neighbour: tuple[float, float],
+    own: Sequence[Point],
+    neighbour: Sequence[Point],
     margin: float,
-    here: tuple[float, float],
-    drift_steps: Sequence[tuple[float, float]],
+    here: Point,
     *,
     shared: bool = True,
 ) -> list[Plane]:
-    """The margin's lines this vehicle keeps to against one neighbour at j = 1..M (module
+    """The margin's lines this vehicle keeps to against one neighbour at j = 0..M (module
     docstring), before `held_inside` holds a vehicle inside its margin where it is.
 
-    `own` and `neighbour` are where this vehicle's previous plan (its position when it has none)
-    and the neighbour's plan put them now; `margin` is the distance to keep from the line; `here`
-    is this vehicle's position (its direction from the neighbour gives the normal when the two
-    plans meet at a point); `drift_steps` the drift's displacement d j tau at j = 1..M. The line
-    bisects the pair when they `shared` the distance and passes through the neighbour's position
-    otherwise. A non-finite margin gives none.
+    `own[j]` and `neighbour[j]` are where this vehicle's previous plan (its position when it has
+    none) and the neighbour's plan put them at step j; `margin` is the distance to keep from the
+    line; `here` is this vehicle's position (its direction from the neighbour gives the normal
+    where the two plans meet at a point). Each step's line bisects the pair when they `shared`
+    the distance and passes through the neighbour's position otherwise. A non-finite margin
+    gives none.
     """
     if not math.isfinite(margin):
-        return [NO_PLANE] * len(drift_steps)
-    (ax, ay), (bx, by) = own, neighbour
+        return [NO_PLANE] * len(own)
+    return [_line(a, b, margin, here, shared) for a, b in zip(own, neighbour, strict=True)]
+
+
+def _line(a: Point, b: Point, margin: float, here: Point, shared: bool) -> Plane:
+    """The margin's line between `a` (this vehicle) and `b` (the neighbour) at one step."""
+    (ax, ay), (bx, by) = a, b
     nx, ny = ax - bx, ay - by
     dist = math.hypot(nx, ny)
     if dist < 1e-6:
@@ -86,23 +92,17 @@ def separation_lines(
     nx, ny = nx / dist, ny / dist
     if shared:
         bx, by = 0.5 * (ax + bx), 0.5 * (ay + by)
-    line = nx * bx + ny * by + margin
-    return [(nx, ny, line + nx * dx + ny * dy) for dx, dy in drift_steps]
+    return nx, ny, nx * bx + ny * by + margin
 
 
-def held_inside(
-    lines: Sequence[Plane], here: tuple[float, float], drift_steps: Sequence[tuple[float, float]]
-) -> list[Plane]:
-    """The half-planes kept to along the margin's `lines` (`separation_lines`): where the vehicle
-    at `here` is inside its margin, the line through where it is, drifting as the margin's does
-    (module docstring)."""
-    hx, hy = here
-    out = []
-    for (nx, ny, b), (dx, dy) in zip(lines, drift_steps, strict=True):
-        if math.isfinite(b):
-            b = min(b, nx * hx + ny * hy + nx * dx + ny * dy)
-        out.append((nx, ny, b))
-    return out
+def held_inside(lines: Sequence[Plane], here: Point) -> list[Plane]:
+    """The half-planes kept to at j = 1..M along the margin's `lines` at j = 0..M
+    (`separation_lines`): a vehicle at `here`
+    that is inside its margin of the line now (j = 0) is allowed that shortfall at every step,
+    so it keeps to the line through where it is as the line moves (module docstring)."""
+    nx, ny, b = lines[0]
+    short = max(b - (nx * here[0] + ny * here[1]), 0.0) if math.isfinite(b) else 0.0
+    return [(mx, my, c - short) for mx, my, c in lines[1:]]
 
 
 def plane_slack(x: float, y: float, plane: Plane) -> float:

@@ -74,7 +74,7 @@ def test_only_vehicles_within_the_radius_are_planned_against_nearest_first_at_mo
     assert list(near) == [4, 2, 3]  # within the radius: 4, 2, 3, 7; K = 3 keeps the nearest 3
     assert near[4] == pytest.approx((gaps[4], 0.0))  # (each where its plan puts it)
     assert hood.crowded == 1
-    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), ages, inflations)
+    planes, _ = hood.planes(NOW, near, plans, None, (0.0, 0.0), (0.0, 0.0), ages, inflations)
     assert len(planes) == hood.size == 3
     assert all(math.isfinite(p[0][2]) for p in planes)
 
@@ -103,7 +103,9 @@ def test_a_silent_neighbour_is_kept_clear_of_between_its_last_plan_and_its_slot(
     assert inflations == {2: 0.0}
     near = hood.nearest(NOW, plans, here, inflations, {2: age}, centre, offsets)
     assert list(near) == [2]
-    ((plane, *_), *_), _ = hood.planes(NOW, near, None, here, (0.0, 0.0), {2: age}, inflations)
+    ((plane, *_), *_), _ = hood.planes(
+        NOW, near, plans, None, here, (0.0, 0.0), {2: age}, inflations
+    )
     nx, ny, b = plane
     assert (nx, ny) == pytest.approx((0.0, -1.0))  # from (5, 10) on the segment, toward here
     alone = 2.0 * hood.margin_m - 0.1  # d_safe + s + r_M, the tube radius being 0.1 m
@@ -116,7 +118,7 @@ def test_planes_are_padded_to_k_with_no_planes():
     plans = {2: _plan(2, NOW, 3.0, 0.0)}
     inflations = hood.inflations({2: 0.2}, 0.0)
     near = {2: plans[2].position_at(NOW)}
-    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
+    planes, _ = hood.planes(NOW, near, plans, None, (0.0, 0.0), (0.0, 0.0), {2: 0.2}, inflations)
     assert len(planes) == 3
     assert all(math.isinf(b) for _, _, b in planes[1] + planes[2])
 
@@ -128,9 +130,9 @@ def test_a_vehicle_inside_its_margin_is_held_at_where_it_is_and_drawn_back_out()
     the plane through where it is would keep every period's model error."""
     hood = _hood((1, 2))
     here, theirs = (0.0, 0.0), (2.0, 0.0)
-    near = {2: theirs}
+    near, plans = {2: theirs}, {2: _held(2, NOW, *theirs)}
     inflations = hood.inflations({2: 0.2}, 0.0)
-    planes, lines = hood.planes(NOW, near, None, here, (0.0, 0.0), {2: 0.2}, inflations)
+    planes, lines = hood.planes(NOW, near, plans, None, here, (0.0, 0.0), {2: 0.2}, inflations)
     (nx, ny, b), line = planes[0][0], lines[0][0]
     assert (nx, ny) == pytest.approx((-1.0, 0.0))
     assert b == pytest.approx(0.0)  # through where it is
@@ -182,24 +184,52 @@ def test_a_plan_that_stands_still_holds_and_a_planned_stop_in_a_wind_does_not():
     assert not Plan(2, NOW, PERIOD_NS, drifting, np.zeros((M, 2))).holds
 
 
-def test_the_lines_drift_with_the_wind_except_against_a_held_or_silent_neighbour():
-    """The wind carries two vehicles flying velocity commands alike, so the line between them
-    drifts with the learned drift; a held vehicle (its plan `holds`) and a silent one stay where
-    they are, and so does the line against them (docs/design.md, "Held neighbours do not
-    drift")."""
+def _steps(plan: Plan) -> list[tuple[float, float]]:
+    return plan.position_list(NOW, M + 1, max_extrapolation_s=SETTINGS.plan_extrapolation_s)
+
+
+def _bisector_offset(plane, a, b) -> float:
+    """How far `plane`'s boundary lies beyond the midpoint of a and b along its normal [m]."""
+    nx, ny, bound = plane
+    return bound - (nx * 0.5 * (a[0] + b[0]) + ny * 0.5 * (a[1] + b[1]))
+
+
+def test_against_the_latest_plan_each_steps_line_bisects_where_the_plans_put_the_pair_then():
+    """Against a neighbour's latest plan (a period old), the line of step j lies between where
+    this vehicle's previous plan and the neighbour's put them at step j, so a formation flying
+    abreast is not held back by a line that stands still (docs/design.md, "The half-planes")."""
+    hood = _hood((1, 2))
+    mine = _plan(1, NOW - PERIOD_NS, 0.0, 0.0)  # flying North at 1 m/s
+    plans = {2: _plan(2, NOW - PERIOD_NS, 0.0, 3.0)}  # abreast, 3 m to the East
+    inflations = hood.inflations({2: 0.2}, 0.0)
+    here = mine.position_at(NOW)
+    near = hood.nearest(NOW, plans, here, inflations, {2: 0.2}, here, [])
+    drift = (0.3, 0.2)  # (not used: the plans carry it)
+    planes, lines = hood.planes(NOW, near, plans, mine, here, drift, {2: 0.2}, inflations)
+    assert planes == lines  # (nobody inside a margin)
+    own, abreast = _steps(mine), _steps(plans[2])
+    for j, plane in enumerate(planes[0]):
+        assert plane[:2] == pytest.approx((0.0, -1.0))
+        assert _bisector_offset(plane, own[j + 1], abreast[j + 1]) == pytest.approx(hood.margin_m)
+
+
+def test_against_an_older_plan_the_line_drifts_with_the_wind_except_where_the_wind_cannot():
+    """Against an older plan (or none but a silent vehicle's region) the line lies between
+    where the plans put the pair now, and drifts with the learned drift, as the wind carries two
+    vehicles flying velocity commands alike; a held vehicle (its plan `holds`) and a silent one
+    stay where they are, and so does the line against them (docs/design.md, "Held neighbours
+    do not drift")."""
     hood = _hood((1, 2, 3, 4))
     drift = (0.3, 0.2)
     plans = {
-        2: _plan(2, NOW, 3.0, 0.0),  # flying
-        3: _held(3, NOW, -3.0, 0.0),  # held by its autopilot
+        2: _plan(2, NOW - 2 * PERIOD_NS, 3.0, 0.0),  # flying, its plan two periods old
+        3: _held(3, NOW - PERIOD_NS, -3.0, 0.0),  # held by its autopilot
         4: _plan(4, NOW - 5 * 10**9, 0.0, 3.0),  # silent for 5 s
     }
-    ages = {2: 0.2, 3: 0.2, 4: 5.0}
+    ages = {2: 0.4, 3: 0.2, 4: 5.0}
     inflations = hood.inflations(ages, 0.0)
     near = {nid: plans[nid].position_at(NOW) for nid in plans}
-    held = hood.held(near, plans)
-    assert held == {3}
-    planes, _ = hood.planes(NOW, near, None, (0.0, 0.0), drift, ages, inflations, held=held)
+    planes, _ = hood.planes(NOW, near, plans, None, (0.0, 0.0), drift, ages, inflations)
     still = {3, 4}  # held, and silent
     by_id = dict(zip(sorted(near), planes, strict=True))
     for nid, lines in by_id.items():
