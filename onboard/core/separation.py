@@ -1,11 +1,13 @@
 """Minimum separation as buffered half-planes between plans (docs/design.md, "Safety").
 
 For a pair of vehicles i, k, both know the same two plans, i's previous plan and k's, since each
-broadcast its plan. At each step j of the horizon, the line through the midpoint of where the two
-plans put the pair then (a_j and b_j), normal to a_j - b_j, splits the plane between them (a
-buffered Voronoi cell of that step); each vehicle keeps its predicted position of step j on its
-own side, at least its margin away from the line:
-    n_j' (p_j - (a_j + b_j) / 2) >= d_safe / 2 + r_M + s / 2 + v_max (age - tau),
+broadcast its plan. At each step j of the horizon a line normal to a_j - b_j, where the two plans
+put the pair then, splits the plane between them (a buffered Voronoi cell of that step): through
+the midpoint of where they are now, moved along the normal by sigma_j, the mean of the two plans'
+moves along it where they part or keep their distance (the midpoint of a_j and b_j), but where
+they close never toward either faster than that one's own plan retreats. Each vehicle keeps its
+predicted position of step j on its own side, at least its margin away from the line:
+    n_j' (p_j - (a_0 + b_0) / 2) - sigma_j >= d_safe / 2 + r_M + s / 2 + v_max (age - tau),
     n_j = (a_j - b_j) / |a_j - b_j|,   j = 1..M,
 with r_M the tube's widest position radius (the true position stays within it of the predicted
 one), s the inter-sample allowance (how much two vehicles can close between two control instants
@@ -76,11 +78,19 @@ def separation_lines(
     """
     if not math.isfinite(margin):
         return [NO_PLANE] * len(own)
-    return [_line(a, b, margin, here, shared) for a, b in zip(own, neighbour, strict=True)]
+    return [
+        _line(own[0], neighbour[0], a, b, margin, here, shared)
+        for a, b in zip(own, neighbour, strict=True)
+    ]
 
 
-def _line(a: Point, b: Point, margin: float, here: Point, shared: bool) -> Plane:
-    """The margin's line between `a` (this vehicle) and `b` (the neighbour) at one step."""
+def _line(
+    a0: Point, b0: Point, a: Point, b: Point, margin: float, here: Point, shared: bool
+) -> Plane:
+    """The margin's line at one step, where this vehicle is at `a` (at `a0` now) and the
+    neighbour at `b` (`b0` now): normal to a - b; through the neighbour's position, or, shared,
+    moved from the midpoint now along the normal by as much as the two move apart along it
+    (`_shift`)."""
     (ax, ay), (bx, by) = a, b
     nx, ny = ax - bx, ay - by
     dist = math.hypot(nx, ny)
@@ -90,9 +100,23 @@ def _line(a: Point, b: Point, margin: float, here: Point, shared: bool) -> Plane
     if dist < 1e-9:
         nx, ny, dist = 1.0, 0.0, 1.0
     nx, ny = nx / dist, ny / dist
-    if shared:
-        bx, by = 0.5 * (ax + bx), 0.5 * (ay + by)
-    return nx, ny, nx * bx + ny * by + margin
+    if not shared:
+        return nx, ny, nx * bx + ny * by + margin
+    mine = nx * (ax - a0[0]) + ny * (ay - a0[1])  # (how far each plan moves along the normal)
+    theirs = nx * (bx - b0[0]) + ny * (by - b0[1])
+    mid = 0.5 * (nx * (a0[0] + b0[0]) + ny * (a0[1] + b0[1]))
+    return nx, ny, mid + _shift(mine, theirs) + margin
+
+
+def _shift(mine: float, theirs: float) -> float:
+    """How far a shared line moves from the midpoint now along its normal (toward this vehicle)
+    when this vehicle's plan moves `mine` along it and the neighbour's `theirs`: with the two
+    (the midpoint of where they are then) where they move apart or together, but never toward
+    either faster than that vehicle's own plan retreats where they close (docs/design.md, "The
+    half-planes")."""
+    if mine >= theirs:
+        return 0.5 * (mine + theirs)
+    return min(max(0.0, mine), theirs)
 
 
 def held_inside(lines: Sequence[Plane], here: Point) -> list[Plane]:

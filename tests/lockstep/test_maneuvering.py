@@ -131,7 +131,7 @@ def test_a_compact_ring_is_back_on_its_slots_within_15_s_of_each_120_degree_corn
     """Slots 3 m apart with d_safe 2 m leave each vehicle 0.31 m to its separation margin. With
     the line of now held over the horizon, the ring stayed 0.65-1.3 m behind its slots after
     each corner (formation RMS 0.78 m, no corner recovered); with a line for each step, between
-    where the two plans put the pair then, it is back within 10-12 s (docs/design.md, "Why a
+    where the two plans put the pair then, it is back within 11.6-12.2 s (docs/design.md, "Why a
     line for each step")."""
     sc = load_scenario("scenarios/corners/compact-ring.toml")
     m = compute_metrics(run_lockstep(sc, seed=seed))

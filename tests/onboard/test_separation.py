@@ -50,6 +50,28 @@ def test_a_stale_neighbour_is_kept_at_the_whole_distance_and_each_step_has_its_l
     assert normals[:2] == pytest.approx(np.tile((1.0, 0.0), (2, 1)))  # (met: fixed normal)
 
 
+@pytest.mark.parametrize(
+    ("own", "theirs", "bounds"),
+    [
+        # A column flying North together, the neighbour 4 m behind: the line moves with them.
+        ([(1.0 * j, 0.0) for j in range(3)], [(-4.0 + j, 0.0) for j in range(3)], [-1, 0, 1]),
+        # The neighbour closing on a vehicle that stands: the line of now holds.
+        ([(0.0, 0.0)] * 3, [(-4.0 + j, 0.0) for j in range(3)], [-1, -1, -1]),
+        # Chased: the line follows this vehicle's retreat (0.5 m a step), not the chaser (1 m).
+        ([(0.5 * j, 0.0) for j in range(3)], [(-4.0 + j, 0.0) for j in range(3)], [-1, -0.5, 0]),
+    ],
+)
+def test_a_shared_line_moves_with_the_pair_never_toward_one_faster_than_its_plan_retreats(
+    own, theirs, bounds
+):
+    mine = separation_lines(own, theirs, 1.0, own[0])
+    assert np.array([p[:2] for p in mine]) == pytest.approx(np.tile((1.0, 0.0), (3, 1)))
+    assert [p[2] for p in mine] == pytest.approx(bounds)
+    # The neighbour places the same lines with the opposite normals: 2 margins between sides.
+    other = separation_lines(theirs, own, 1.0, theirs[0])
+    assert [p[2] + q[2] for p, q in zip(mine, other, strict=True)] == pytest.approx([2.0] * 3)
+
+
 def test_a_vehicle_inside_its_margin_keeps_to_the_line_through_where_it_is():
     here = (0.0, 0.0)
     lines = separation_lines([here] * 3, [(1.0, 0.0)] * 3, 2.0, here)
