@@ -72,9 +72,9 @@ def separation_lines(
     `own[j]` and `neighbour[j]` are where this vehicle's previous plan (its position when it has
     none) and the neighbour's plan put them at step j; `margin` is the distance to keep from the
     line; `here` is this vehicle's position (its direction from the neighbour gives the normal
-    where the two plans meet at a point). Each step's line bisects the pair when they `shared`
-    the distance and passes through the neighbour's position otherwise. A non-finite margin
-    gives none.
+    where the two plans meet at a point). Each step's line lies between the pair when they
+    `shared` the distance (`_line`) and passes through the neighbour's position otherwise. A
+    non-finite margin gives none.
     """
     if not math.isfinite(margin):
         return [NO_PLANE] * len(own)
@@ -121,9 +121,9 @@ def _shift(mine: float, theirs: float) -> float:
 
 def held_inside(lines: Sequence[Plane], here: Point) -> list[Plane]:
     """The half-planes kept to at j = 1..M along the margin's `lines` at j = 0..M
-    (`separation_lines`): a vehicle at `here`
-    that is inside its margin of the line now (j = 0) is allowed that shortfall at every step,
-    so it keeps to the line through where it is as the line moves (module docstring)."""
+    (`separation_lines`): a vehicle at `here` that is inside its margin of the line now (j = 0)
+    is allowed that shortfall at every step, so it keeps to the line through where it is as the
+    line moves (module docstring)."""
     nx, ny, b = lines[0]
     short = max(b - (nx * here[0] + ny * here[1]), 0.0) if math.isfinite(b) else 0.0
     return [(mx, my, c - short) for mx, my, c in lines[1:]]
