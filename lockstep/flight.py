@@ -74,6 +74,86 @@ def _truth(plant: TruthPlant) -> np.ndarray:
     return np.array([p.speed_effectiveness, p.yaw_rate_effectiveness, *plant.wind_m_s])
 
 
+class _Plants:
+    """The fleet's truth plants in one wind field per wind (`WindField`), and their closest
+    approach so far, checked at every plant tick."""
+
+    def __init__(self, sc: Scenario, seed: int) -> None:
+        winds = {v.truth.wind: WindField(v.truth.wind, seed=seed) for v in sc.vehicles}
+        self.plants = [
+            TruthPlant(
+                v.truth,
+                x_m=v.initial[0],
+                y_m=v.initial[1],
+                yaw_rad=v.initial[2],
+                wind=winds[v.truth.wind],
+            )
+            for v in sc.vehicles
+        ]
+        self.tick_ns, self.ticks = sc.tick_ns, sc.plant_steps_per_period
+        self.min_separation_m = np.inf
+        self._upper = np.triu_indices(len(self.plants), 1)
+
+    def truths(self) -> np.ndarray:
+        """Each vehicle's true beta now (N, 4) (`_truth`)."""
+        return np.array([_truth(p) for p in self.plants])
+
+    def poses(self) -> np.ndarray:
+        """Each vehicle's true (x, y, yaw) now (N, 3)."""
+        return np.array([p.pose for p in self.plants])
+
+    def fly(self, commands: Sequence[np.ndarray]) -> None:
+        """Fly each vehicle's command (speed, yaw rate) for one period of plant ticks (the
+        plants are independent), keeping the closest approach up to date."""
+        tracks: list[list[tuple[float, float]]] = [[] for _ in self.plants]
+        for command, plant, track in zip(commands, self.plants, tracks, strict=True):
+            plant.command(float(command[0]), float(command[1]))
+            plant.advance(self.tick_ns, self.ticks, track=track)
+        if len(self.plants) > 1:
+            xy = np.array(tracks)  # (vehicle, tick, 2)
+            dx = xy[:, None, :, 0] - xy[None, :, :, 0]
+            dy = xy[:, None, :, 1] - xy[None, :, :, 1]
+            gaps = np.sqrt(dx * dx + dy * dy)[self._upper]
+            self.min_separation_m = min(self.min_separation_m, float(gaps.min()))
+
+
+class _Target:
+    """The target's side of a period: its observations (a script's at its rate, a recorded
+    track's as recorded) go to the sinks, to the ground side's own track of it (as a live ground
+    station keeps one, for the sinks' map) and, on the plan bus, to the agents."""
+
+    def __init__(self, sc: Scenario, rng: np.random.Generator, hub: MemoryHub, sinks) -> None:
+        self._feed = sc.target.feed(rng)
+        self._noise_m = float(sc.target.observation_noise_m)
+        self._bus = InMemoryPlanBus(hub, fleet=sc.name, vehicle_id=TARGET_ID)
+        self._hub, self._sinks = hub, sinks
+        self._track = TargetEstimator(observation_std_m=self._noise_m) if sinks else None
+        self._horizon = sc.controller.horizon
+
+    def observe(self, t_ns: int, pool: AgentPool) -> None:
+        """Publish the observations due by `t_ns` and deliver them to the agents."""
+        observations = self._feed.due(t_ns)
+        _observe(self._sinks, observations)
+        for stamp_ns, obs in observations:
+            if self._track is not None:
+                self._track.observe(stamp_ns, obs)
+            north, east = float(obs[0]), float(obs[1])
+            self._bus.publish_target(
+                stamp_ns=stamp_ns, north_m=north, east_m=east, noise_std_m=self._noise_m
+            )
+        if observations:
+            pool.deliver(t_ns, [(key, payload, None) for key, payload, _ in self._hub.take()])
+
+    def predicted_path(self, t_ns: int, period_ns: int) -> np.ndarray | None:
+        """The ground side's prediction of the target over the horizon, None before it has one."""
+        if self._track is None or not self._track.ready:
+            return None
+        return self._track.predict(t_ns, period_ns, self._horizon + 1)[0]
+
+    def close(self) -> None:
+        self._bus.close()
+
+
 def _fly(
     sc: Scenario,
     pool: AgentPool,
@@ -86,101 +166,27 @@ def _fly(
     known_model: bool,
 ) -> FlightRecord:
     duration_s = sc.duration_s if duration_s is None else duration_s
-    period_ns, tick_ns, ticks = sc.controller.period_ns, sc.tick_ns, sc.plant_steps_per_period
+    period_ns = sc.controller.period_ns
     periods = int(round(duration_s * 1e9 / period_ns)) + 1
-    root = np.random.default_rng(seed)
-    rngs = root.spawn(len(sc.vehicles) + 1)
-    target_rng = rngs[-1]
-    winds = {v.truth.wind: WindField(v.truth.wind, seed=seed) for v in sc.vehicles}
-    plants = [
-        TruthPlant(
-            v.truth,
-            x_m=v.initial[0],
-            y_m=v.initial[1],
-            yaw_rad=v.initial[2],
-            wind=winds[v.truth.wind],
-        )
-        for v in sc.vehicles
-    ]
-    truth_formation = Formation(sc.formation)
-    truth_reference = FormationReference(
-        truth_formation, reference_course_limit(sc.controller, sc.formation)
-    )
-    """The slots the run is judged against: the formation along the true target's path, as the
-    agents place it along their estimates'."""
-    n = len(plants)
-    ids = sc.vehicle_ids
-    feed = sc.target.feed(target_rng)
-    """The target's observations: a script's at its rate, a recorded track's as recorded."""
-    constants = RunConstants.of_scenario(sc, truth_formation.desired_distances())
+    rngs = np.random.default_rng(seed).spawn(len(sc.vehicles) + 1)
+    plants = _Plants(sc, seed)
+    target = _Target(sc, rngs[-1], MemoryHub(sc.name, deliver_immediately=False), sinks)
+    judge = _Judge(sc)
+    constants = RunConstants.of_scenario(sc, judge.formation.desired_distances())
     for sink in sinks:
         sink.open(constants, run_info or {})
     flush_every = max(1, round(FLUSH_S * 1e9 / period_ns))
-    ground_target = None
-    """The ground side's own target track for the sinks' map (as a live ground station's)."""
-    if sinks:
-        ground_target = TargetEstimator(observation_std_m=sc.target.observation_noise_m)
-    others = [[j for j in range(n) if j != i] for i in range(n)]
-    hub = MemoryHub(sc.name, deliver_immediately=False)
-    target_bus = InMemoryPlanBus(hub, fleet=sc.name, vehicle_id=TARGET_ID)
-    """The target's observations reach the agents on the plan bus too, as in a live fleet."""
-    setpoint_rate = np.full(n, 1e9 / period_ns)  # one command per period
-    target_states = [TRACKING] * n
+    target_states = [TRACKING] * len(sc.vehicles)
     """Each agent's target state (tracking, predicting, ...) as last logged."""
     samples: list[PeriodSample] = []
-    min_sep = np.inf
-    upper = np.triu_indices(n, 1)
     for k in range(periods):
         t_ns = k * period_ns
-        t_s = t_ns * 1e-9
-        tgt_pos, tgt_vel = sc.target.state_at(t_s)
-        observations = feed.due(t_ns)
-        _observe(sinks, observations)
-        for stamp_ns, obs in observations:
-            if ground_target is not None:
-                ground_target.observe(stamp_ns, obs)
-            target_bus.publish_target(
-                stamp_ns=stamp_ns,
-                north_m=float(obs[0]),
-                east_m=float(obs[1]),
-                noise_std_m=float(sc.target.observation_noise_m),
-            )
-        if observations:
-            pool.deliver(t_ns, [(key, payload, None) for key, payload, _ in hub.take()])
-        measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants)]
-        truths = np.array([_truth(p) for p in plants])
+        target.observe(t_ns, pool)
+        measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants.plants)]
+        truths = plants.truths()
         outs, published = pool.step(t_ns, measurements, list(truths) if known_model else None)
-        _log_target_states(sinks, t_ns, ids, [o for o, _ in outs], target_states)
-        centre, course = truth_reference.follow(
-            tgt_pos.tolist(), tgt_vel.tolist(), period_ns * 1e-9
-        )
-        slots = truth_formation.slots(np.array([centre]), np.array([course]))[0]
-        target_path = None
-        if ground_target is not None and ground_target.ready:
-            target_path, _ = ground_target.predict(t_ns, period_ns, sc.controller.horizon + 1)
-        ages = [o.neighbour_ages_s for o, _ in outs]
-        sample = PeriodSample(
-            t_ns=t_ns,
-            truth=np.array([p.pose for p in plants]),
-            target=tgt_pos,
-            target_velocity=tgt_vel,
-            slots=slots,
-            slot_offsets_world=slots - np.array(centre),
-            command=np.array([o.command for o, _ in outs]),
-            c=np.array([o.c[0] for o, _ in outs]),
-            beta=np.array([o.beta for o, _ in outs]),
-            beta_truth=truths,
-            qp_ok=np.array([o.qp_ok for o, _ in outs]),
-            step_time_ms=np.array([ms for _, ms in outs]),
-            min_separation_m=float(min_sep),
-            plans=np.array([o.plan.states[:, :2] for o, _ in outs]),
-            plan_age_s=np.array(
-                [[ages[i].get(ids[j], np.nan) for j in others[i]] for i in range(n)]
-            ).reshape(n, n - 1),
-            setpoint_rate_hz=setpoint_rate,
-            target_prediction=outs[0][0].target_prediction_m,
-            target_path=target_path,
-        )
+        _log_target_states(sinks, t_ns, sc.vehicle_ids, [o for o, _ in outs], target_states)
+        sample = judge.sample(t_ns, outs, plants, truths, target.predicted_path(t_ns, period_ns))
         samples.append(sample)
         for sink in sinks:  # (the QP fallbacks become events from the samples)
             sink.log([sample])
@@ -189,25 +195,73 @@ def _fly(
         pool.deliver(t_ns, published)  # (each plan reaches the others as the period ends)
         if k == periods - 1:
             break
-        for (out, _), plant in zip(outs, plants, strict=True):
-            plant.command(float(out.command[0]), float(out.command[1]))
-        tracks: list[list[tuple[float, float]]] = [[] for _ in plants]
-        for plant, track in zip(plants, tracks, strict=True):  # the plants are independent
-            plant.advance(tick_ns, ticks, track=track)
-        if n > 1:  # the closest approach, checked at every plant tick
-            xy = np.array(tracks)  # (vehicle, tick, 2)
-            dx = xy[:, None, :, 0] - xy[None, :, :, 0]
-            dy = xy[:, None, :, 1] - xy[None, :, :, 1]
-            gaps = np.sqrt(dx * dx + dy * dy)[upper]
-            min_sep = min(min_sep, float(gaps.min()))
+        plants.fly([out.command for out, _ in outs])
         if progress is not None:
             progress((k + 1) * period_ns * 1e-9, duration_s)
     network = _network_report(pool.report(), faults, periods)
     for sink in sinks:
         sink.finish({"network": network})
         sink.close()
-    target_bus.close()
+    target.close()
     return record_of(constants, samples, network=network)
+
+
+class _Judge:
+    """What the run is judged against, and each period's sample of it: the slots of the
+    formation along the true target's path, placed as the agents place them along their
+    estimates'."""
+
+    def __init__(self, sc: Scenario) -> None:
+        self.formation = Formation(sc.formation)
+        limit = reference_course_limit(sc.controller, sc.formation)
+        self._reference = FormationReference(self.formation, limit)
+        self._target = sc.target
+        self._period_s = sc.controller.period_ns * 1e-9
+        self._ids = sc.vehicle_ids
+        n = len(self._ids)
+        self._others = [[j for j in range(n) if j != i] for i in range(n)]
+        self._setpoint_rate = np.full(n, 1.0 / self._period_s)  # one command per period
+
+    def sample(
+        self,
+        t_ns: int,
+        outs: list,
+        plants: _Plants,
+        truths: np.ndarray,
+        target_path: np.ndarray | None,
+    ) -> PeriodSample:
+        """The period's sample: the truth against the slots, and what each agent decided."""
+        tgt_pos, tgt_vel = self._target.state_at(t_ns * 1e-9)
+        centre, course = self._reference.follow(tgt_pos.tolist(), tgt_vel.tolist(), self._period_s)
+        slots = self.formation.slots(np.array([centre]), np.array([course]))[0]
+        decided = [o for o, _ in outs]
+        return PeriodSample(
+            t_ns=t_ns,
+            truth=plants.poses(),
+            target=tgt_pos,
+            target_velocity=tgt_vel,
+            slots=slots,
+            slot_offsets_world=slots - np.array(centre),
+            command=np.array([o.command for o in decided]),
+            c=np.array([o.c[0] for o in decided]),
+            beta=np.array([o.beta for o in decided]),
+            beta_truth=truths,
+            qp_ok=np.array([o.qp_ok for o in decided]),
+            step_time_ms=np.array([ms for _, ms in outs]),
+            min_separation_m=float(plants.min_separation_m),
+            plans=np.array([o.plan.states[:, :2] for o in decided]),
+            plan_age_s=self._plan_ages(decided),
+            setpoint_rate_hz=self._setpoint_rate,
+            target_prediction=decided[0].target_prediction_m,
+            target_path=target_path,
+        )
+
+    def _plan_ages(self, decided: list) -> np.ndarray:
+        """Each agent's age of each other vehicle's plan (N, N - 1) [s], nan where it has none."""
+        n, ids = len(decided), self._ids
+        ages = [o.neighbour_ages_s for o in decided]
+        rows = [[ages[i].get(ids[j], np.nan) for j in self._others[i]] for i in range(n)]
+        return np.array(rows).reshape(n, n - 1)
 
 
 def _observe(sinks: Sequence[TelemetrySink], observations: list) -> None:
