@@ -130,29 +130,16 @@ def _log(text: str) -> None:
 def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, live=True)
     spec = scenario.vehicle(args.vehicle)
-    if not 10.0 <= args.setpoint_rate_hz <= 1000.0:
-        raise ConfigError(
-            "--setpoint-rate-hz", f"must be in [10, 1000], got {args.setpoint_rate_hz}"
-        )
-    for name in ("connect_timeout", "engage_timeout"):
-        value = getattr(args, name)
-        if not (value > 0 and math.isfinite(value)):
-            raise ConfigError(f"--{name.replace('_', '-')}", f"must be seconds > 0, got {value}")
+    _check_options(args)
     faults = None
     if args.faults is not None:
         faults = load_faults(args.faults, vehicle_ids=scenario.vehicle_ids, network_only=True)
-    if not (math.isfinite(args.clock_offset) and abs(args.clock_offset) <= 60.0):
-        raise ConfigError(
-            "--clock-offset", f"must be seconds in [-60, 60], got {args.clock_offset}"
-        )
     clock = FleetClock(
         epoch_ns=args.epoch_ns,
         speed=args.speed,
         awaiting_epoch=args.wait_epoch,
         host_offset_ns=round(args.clock_offset * 1e9),
     )
-    url = args.mavlink or mavlink_url(scenario.network, spec)
-    signing_key = None if args.mavlink_key is None else read_key_file(args.mavlink_key)
     agent = agent_for(scenario, spec)
     # The setpoint streamer sends only while it holds the GIL, and Python's default 5 ms switch
     # interval lets the control loop keep it that long past a send's due time: 20 ms of fleet
@@ -168,34 +155,15 @@ def run(args: argparse.Namespace) -> int:
         record_file.write(json.dumps(row) + "\n")
         record_file.flush()
 
+    def fleet_now() -> int | None:
+        return clock.fleet_ns(time.time_ns())  # (None before the epoch: no fault applies)
+
     link = bus = streamer = runner = None
     try:
         bus = open_fleet_bus(args, scenario, sender_id=spec.id)
-
-        def fleet_now() -> int | None:
-            return clock.fleet_ns(time.time_ns())  # (None before the epoch: no fault applies)
-
         if faults is not None:
             bus.faults = FaultLayer(faults, vehicle_id=spec.id, clock=fleet_now, seed=scenario.seed)
-        link = open_autopilot_link(
-            url,
-            system_id=args.target_system,
-            vehicle_id=spec.id,
-            log=_log,
-            home_deg=(scenario.site.home_lat_deg, scenario.site.home_lon_deg),
-            signing_key=signing_key,
-        )
-        if faults is not None and any(f.kind in LINK_KINDS for f in faults.faults):
-            link.faults = LinkFaults(
-                faults, vehicle_id=spec.id, clock=fleet_now, seed=scenario.seed
-            )
-        state = link.connect(timeout_s=args.connect_timeout)
-        _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
-        if state.system_id != spec.id:
-            _log(
-                f"vehicle {spec.id}: its autopilot has system id {state.system_id}, not"
-                f" {spec.id}; flying it as vehicle {spec.id}"
-            )
+        link = _connect(args, scenario, spec, faults, fleet_now)
         streamer = SetpointStreamer(
             link,
             period_s=1.0 / (args.setpoint_rate_hz * clock.speed),
@@ -203,18 +171,11 @@ def run(args: argparse.Namespace) -> int:
             * scenario.controller.period_s
             / clock.speed,
         )
-        settings = RunnerSettings(
-            period_ns=scenario.controller.period_ns,
-            engage=not args.no_engage,
-            engage_timeout_s=args.engage_timeout,
-            reengage_after_gap_s=None if args.no_reengage else 0.5,
-            stop_at_fleet_ns=None if args.duration is None else round(args.duration * 1e9),
-        )
         runner = FleetRunner(
             agent,
             link=link,
             bus=bus,
-            settings=settings,
+            settings=_runner_settings(args, scenario),
             clock=clock,
             log=_log,
             record=record if record_file else None,
@@ -237,3 +198,59 @@ def run(args: argparse.Namespace) -> int:
             record_file.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse an option out of its range, naming it."""
+    if not 10.0 <= args.setpoint_rate_hz <= 1000.0:
+        raise ConfigError(
+            "--setpoint-rate-hz", f"must be in [10, 1000], got {args.setpoint_rate_hz}"
+        )
+    for name in ("connect_timeout", "engage_timeout"):
+        value = getattr(args, name)
+        if not (value > 0 and math.isfinite(value)):
+            raise ConfigError(f"--{name.replace('_', '-')}", f"must be seconds > 0, got {value}")
+    if not (math.isfinite(args.clock_offset) and abs(args.clock_offset) <= 60.0):
+        raise ConfigError(
+            "--clock-offset", f"must be seconds in [-60, 60], got {args.clock_offset}"
+        )
+
+
+def _connect(args: argparse.Namespace, scenario, spec, faults, fleet_now):
+    """The vehicle's autopilot link (the scenario's URL unless --mavlink names another), its
+    link faults if the run has any, connected and its autopilot named in the log."""
+    url = args.mavlink or mavlink_url(scenario.network, spec)
+    signing_key = None if args.mavlink_key is None else read_key_file(args.mavlink_key)
+    link = open_autopilot_link(
+        url,
+        system_id=args.target_system,
+        vehicle_id=spec.id,
+        log=_log,
+        home_deg=(scenario.site.home_lat_deg, scenario.site.home_lon_deg),
+        signing_key=signing_key,
+    )
+    if faults is not None and any(f.kind in LINK_KINDS for f in faults.faults):
+        link.faults = LinkFaults(faults, vehicle_id=spec.id, clock=fleet_now, seed=scenario.seed)
+    try:
+        state = link.connect(timeout_s=args.connect_timeout)
+    except BaseException:
+        link.close()
+        raise
+    _log(f"vehicle {spec.id}: {state.autopilot.name} on {url}")
+    if state.system_id != spec.id:
+        _log(
+            f"vehicle {spec.id}: its autopilot has system id {state.system_id}, not"
+            f" {spec.id}; flying it as vehicle {spec.id}"
+        )
+    return link
+
+
+def _runner_settings(args: argparse.Namespace, scenario) -> RunnerSettings:
+    """The control loop's settings from the scenario's period and the command line."""
+    return RunnerSettings(
+        period_ns=scenario.controller.period_ns,
+        engage=not args.no_engage,
+        engage_timeout_s=args.engage_timeout,
+        reengage_after_gap_s=None if args.no_reengage else 0.5,
+        stop_at_fleet_ns=None if args.duration is None else round(args.duration * 1e9),
+    )
