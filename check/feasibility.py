@@ -27,6 +27,7 @@ from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
 from fleetmpc.onboard.core.formation import CourseRateLimit, Formation, true_reference
+from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.neighbourhood import safety_radius, shared_margin_m
 from fleetmpc.onboard.core.target_path import CHORD_HALF_M
 from fleetmpc.onboard.core.unicycle import wrap
@@ -273,7 +274,26 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
         lines += more
         problems += trouble
     needs = _slot_requirements(sc, course_limit)
+    lines += _needs_lines(sc, needs, (v_bound, w_bound), t_speed, problems)
+    lines += _course_lines(sc, needs, course_limit, t_speed)
+    formation = Formation(sc.formation)
+    lines += _neighbourhood_lines(sc, mpc, formation, problems)
+    lines += _start_lines(sc, formation, course_limit, v_bound - float(needs.speeds_m_s.max()))
+    return FeasibilityReport(not problems, tuple(problems), tuple(lines))
+
+
+def _needs_lines(
+    sc: Scenario,
+    needs: _Requirements,
+    bounds: tuple[float, float],
+    t_speed: float,
+    problems: list[str],
+) -> list[str]:
+    """What each vehicle's slot asks of it; a problem where that is beyond the tightened
+    `bounds` (speed, yaw rate) by more than a transient."""
+    v_bound, w_bound = bounds
     speeds, rates, lags = needs.speeds_m_s, needs.yaw_rates_rad_s, needs.turn_lags_m
+    lines = []
     for v, sp, wr, lag in zip(sc.vehicles, speeds, rates, lags, strict=True):
         beyond = f"; beyond the bound, a heading lag worth {lag:.2f} m" if wr > w_bound else ""
         lines.append(
@@ -286,7 +306,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"the target outruns the team: vehicle {sc.vehicles[worst].id}'s slot needs "
             f"{speeds[worst]:.2f} m/s "
             f"(target {t_speed:.2f} m/s, with turns, wind and effectiveness) "
-            f"but |V| <= {c.speed_max_m_s:g} m/s "
+            f"but |V| <= {sc.controller.speed_max_m_s:g} m/s "
             f"({v_bound:.2f} m/s after tube tightening); expect a growing lag"
         )
     if lags.max() > TURN_LAG_MAX_M:
@@ -296,6 +316,15 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"beyond |omega| <= {w_bound:.3f} rad/s after tightening, at a speed where the "
             f"heading lag costs about {lags[late]:.2f} m (more than {TURN_LAG_MAX_M:g} m)"
         )
+    return lines
+
+
+def _course_lines(
+    sc: Scenario, needs: _Requirements, course_limit: CourseRateLimit, t_speed: float
+) -> list[str]:
+    """Where the reference course falls behind the target's, and how the formation goes round
+    each of its corners."""
+    lines = []
     if needs.course_lag_rad > COURSE_LAG_REPORT_RAD:
         lines.append(
             f"reference course: for {needs.course_lag_for_s:.0f} s the target turns faster than "
@@ -303,8 +332,6 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"{t_speed:.2f} m/s): the formation's course falls up to "
             f"{math.degrees(needs.course_lag_rad):.0f} deg behind the target's"
         )
-    spare = v_bound - float(speeds.max())
-    formation = Formation(sc.formation)
     for corner in needs.corners:
         sweep = "a world-frame formation does not turn"
         if sc.formation.frame == "course":
@@ -321,14 +348,23 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f"{math.degrees(corner.turn_rad):.0f} deg, its vehicle falls up to about "
             f"{corner.behind_m:.1f} m behind, {back} ({sweep})"
         )
+    return lines
+
+
+def _neighbourhood_lines(
+    sc: Scenario, mpc: TubeLbmpc, formation: Formation, problems: list[str]
+) -> list[str]:
+    """How many neighbours a vehicle keeps its separation against, and the closest slots'
+    slack; a problem where a slot has more of them within the safety radius than it keeps."""
+    c = sc.controller
     radius = safety_radius(c, float(mpc.tube_radius_m[-1]))
     within = (formation.desired_distances() <= radius).sum(axis=1) - 1  # (not itself)
     crowded = int(np.argmax(within))
-    lines.append(
+    lines = [
         f"neighbourhood: separation against at most K = {mpc.n_neighbours} vehicles within the"
         f" safety radius {radius:.2f} m; up to {within[crowded]} other slots lie within it of a"
         " slot"
-    )
+    ]
     lines += _slack_lines(sc, formation, float(mpc.tube_radius_m[-1]), problems)
     if within[crowded] > mpc.n_neighbours:
         problems.append(
@@ -337,23 +373,32 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
             f" {c.neighbours_max}: the farthest of them would get no separation constraint;"
             f" raise controller.neighbours_max to {within[crowded]} or space the formation out"
         )
+    return lines
+
+
+def _start_lines(
+    sc: Scenario, formation: Formation, course_limit: CourseRateLimit, spare: float
+) -> list[str]:
+    """How far the horizon reaches, and how long the worst gap between a vehicle and its slot
+    at the start takes to close at the `spare` speed [m/s]."""
+    c = sc.controller
     reach = c.horizon * c.period_s * c.speed_max_m_s
     p0, v0 = sc.target.state_at(0.0)
     centre0, course0 = true_reference(formation, course_limit, p0[None, :], v0[None, :], 1.0)
     slots0 = formation.slots(centre0, course0)[0]
-    gaps = [
+    gap = max(
         math.hypot(v.initial[0] - s[0], v.initial[1] - s[1])
         for v, s in zip(sc.vehicles, slots0, strict=True)
-    ]
-    lines.append(f"horizon reach: {reach:.2f} m in {c.horizon * c.period_s:.2f} s at full speed")
+    )
+    lines = [f"horizon reach: {reach:.2f} m in {c.horizon * c.period_s:.2f} s at full speed"]
     if spare > 0:
         lines.append(
-            f"worst initial gap {max(gaps):.2f} m closes in about {max(gaps) / spare:.1f} s "
+            f"worst initial gap {gap:.2f} m closes in about {gap / spare:.1f} s "
             f"at the spare {spare:.2f} m/s"
         )
     else:
-        lines.append(f"worst initial gap {max(gaps):.2f} m cannot close: no spare speed")
-    return FeasibilityReport(not problems, tuple(problems), tuple(lines))
+        lines.append(f"worst initial gap {gap:.2f} m cannot close: no spare speed")
+    return lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
