@@ -363,23 +363,7 @@ def parse_scenario(
 ) -> Scenario:
     """Validate a parsed TOML document and return the Scenario it describes; `live`: also
     refuse ports that would clash (`load_scenario`)."""
-    unknown = sorted(set(doc) - _TOP_KEYS)
-    if unknown:
-        raise ConfigError(
-            unknown[0], f"unknown top-level key (known: {', '.join(sorted(_TOP_KEYS))})"
-        )
-    name = doc.get("name")
-    if not isinstance(name, str) or not name:
-        raise ConfigError("name", f"must be a non-empty string, got {name!r}")
-    seed = doc.get("seed", 0)
-    if not isinstance(seed, int) or seed < 0:
-        raise ConfigError("seed", f"must be a non-negative integer, got {seed!r}")
-    duration_s = positive("duration_s", doc.get("duration_s", 30.0))
-    steps = doc.get("plant_steps_per_period", 10)
-    if not isinstance(steps, int) or not 1 <= steps <= 1000:
-        raise ConfigError(
-            "plant_steps_per_period", f"must be an integer in [1, 1000], got {steps!r}"
-        )
+    name, seed, duration_s, steps = _top_level(doc)
     controller = _build(ControllerSettings, doc.get("controller", {}), "controller")
     if controller.period_ns % steps:
         raise ConfigError(
@@ -403,77 +387,22 @@ def parse_scenario(
         raw_vehicles = _pattern_vehicles(pattern, formation_table, target)
     if not isinstance(raw_vehicles, list) or not raw_vehicles:
         raise ConfigError("vehicles", "must be a non-empty array of tables ([[vehicles]])")
-    vehicles = []
-    for i, raw in enumerate(raw_vehicles):
-        prefix = f"vehicles[{i}]"
-        if not isinstance(raw, dict):
-            raise ConfigError(prefix, "must be a table")
-        extra = sorted(set(raw) - _VEHICLE_KEYS)
-        if extra:
-            raise ConfigError(
-                f"{prefix}.{extra[0]}",
-                f"unknown key (known: {', '.join(sorted(_VEHICLE_KEYS))})",
-            )
-        vid = raw.get("id", i + 1)
-        if not isinstance(vid, int) or not 1 <= vid <= 250:
-            raise ConfigError(f"{prefix}.id", f"must be an integer in [1, 250], got {vid!r}")
-        initial = vector(f"{prefix}.initial", raw.get("initial", [0.0, 0.0, 0.0]), 3)
-        slot = vector(f"{prefix}.slot_m", raw.get("slot_m", [0.0, 0.0]), 2)
-        truth_table = {**truth_default, **raw.get("truth", {})}
-        _refuse_own_turbulence(raw.get("truth", {}), f"{prefix}.truth")
-        if "wind" in truth_default and "wind" in raw.get("truth", {}):
-            truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
-        truth = _truth(truth_table, f"{prefix}.truth", controller)
-        try:
-            spec = VehicleSpec(
-                vid,
-                initial,
-                slot,
-                truth,
-                autopilot=raw.get("autopilot", "px4"),
-                system_id=raw.get("system_id"),
-                response_delay_s=raw.get("response_delay_s", 0.0),
-                host=raw.get("host"),
-            )
-        except ConfigError as e:
-            raise ConfigError(f"{prefix}.{e.field}", str(e).split(": ", 1)[1]) from None
-        vehicles.append(spec)
-    ids = [v.id for v in vehicles]
-    if len(set(ids)) != len(ids):
-        raise ConfigError("vehicles", f"ids must be unique, got {ids}")
-    systems = [v.mavlink_system_id for v in vehicles]
-    if len(set(systems)) != len(systems):
-        raise ConfigError(
-            "vehicles",
-            f"MAVLink system ids (system_id, else id) must be unique, got {systems}",
-        )
+    vehicles = tuple(
+        _vehicle(raw, i, truth_default, controller) for i, raw in enumerate(raw_vehicles)
+    )
+    _refuse_shared_ids(vehicles)
     if "slots_m" in formation_table:
         raise ConfigError("formation.slots_m", "give each vehicle's slot as vehicles[i].slot_m")
     formation = _build(
         FormationSettings, formation_table, "formation", slots_m=tuple(v.slot_m for v in vehicles)
     )
-    for a in range(len(vehicles)):
-        for b in range(a + 1, len(vehicles)):
-            pa, pb = vehicles[a].initial, vehicles[b].initial
-            gap = math.hypot(pa[0] - pb[0], pa[1] - pb[1])
-            if gap < controller.d_safe_m:
-                raise ConfigError(
-                    f"vehicles[{b}].initial",
-                    f"starts {gap:.2f} m from vehicle {vehicles[a].id}, "
-                    f"closer than d_safe_m = {controller.d_safe_m}",
-                )
-            sa, sb = formation.slots_m[a], formation.slots_m[b]
-            if math.hypot(sa[0] - sb[0], sa[1] - sb[1]) < controller.d_safe_m:
-                raise ConfigError(
-                    f"vehicles[{b}].slot_m",
-                    f"slot is closer than d_safe_m to vehicle {vehicles[a].id}'s",
-                )
+    _refuse_close_pairs(vehicles, formation, controller.d_safe_m)
     network = _build(Network, doc.get("network", {}), "network")
     for v in vehicles:  # every vehicle's default ports exist (either profile can fly it)
         network.offboard_port(v.id)
         network.ardupilot_tcp_port(v.id)
     if live:
-        check_ports(network, tuple(vehicles))
+        check_ports(network, vehicles)
     return Scenario(
         name=name,
         description=str(doc.get("description", "")),
@@ -484,11 +413,106 @@ def parse_scenario(
         learning=learning,
         formation=formation,
         target=target,
-        vehicles=tuple(vehicles),
+        vehicles=vehicles,
         site=site,
         network=network,
         source=source,
     )
+
+
+def _top_level(doc: dict[str, Any]) -> tuple[str, int, float, int]:
+    """The document's own keys checked: its name, seed, duration and plant steps a period."""
+    unknown = sorted(set(doc) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(
+            unknown[0], f"unknown top-level key (known: {', '.join(sorted(_TOP_KEYS))})"
+        )
+    name = doc.get("name")
+    if not isinstance(name, str) or not name:
+        raise ConfigError("name", f"must be a non-empty string, got {name!r}")
+    seed = doc.get("seed", 0)
+    if not isinstance(seed, int) or seed < 0:
+        raise ConfigError("seed", f"must be a non-negative integer, got {seed!r}")
+    duration_s = positive("duration_s", doc.get("duration_s", 30.0))
+    steps = doc.get("plant_steps_per_period", 10)
+    if not isinstance(steps, int) or not 1 <= steps <= 1000:
+        raise ConfigError(
+            "plant_steps_per_period", f"must be an integer in [1, 1000], got {steps!r}"
+        )
+    return name, seed, duration_s, steps
+
+
+def _vehicle(
+    raw: Any, i: int, truth_default: dict[str, Any], controller: ControllerSettings
+) -> VehicleSpec:
+    """The vehicle of the `i`-th [[vehicles]] table, its truth over the file's `[truth]`."""
+    prefix = f"vehicles[{i}]"
+    if not isinstance(raw, dict):
+        raise ConfigError(prefix, "must be a table")
+    extra = sorted(set(raw) - _VEHICLE_KEYS)
+    if extra:
+        raise ConfigError(
+            f"{prefix}.{extra[0]}",
+            f"unknown key (known: {', '.join(sorted(_VEHICLE_KEYS))})",
+        )
+    vid = raw.get("id", i + 1)
+    if not isinstance(vid, int) or not 1 <= vid <= 250:
+        raise ConfigError(f"{prefix}.id", f"must be an integer in [1, 250], got {vid!r}")
+    initial = vector(f"{prefix}.initial", raw.get("initial", [0.0, 0.0, 0.0]), 3)
+    slot = vector(f"{prefix}.slot_m", raw.get("slot_m", [0.0, 0.0]), 2)
+    truth_table = {**truth_default, **raw.get("truth", {})}
+    _refuse_own_turbulence(raw.get("truth", {}), f"{prefix}.truth")
+    if "wind" in truth_default and "wind" in raw.get("truth", {}):
+        truth_table["wind"] = {**truth_default["wind"], **raw["truth"]["wind"]}
+    truth = _truth(truth_table, f"{prefix}.truth", controller)
+    try:
+        return VehicleSpec(
+            vid,
+            initial,
+            slot,
+            truth,
+            autopilot=raw.get("autopilot", "px4"),
+            system_id=raw.get("system_id"),
+            response_delay_s=raw.get("response_delay_s", 0.0),
+            host=raw.get("host"),
+        )
+    except ConfigError as e:
+        raise ConfigError(f"{prefix}.{e.field}", str(e).split(": ", 1)[1]) from None
+
+
+def _refuse_shared_ids(vehicles: tuple[VehicleSpec, ...]) -> None:
+    """Each vehicle's id and MAVLink system id are its own."""
+    ids = [v.id for v in vehicles]
+    if len(set(ids)) != len(ids):
+        raise ConfigError("vehicles", f"ids must be unique, got {ids}")
+    systems = [v.mavlink_system_id for v in vehicles]
+    if len(set(systems)) != len(systems):
+        raise ConfigError(
+            "vehicles",
+            f"MAVLink system ids (system_id, else id) must be unique, got {systems}",
+        )
+
+
+def _refuse_close_pairs(
+    vehicles: tuple[VehicleSpec, ...], formation: FormationSettings, d_safe_m: float
+) -> None:
+    """No two vehicles start, and no two slots lie, closer than d_safe_m."""
+    for a in range(len(vehicles)):
+        for b in range(a + 1, len(vehicles)):
+            pa, pb = vehicles[a].initial, vehicles[b].initial
+            gap = math.hypot(pa[0] - pb[0], pa[1] - pb[1])
+            if gap < d_safe_m:
+                raise ConfigError(
+                    f"vehicles[{b}].initial",
+                    f"starts {gap:.2f} m from vehicle {vehicles[a].id}, "
+                    f"closer than d_safe_m = {d_safe_m}",
+                )
+            sa, sb = formation.slots_m[a], formation.slots_m[b]
+            if math.hypot(sa[0] - sb[0], sa[1] - sb[1]) < d_safe_m:
+                raise ConfigError(
+                    f"vehicles[{b}].slot_m",
+                    f"slot is closer than d_safe_m to vehicle {vehicles[a].id}'s",
+                )
 
 
 def toml_files(folder: Path, *, field: str, what: str) -> list[Path]:
