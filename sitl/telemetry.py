@@ -284,125 +284,168 @@ def autopilot_version(mav: mavlink.MAVLink, ident: Identity):
 
 def build(mav: mavlink.MAVLink, msg_id: int, snap: Snapshot, *, ident: Identity):
     """The message `msg_id` describing `snap`, or None if it is not one this vehicle sends."""
+    builder = _BUILDERS.get(msg_id)
+    return None if builder is None else builder(mav, snap, ident)
+
+
+def _heartbeat(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    return heartbeat(mav, ident, armed=snap.armed, mode=snap.mode, status=snap.system_status)
+
+
+def _attitude(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
     t_ms = _ms(snap.time_ns)
-    site = ident.site
-    if msg_id == M.MAVLINK_MSG_ID_HEARTBEAT:
-        return heartbeat(mav, ident, armed=snap.armed, mode=snap.mode, status=snap.system_status)
-    if msg_id == M.MAVLINK_MSG_ID_ATTITUDE:
-        return mav.attitude_encode(t_ms, 0.0, 0.0, snap.yaw_rad, 0.0, 0.0, snap.yaw_rate_rad_s)
-    if msg_id == M.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-        return mav.local_position_ned_encode(
-            t_ms,
-            snap.north_m - ident.local_origin_m[0],
-            snap.east_m - ident.local_origin_m[1],
-            -snap.altitude_m,
-            snap.vel_north_m_s,
-            snap.vel_east_m_s,
-            -snap.climb_rate_m_s,
-        )
-    if msg_id == M.MAVLINK_MSG_ID_ODOMETRY and ident.autopilot == Autopilot.PX4:
-        # As PX4's EKF2 publishes it: position and velocity in the local NED frame, the
-        # attitude as a quaternion (w, x, y, z), time in microseconds since boot.
-        return mav.odometry_encode(
-            snap.time_ns // 1000,
-            M.MAV_FRAME_LOCAL_NED,
-            M.MAV_FRAME_LOCAL_NED,
-            snap.north_m - ident.local_origin_m[0],
-            snap.east_m - ident.local_origin_m[1],
-            -snap.altitude_m,
-            yaw_quaternion(snap.yaw_rad),
-            snap.vel_north_m_s,
-            snap.vel_east_m_s,
-            -snap.climb_rate_m_s,
-            0.0,
-            0.0,
-            snap.yaw_rate_rad_s,
-            [math.nan] * 21,
-            [math.nan] * 21,
-            0,
-            M.MAV_ESTIMATOR_TYPE_AUTOPILOT,
-        )
-    if msg_id == M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-        lat, lon = _latlon_e7(ident, snap.north_m, snap.east_m)
-        return mav.global_position_int_encode(
-            t_ms,
-            lat,
-            lon,
-            round((site.home_alt_m + snap.altitude_m) * 1000.0),
-            round(snap.altitude_m * 1000.0),
-            _int16(snap.vel_north_m_s * 100.0),
-            _int16(snap.vel_east_m_s * 100.0),
-            _int16(-snap.climb_rate_m_s * 100.0),
-            _heading_cdeg(snap.yaw_rad),
-        )
-    if msg_id == M.MAVLINK_MSG_ID_HIL_STATE_QUATERNION:
-        # Ground truth, as PX4's SITL sends it, but with time_usec (since boot) set: PX4 leaves
-        # it 0, and a sample without a time cannot be placed on the fleet's clock.
-        lat, lon = _latlon_e7(ident, snap.true_north_m, snap.true_east_m)
-        return mav.hil_state_quaternion_encode(
-            snap.time_ns // 1000,
-            yaw_quaternion(snap.true_yaw_rad),
-            0.0,
-            0.0,
-            snap.yaw_rate_rad_s,
-            lat,
-            lon,
-            round((site.home_alt_m + snap.altitude_m) * 1000.0),
-            _int16(snap.true_vel_north_m_s * 100.0),
-            _int16(snap.true_vel_east_m_s * 100.0),
-            _int16(-snap.climb_rate_m_s * 100.0),
-            0,
-            0,
-            0,
-            0,
-            0,
-        )
-    if msg_id == M.MAVLINK_MSG_ID_WIND_COV:
-        # The true wind (NED, m/s) with its time since boot; no variance: it is the truth.
-        return mav.wind_cov_encode(
-            snap.time_ns // 1000,
-            snap.true_wind_north_m_s,
-            snap.true_wind_east_m_s,
-            0.0,
-            0.0,
-            0.0,
-            site.home_alt_m + snap.altitude_m,
-            0.0,
-            0.0,
-        )
-    if msg_id == M.MAVLINK_MSG_ID_VFR_HUD:
-        ground_speed = math.hypot(snap.vel_north_m_s, snap.vel_east_m_s)
-        flying = snap.armed and snap.landed_state != LandedState.ON_GROUND
-        return mav.vfr_hud_encode(
-            ground_speed,
-            ground_speed,
-            _heading_cdeg(snap.yaw_rad) // 100,
-            50 if flying else 0,
-            site.home_alt_m + snap.altitude_m,
-            snap.climb_rate_m_s,
-        )
-    if msg_id == M.MAVLINK_MSG_ID_SYS_STATUS:
-        health = _SENSORS if snap.position_ready else _SENSORS & ~_NEED_POSITION
-        return mav.sys_status_encode(
-            _SENSORS, _SENSORS, health, 200, 16200, -1, 100, 0, 0, 0, 0, 0, 0
-        )
-    if msg_id == M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
-        return mav.extended_sys_state_encode(M.MAV_VTOL_STATE_UNDEFINED, int(snap.landed_state))
-    if msg_id == M.MAVLINK_MSG_ID_HOME_POSITION:
-        lat, lon = _latlon_e7(ident, 0.0, 0.0)
-        return mav.home_position_encode(
-            lat,
-            lon,
-            round(site.home_alt_m * 1000.0),
-            0.0,
-            0.0,
-            0.0,
-            [1.0, 0.0, 0.0, 0.0],
-            0.0,
-            0.0,
-            0.0,
-            snap.time_ns // 1000,
-        )
-    if msg_id == M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-        return autopilot_version(mav, ident)
-    return None
+    return mav.attitude_encode(t_ms, 0.0, 0.0, snap.yaw_rad, 0.0, 0.0, snap.yaw_rate_rad_s)
+
+
+def _local_position_ned(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    return mav.local_position_ned_encode(
+        _ms(snap.time_ns),
+        snap.north_m - ident.local_origin_m[0],
+        snap.east_m - ident.local_origin_m[1],
+        -snap.altitude_m,
+        snap.vel_north_m_s,
+        snap.vel_east_m_s,
+        -snap.climb_rate_m_s,
+    )
+
+
+def _odometry(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    """As PX4's EKF2 publishes it: position and velocity in the local NED frame, the attitude
+    as a quaternion (w, x, y, z), time in microseconds since boot. ArduPilot sends none."""
+    if ident.autopilot != Autopilot.PX4:
+        return None
+    return mav.odometry_encode(
+        snap.time_ns // 1000,
+        M.MAV_FRAME_LOCAL_NED,
+        M.MAV_FRAME_LOCAL_NED,
+        snap.north_m - ident.local_origin_m[0],
+        snap.east_m - ident.local_origin_m[1],
+        -snap.altitude_m,
+        yaw_quaternion(snap.yaw_rad),
+        snap.vel_north_m_s,
+        snap.vel_east_m_s,
+        -snap.climb_rate_m_s,
+        0.0,
+        0.0,
+        snap.yaw_rate_rad_s,
+        [math.nan] * 21,
+        [math.nan] * 21,
+        0,
+        M.MAV_ESTIMATOR_TYPE_AUTOPILOT,
+    )
+
+
+def _global_position_int(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    lat, lon = _latlon_e7(ident, snap.north_m, snap.east_m)
+    return mav.global_position_int_encode(
+        _ms(snap.time_ns),
+        lat,
+        lon,
+        round((ident.site.home_alt_m + snap.altitude_m) * 1000.0),
+        round(snap.altitude_m * 1000.0),
+        _int16(snap.vel_north_m_s * 100.0),
+        _int16(snap.vel_east_m_s * 100.0),
+        _int16(-snap.climb_rate_m_s * 100.0),
+        _heading_cdeg(snap.yaw_rad),
+    )
+
+
+def _hil_state_quaternion(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    """Ground truth, as PX4's SITL sends it, but with time_usec (since boot) set: PX4 leaves it
+    0, and a sample without a time cannot be placed on the fleet's clock."""
+    lat, lon = _latlon_e7(ident, snap.true_north_m, snap.true_east_m)
+    return mav.hil_state_quaternion_encode(
+        snap.time_ns // 1000,
+        yaw_quaternion(snap.true_yaw_rad),
+        0.0,
+        0.0,
+        snap.yaw_rate_rad_s,
+        lat,
+        lon,
+        round((ident.site.home_alt_m + snap.altitude_m) * 1000.0),
+        _int16(snap.true_vel_north_m_s * 100.0),
+        _int16(snap.true_vel_east_m_s * 100.0),
+        _int16(-snap.climb_rate_m_s * 100.0),
+        0,
+        0,
+        0,
+        0,
+        0,
+    )
+
+
+def _wind_cov(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    """The true wind (NED, m/s) with its time since boot; no variance: it is the truth."""
+    return mav.wind_cov_encode(
+        snap.time_ns // 1000,
+        snap.true_wind_north_m_s,
+        snap.true_wind_east_m_s,
+        0.0,
+        0.0,
+        0.0,
+        ident.site.home_alt_m + snap.altitude_m,
+        0.0,
+        0.0,
+    )
+
+
+def _vfr_hud(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    ground_speed = math.hypot(snap.vel_north_m_s, snap.vel_east_m_s)
+    flying = snap.armed and snap.landed_state != LandedState.ON_GROUND
+    return mav.vfr_hud_encode(
+        ground_speed,
+        ground_speed,
+        _heading_cdeg(snap.yaw_rad) // 100,
+        50 if flying else 0,
+        ident.site.home_alt_m + snap.altitude_m,
+        snap.climb_rate_m_s,
+    )
+
+
+def _sys_status(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    health = _SENSORS if snap.position_ready else _SENSORS & ~_NEED_POSITION
+    return mav.sys_status_encode(_SENSORS, _SENSORS, health, 200, 16200, -1, 100, 0, 0, 0, 0, 0, 0)
+
+
+def _extended_sys_state(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    return mav.extended_sys_state_encode(M.MAV_VTOL_STATE_UNDEFINED, int(snap.landed_state))
+
+
+def _home_position(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    lat, lon = _latlon_e7(ident, 0.0, 0.0)
+    return mav.home_position_encode(
+        lat,
+        lon,
+        round(ident.site.home_alt_m * 1000.0),
+        0.0,
+        0.0,
+        0.0,
+        [1.0, 0.0, 0.0, 0.0],
+        0.0,
+        0.0,
+        0.0,
+        snap.time_ns // 1000,
+    )
+
+
+def _autopilot_version(mav: mavlink.MAVLink, snap: Snapshot, ident: Identity):
+    return autopilot_version(mav, ident)
+
+
+_BUILDERS = MappingProxyType(
+    {
+        M.MAVLINK_MSG_ID_HEARTBEAT: _heartbeat,
+        M.MAVLINK_MSG_ID_ATTITUDE: _attitude,
+        M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: _local_position_ned,
+        M.MAVLINK_MSG_ID_ODOMETRY: _odometry,
+        M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: _global_position_int,
+        M.MAVLINK_MSG_ID_HIL_STATE_QUATERNION: _hil_state_quaternion,
+        M.MAVLINK_MSG_ID_WIND_COV: _wind_cov,
+        M.MAVLINK_MSG_ID_VFR_HUD: _vfr_hud,
+        M.MAVLINK_MSG_ID_SYS_STATUS: _sys_status,
+        M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
+        M.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
+        M.MAVLINK_MSG_ID_AUTOPILOT_VERSION: _autopilot_version,
+    }
+)
+"""How each message this vehicle sends is built from a snapshot (`build`)."""
