@@ -385,109 +385,41 @@ def run(args: argparse.Namespace) -> int:
     duration = flight_time(scenario, speed=args.speed, duration_s=args.duration)
     gcs_options = _gcs_options(args)
     run_dir = args.run_dir or Path("runs") / f"up-{datetime.now():%Y%m%d-%H%M%S}"
-    rrd = args.rrd or run_dir / "run.rrd"
-    metrics = args.metrics or run_dir / "metrics.json"
-    status_file = run_dir / "status.json"
-    viewer = args.viewer or _default_viewer()
+    outputs = _Outputs(
+        rrd=args.rrd or run_dir / "run.rrd",
+        metrics=args.metrics or run_dir / "metrics.json",
+        status=run_dir / "status.json",
+    )
     fleet = Fleet(run_dir)
-    status_file.unlink(missing_ok=True)  # (a run dir used again: not the last run's epoch)
+    outputs.status.unlink(missing_ok=True)  # (a run dir used again: not the last run's epoch)
     if args.keys is not None:
         check_keys(scenario, args.keys)
     secrets = None
     if not args.insecure:
         secrets = args.keys or _fresh_secrets(scenario, run_dir / "secrets")
-    external = _external_autopilots(args.mavlink, scenario)
-    per_sitl = args.vehicles_per_sitl
-    if per_sitl is None:
-        per_sitl = auto_vehicles_per_sitl(len(scenario.vehicles) - len(external), args.speed)
-    specs = fleet_processes(
-        scenario,
-        FleetOptions(
-            scenario_path=str(args.scenario),
-            speed=args.speed,
-            duration_s=duration,
-            rrd=str(rrd),
-            metrics=str(metrics),
-            status_file=str(status_file),
-            viewer=viewer,
-            agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
-            external_autopilots=external,
-            target_source=args.target,
-            target_sysid=args.target_sysid,
-            connect_timeout_s=args.connect_timeout,
-            engage_timeout_s=args.engage_timeout,
-            secrets_dir=None if secrets is None else str(secrets),
-            vehicles_per_sitl=per_sitl,
-            wind_epoch_ns=time.time_ns(),  # (the launch: every SITL flies one wind)
-        ),
-    )
-    gcs_argv = [*next(s for s in specs if s.role == "gcs").argv]
-    gcs_argv += gcs_options
-    specs = [s if s.role != "gcs" else dataclasses.replace(s, argv=tuple(gcs_argv)) for s in specs]
+    specs = _specs(args, scenario, duration, outputs, run_dir, secrets, gcs_options)
     faults = None
     if args.faults is not None:
-        schedule = load_faults(
-            args.faults, vehicle_ids=scenario.vehicle_ids, processes=[s.name for s in specs]
-        )
-        extra: dict[str, tuple[str, ...]] = {}
-        if any(f.network or f.kind in LINK_KINDS for f in schedule.faults):
-            for s in specs:
-                if s.role == "agent":
-                    extra[s.name] = ("--faults", str(args.faults.resolve()))
-        for f in schedule.faults:
-            if f.kind == "clock_offset":  # (at launch: the process starts with it)
-                extra[f.process] = (*extra.get(f.process, ()), "--clock-offset", f"{f.offset_s:g}")
-                print(f"fleetmpc up: fault: {f.describe()}", flush=True)
-        specs = [dataclasses.replace(s, argv=(*s.argv, *extra.get(s.name, ()))) for s in specs]
-        faults = _process_faults(schedule, fleet, speed=args.speed)
+        specs, faults = _with_faults(args, scenario, specs, fleet)
     interrupted = threading.Event()
     previous = {
         s: signal.signal(s, lambda *_: interrupted.set()) for s in (signal.SIGINT, signal.SIGTERM)
     }
-    view = StatusView(status_file, quiet=args.quiet)
+    view = StatusView(outputs.status, quiet=args.quiet)
     print(
         f"fleetmpc up: {scenario.name}, {len(scenario.vehicles)} UAVs, {duration:g} s at "
         f"x{args.speed:g}; logs in {fleet.logs}",
         flush=True,
     )
     failure: _ProcessFailed | None = None
-    rc = None
-    gcs_lost = False
-    router_restarts = 0
+    seen = _Watch()
     try:
         for spec in specs:
             child = fleet.start(spec)
             if spec.role == "router":
                 fleet.wait_for_text(child, "listening", timeout_s=15.0)
         wall_limit = time.monotonic() + _fleet_wait_s(args) + duration / args.speed + 60.0
-        while not interrupted.is_set():
-            if faults is not None:
-                if faults.epoch_ns is None:
-                    faults.epoch_ns = _epoch_of(status_file)
-                faults.poll()
-            gcs = fleet.get("gcs")
-            rc = gcs.proc.poll()
-            if rc is not None and not gcs.exit_handled:
-                break
-            if gcs.exit_handled and not gcs_lost:
-                gcs_lost = True
-                print("fleetmpc up: the ground station is gone; the fleet flies on", flush=True)
-            if gcs_lost and (faults.fleet_s() or 0.0) >= duration + 1.0:
-                break
-            router = fleet.get("zenoh-router")
-            code = router.proc.poll()
-            if code is not None and not router.exit_handled:
-                # A service, not a reason to land the fleet: the agents rejoin it.
-                router_restarts += 1
-                print(f"fleetmpc up: zenoh-router exited (status {code}); restarting it")
-                fleet.restart("zenoh-router")
-            bad = fleet.failed()
-            if bad is not None:
-                raise _ProcessFailed(bad)
-            if time.monotonic() > wall_limit:
-                raise _ProcessFailed(gcs, "did not finish in time")
-            view.update()
-            interrupted.wait(0.1 if faults is not None and faults.pending else 0.5)
+        _supervise(fleet, seen, faults, outputs.status, view, interrupted, duration, wall_limit)
     except _ProcessFailed as e:
         failure = e
     finally:
@@ -499,31 +431,175 @@ def run(args: argparse.Namespace) -> int:
         stop_s = time.monotonic() - t_stop
         for s, handler in previous.items():
             signal.signal(s, handler)
+    interrupted_s = stop_s if interrupted.is_set() and seen.rc is None else None
+    _report(fleet, faults, seen, failure, interrupted_s, outputs, codes)
+    return _exit_status(fleet, seen, failure, interrupted_s is not None, codes)
+
+
+@dataclass(frozen=True)
+class _Outputs:
+    """Where a run writes: its recording, its metrics and the ground station's status file."""
+
+    rrd: Path
+    metrics: Path
+    status: Path
+
+
+@dataclass
+class _Watch:
+    """What watching the running fleet saw (`_supervise`)."""
+
+    rc: int | None = None
+    """The ground station's exit status when last polled; None while it runs."""
+    gcs_lost: bool = False
+    """A fault killed the ground station; the fleet flew on without it."""
+    router_restarts: int = 0
+
+
+def _specs(args, scenario, duration, outputs: _Outputs, run_dir, secrets, gcs_options):
+    """The fleet's processes for this command line, the ground station's own options added."""
+    external = _external_autopilots(args.mavlink, scenario)
+    per_sitl = args.vehicles_per_sitl
+    if per_sitl is None:
+        per_sitl = auto_vehicles_per_sitl(len(scenario.vehicles) - len(external), args.speed)
+    specs = fleet_processes(
+        scenario,
+        FleetOptions(
+            scenario_path=str(args.scenario),
+            speed=args.speed,
+            duration_s=duration,
+            rrd=str(outputs.rrd),
+            metrics=str(outputs.metrics),
+            status_file=str(outputs.status),
+            viewer=args.viewer or _default_viewer(),
+            agent_records_dir=str(run_dir / "agents") if args.agent_records else None,
+            external_autopilots=external,
+            target_source=args.target,
+            target_sysid=args.target_sysid,
+            connect_timeout_s=args.connect_timeout,
+            engage_timeout_s=args.engage_timeout,
+            secrets_dir=None if secrets is None else str(secrets),
+            vehicles_per_sitl=per_sitl,
+            wind_epoch_ns=time.time_ns(),  # (the launch: every SITL flies one wind)
+        ),
+    )
+    return [
+        s if s.role != "gcs" else dataclasses.replace(s, argv=(*s.argv, *gcs_options))
+        for s in specs
+    ]
+
+
+def _with_faults(args, scenario, specs, fleet: Fleet):
+    """The processes with the fault file's options (network and link faults to the agents, a
+    clock offset to its process at launch), and the faults the launcher itself injects."""
+    schedule = load_faults(
+        args.faults, vehicle_ids=scenario.vehicle_ids, processes=[s.name for s in specs]
+    )
+    extra: dict[str, tuple[str, ...]] = {}
+    if any(f.network or f.kind in LINK_KINDS for f in schedule.faults):
+        for s in specs:
+            if s.role == "agent":
+                extra[s.name] = ("--faults", str(args.faults.resolve()))
+    for f in schedule.faults:
+        if f.kind == "clock_offset":  # (at launch: the process starts with it)
+            extra[f.process] = (*extra.get(f.process, ()), "--clock-offset", f"{f.offset_s:g}")
+            print(f"fleetmpc up: fault: {f.describe()}", flush=True)
+    specs = [dataclasses.replace(s, argv=(*s.argv, *extra.get(s.name, ()))) for s in specs]
+    return specs, _process_faults(schedule, fleet, speed=args.speed)
+
+
+def _supervise(
+    fleet: Fleet,
+    seen: _Watch,
+    faults: ProcessFaults | None,
+    status_file: Path,
+    view: StatusView,
+    interrupted: threading.Event,
+    duration: float,
+    wall_limit: float,
+) -> None:
+    """Watch the fleet until the ground station exits (or, once a fault has taken it, the
+    flight's time is up) or the run is interrupted: inject the launcher's faults when due,
+    restart the Zenoh router if it exits, redraw the status; raise _ProcessFailed when a
+    process fails or the run overruns `wall_limit` (monotonic seconds)."""
+    while not interrupted.is_set():
+        if faults is not None:
+            if faults.epoch_ns is None:
+                faults.epoch_ns = _epoch_of(status_file)
+            faults.poll()
+        gcs = fleet.get("gcs")
+        seen.rc = gcs.proc.poll()
+        if seen.rc is not None and not gcs.exit_handled:
+            return
+        if gcs.exit_handled and not seen.gcs_lost:
+            seen.gcs_lost = True
+            print("fleetmpc up: the ground station is gone; the fleet flies on", flush=True)
+        if seen.gcs_lost and (faults.fleet_s() or 0.0) >= duration + 1.0:
+            return
+        router = fleet.get("zenoh-router")
+        code = router.proc.poll()
+        if code is not None and not router.exit_handled:
+            # A service, not a reason to land the fleet: the agents rejoin it.
+            seen.router_restarts += 1
+            print(f"fleetmpc up: zenoh-router exited (status {code}); restarting it")
+            fleet.restart("zenoh-router")
+        bad = fleet.failed()
+        if bad is not None:
+            raise _ProcessFailed(bad)
+        if time.monotonic() > wall_limit:
+            raise _ProcessFailed(gcs, "did not finish in time")
+        view.update()
+        interrupted.wait(0.1 if faults is not None and faults.pending else 0.5)
+
+
+def _report(
+    fleet: Fleet,
+    faults: ProcessFaults | None,
+    seen: _Watch,
+    failure: _ProcessFailed | None,
+    interrupted_s: float | None,
+    outputs: _Outputs,
+    codes: dict[str, int | None],
+) -> None:
+    """What the run did: faults injected, router restarts, a failure and its log's tail, an
+    interruption (`interrupted_s`: how long stopping took), the metrics and the exit codes."""
     if faults is not None and faults.done:
         print("fleetmpc up: faults injected:\n" + "\n".join(f"  {d}" for d in faults.done))
-    if router_restarts:
-        print(f"fleetmpc up: zenoh-router restarted {router_restarts} time(s) after it exited")
+    if seen.router_restarts:
+        print(f"fleetmpc up: zenoh-router restarted {seen.router_restarts} time(s) after it exited")
     if failure is not None:
         print(f"fleetmpc up: FAILED: {failure}; the tail of its log:", file=sys.stderr)
         print(_tail(failure.child.log), file=sys.stderr)
-    if interrupted.is_set() and rc is None:
+    if interrupted_s is not None:
         stages = ", ".join(f"{role} {t:.1f} s" for role, t in fleet.stage_s.items())
         print(
-            f"fleetmpc up: interrupted; every process stopped in {stop_s:.1f} s ({stages})",
+            f"fleetmpc up: interrupted; every process stopped in {interrupted_s:.1f} s ({stages})",
             file=sys.stderr,
         )
-    if metrics.is_file():
-        print(format_summary(json.loads(metrics.read_text())))
-        print(f"metrics: {metrics}\nrecording: {rrd}")
+    if outputs.metrics.is_file():
+        print(format_summary(json.loads(outputs.metrics.read_text())))
+        print(f"metrics: {outputs.metrics}\nrecording: {outputs.rrd}")
     print(f"exit codes: {', '.join(f'{k} {v}' for k, v in codes.items())}", flush=True)
+
+
+def _exit_status(
+    fleet: Fleet,
+    seen: _Watch,
+    failure: _ProcessFailed | None,
+    interrupted: bool,
+    codes: dict[str, int | None],
+) -> int:
+    """0 when the fleet flew and every gate held; 1 on a failure or a broken gate; 130 when
+    interrupted."""
     if failure is not None:
         return 1
-    if interrupted.is_set() and rc is None:
+    if interrupted:
         return 130
-    if gcs_lost:
+    if seen.gcs_lost:
         print("fleetmpc up: no metrics: a fault killed the ground station", flush=True)
         return 0
     if codes.get("gcs") != 0:
-        print(f"fleetmpc up: ground station reported a broken gate:\n{_tail(gcs.log, 5)}")
+        log = fleet.get("gcs").log
+        print(f"fleetmpc up: ground station reported a broken gate:\n{_tail(log, 5)}")
         return 1
     return 0
