@@ -43,9 +43,11 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from fleetmpc.bus.open_bus import add_bus_arguments, open_fleet_bus
+from fleetmpc.bus.planbus import PlanBus
 from fleetmpc.errors import ConfigError, FleetMpcError
 from fleetmpc.gcs.metrics import format_summary
 from fleetmpc.gcs.station import GroundStation, gate_failures
@@ -59,7 +61,7 @@ from fleetmpc.gcs.telemetry import (
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
 )
-from fleetmpc.scenario import flight_time, load_scenario
+from fleetmpc.scenario import Scenario, flight_time, load_scenario
 from fleetmpc.security.mavlink_signing import KeyRing, read_key_options
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -234,12 +236,7 @@ def run(args: argparse.Namespace) -> int:
     spawn, viewer_url = _viewer(args.viewer)
     net = scenario.network
     url = args.mavlink or f"udpin:{net.ground_station_address}:{net.gcs_port}"
-    every = series_every(flush_s=args.flush_s, series_flush_s=args.series_flush_s)
-    sinks: list[TelemetrySink] = [open_sink(u, series_every=every) for u in args.telemetry]
-    if args.rrd is not None or spawn or viewer_url is not None:
-        sinks.append(
-            RerunSink(path=args.rrd, viewer_url=viewer_url, spawn_viewer=spawn, series_every=every)
-        )
+    sinks = _sinks(args, spawn, viewer_url)
     keys = KeyRing(
         {
             scenario.vehicle(vid).mavlink_system_id: key
@@ -261,53 +258,7 @@ def run(args: argparse.Namespace) -> int:
         if args.epoch_ns is not None:
             gs.set_epoch(args.epoch_ns)
         _log(f"listening on {url}; waiting for {len(gs.links)} vehicles to engage")
-        deadline = time.monotonic() + args.engage_timeout
-        next_flush = next_status = next_announce = time.monotonic()
-        end_s = duration + _AFTER_END_SIM_S
-        end_grace = None
-        while not stop.is_set():
-            msg = mav.recv_match(blocking=True, timeout=0.02)
-            now = time.monotonic()
-            if msg is not None and keys.admit(msg):
-                gs.on_mavlink(msg, time.time_ns())
-            if gs.epoch_ns is None:
-                if all(link.engaged for link in gs.links.values()):
-                    gs.set_epoch(time.time_ns() + round(args.lead * 1e9))
-                    _log(f"all engaged; epoch {gs.epoch_ns} (x{args.speed:g})")
-                elif now > deadline:
-                    missing = [str(v) for v, link in gs.links.items() if not link.engaged]
-                    raise FleetMpcError(
-                        f"vehicles {', '.join(missing)} not armed and engaged after "
-                        f"{args.engage_timeout:g} s (modes: "
-                        + ", ".join(
-                            f"{v}: {link.mode_name or 'silent'}" for v, link in gs.links.items()
-                        )
-                        + ")"
-                    )
-            if args.epoch_ns is None and gs.epoch_ns is not None and now >= next_announce:
-                bus.publish_epoch(epoch_ns=gs.epoch_ns, speed=args.speed)
-                next_announce = now + 0.5
-            if now >= next_flush:
-                gs.flush()
-                next_flush = now + args.flush_s / args.speed
-            if now >= next_status:
-                gs.drain_bus()
-                gs.check_links(time.time())
-                for vid in gs.links_to_ask(time.time()):
-                    _ask_for_streams(mav, scenario.vehicle(vid).mavlink_system_id, keys)
-                if args.status_file is not None:
-                    phase = "waiting" if gs.epoch_ns is None else "flying"
-                    _write_json(args.status_file, gs.status_snapshot(phase))
-                next_status = now + _STATUS_WALL_S
-            t = gs.fleet_s()
-            if t is not None and t >= end_s:
-                # (read anew: a slow flush or status in this pass must not use up the wait)
-                if end_grace is None:
-                    end_grace = time.monotonic() + _END_GRACE_WALL_S
-                done = gs.live.complete_periods() >= gs.periods
-                if done or time.monotonic() >= end_grace:
-                    completed = True
-                    break
+        completed = _listen(gs, _Station(mav, bus, keys), args, stop, duration)
         gs.flush(final=True)
     finally:
         if bus is not None:
@@ -317,6 +268,103 @@ def run(args: argparse.Namespace) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
         gs.close_sinks()
+    return _conclude(gs, args, scenario, completed)
+
+
+def _sinks(args: argparse.Namespace, spawn: bool, viewer_url: str | None) -> list[TelemetrySink]:
+    """The telemetry sinks the command line asks for, the Rerun one last."""
+    every = series_every(flush_s=args.flush_s, series_flush_s=args.series_flush_s)
+    sinks: list[TelemetrySink] = [open_sink(u, series_every=every) for u in args.telemetry]
+    if args.rrd is not None or spawn or viewer_url is not None:
+        sinks.append(
+            RerunSink(path=args.rrd, viewer_url=viewer_url, spawn_viewer=spawn, series_every=every)
+        )
+    return sinks
+
+
+@dataclass(frozen=True)
+class _Station:
+    """The ground station's links: MAVLink from the vehicles (`keys` admits signed frames),
+    the plan bus."""
+
+    mav: mavutil.mavfile
+    bus: PlanBus
+    keys: KeyRing
+
+
+def _listen(
+    gs: GroundStation,
+    station: _Station,
+    args: argparse.Namespace,
+    stop: threading.Event,
+    duration: float,
+) -> bool:
+    """Take the vehicles' telemetry until the run's end (True) or `stop` (False): set the
+    fleet's epoch once every vehicle is engaged (and announce it), flush the sinks, and keep
+    the links and the status file current."""
+    deadline = time.monotonic() + args.engage_timeout
+    next_flush = next_status = next_announce = time.monotonic()
+    end_s = duration + _AFTER_END_SIM_S
+    end_grace = None
+    while not stop.is_set():
+        msg = station.mav.recv_match(blocking=True, timeout=0.02)
+        now = time.monotonic()
+        if msg is not None and station.keys.admit(msg):
+            gs.on_mavlink(msg, time.time_ns())
+        if gs.epoch_ns is None:
+            _engage(gs, args, overdue=now > deadline)
+        if args.epoch_ns is None and gs.epoch_ns is not None and now >= next_announce:
+            station.bus.publish_epoch(epoch_ns=gs.epoch_ns, speed=args.speed)
+            next_announce = now + 0.5
+        if now >= next_flush:
+            gs.flush()
+            next_flush = now + args.flush_s / args.speed
+        if now >= next_status:
+            _keep_current(gs, station, args)
+            next_status = now + _STATUS_WALL_S
+        t = gs.fleet_s()
+        if t is not None and t >= end_s:
+            # (read anew: a slow flush or status in this pass must not use up the wait)
+            if end_grace is None:
+                end_grace = time.monotonic() + _END_GRACE_WALL_S
+            done = gs.live.complete_periods() >= gs.periods
+            if done or time.monotonic() >= end_grace:
+                return True
+    return False
+
+
+def _engage(gs: GroundStation, args: argparse.Namespace, *, overdue: bool) -> None:
+    """Set the fleet's epoch, `args.lead` ahead, once every vehicle is armed and engaged;
+    fail naming the vehicles that are not when `overdue`."""
+    if all(link.engaged for link in gs.links.values()):
+        gs.set_epoch(time.time_ns() + round(args.lead * 1e9))
+        _log(f"all engaged; epoch {gs.epoch_ns} (x{args.speed:g})")
+    elif overdue:
+        missing = [str(v) for v, link in gs.links.items() if not link.engaged]
+        modes = ", ".join(f"{v}: {link.mode_name or 'silent'}" for v, link in gs.links.items())
+        raise FleetMpcError(
+            f"vehicles {', '.join(missing)} not armed and engaged after "
+            f"{args.engage_timeout:g} s (modes: {modes})"
+        )
+
+
+def _keep_current(gs: GroundStation, station: _Station, args: argparse.Namespace) -> None:
+    """Take what the plan bus brought, judge the links (asking silent vehicles for their
+    streams again) and write the status file."""
+    gs.drain_bus()
+    gs.check_links(time.time())
+    for vid in gs.links_to_ask(time.time()):
+        system_id = gs.scenario.vehicle(vid).mavlink_system_id
+        _ask_for_streams(station.mav, system_id, station.keys)
+    if args.status_file is not None:
+        phase = "waiting" if gs.epoch_ns is None else "flying"
+        _write_json(args.status_file, gs.status_snapshot(phase))
+
+
+def _conclude(
+    gs: GroundStation, args: argparse.Namespace, scenario: Scenario, completed: bool
+) -> int:
+    """The run's metrics printed and written, and its gates judged: 0 when every gate held."""
     metrics = gs.metrics()
     if args.status_file is not None:
         _write_json(args.status_file, gs.status_snapshot("done"))
