@@ -121,6 +121,7 @@ def _scenario_across(hosts: Hosts, dest: Path) -> Path:
     return dest
 
 
+@pytest.mark.slow  # (44 s of two cores)
 def test_the_paper_fleet_across_network_namespaces_passes_the_loopback_gates(
     hosts, processes, tmp_path
 ):

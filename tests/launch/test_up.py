@@ -199,6 +199,7 @@ def test_a_dead_sitl_is_named_and_up_fails(scenario, launch, tmp_path):
     assert live_processes_naming(str(scenario)) == []
 
 
+@pytest.mark.slow  # (46 s of two cores: the longest live fleet of the default suite)
 def test_up_flies_the_mixed_fleet_at_x1_within_the_gates(launch, tmp_path):
     """The ArduPilot-profile vehicle's takeoff takes 6.7 s of fleet time: at x1 it used to be
     still climbing, flying none of its setpoints, when the fleet epoch came (its agent learned an
