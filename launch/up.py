@@ -32,7 +32,6 @@ import math
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -49,11 +48,11 @@ from fleetmpc.launch.fleet import (
     SEPARATE_SITL_LOAD,
     SITL_GROUP,
     FleetOptions,
-    ProcessSpec,
     auto_vehicles_per_sitl,
     fleet_processes,
 )
 from fleetmpc.launch.process_faults import ProcessFaults
+from fleetmpc.launch.processes import ProcessFailed, ProcessGroup, log_tail
 from fleetmpc.launch.status_view import StatusView
 from fleetmpc.scenario import flight_time, load_scenario
 from fleetmpc.security.secrets import check_keys, make_keys
@@ -64,11 +63,6 @@ __all__ = ["add_arguments", "run"]
 EXIT_WITHOUT_TEARDOWN = True
 """Its children are stopped and its files closed when `run` returns (see `fleetmpc.cli.entry`)."""
 
-_STOP_ORDER = (("gcs",), ("agent", "target"), ("sitl", "router"))
-"""Shutdown stages: the ground station (it closes the recording), then the agents (they command
-HOLD while their autopilots still run) with the target, then the vehicles and the router."""
-_GRACE_S = 3.0
-_TAIL_LINES = 15
 _ENGAGE_SLACK_S = 15.0
 """Wall seconds the ground station waits for the fleet beyond an agent's connect and engage
 timeouts (the processes' start, the setpoint warm-up before engaging)."""
@@ -187,108 +181,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no status table")
 
 
-@dataclass
-class _Child:
-    spec: ProcessSpec
-    proc: subprocess.Popen
-    log: Path
-    expected_exit: bool = False
-    exit_handled: bool = False
-    """Its exit is not a failure of the run: a fault killed it, or it was restarted."""
-
-
-def _tail(path: Path, lines: int = _TAIL_LINES) -> str:
-    try:
-        text = path.read_text(errors="replace").splitlines()
-    except OSError:
-        return "(no log)"
-    return "\n".join("    " + line for line in text[-lines:]) or "    (empty log)"
-
-
-class Fleet:
-    """The launched processes, started in order and stopped in reverse roles order."""
-
-    def __init__(self, run_dir: Path) -> None:
-        self.run_dir = run_dir
-        self.logs = run_dir / "logs"
-        self.logs.mkdir(parents=True, exist_ok=True)
-        self.children: list[_Child] = []
-        self.stage_s: dict[str, float] = {}
-
-    def start(self, spec: ProcessSpec, *, again: bool = False) -> _Child:
-        """Start a process; `again`: a restart, whose output goes on in the same log."""
-        log = self.logs / f"{spec.name}.log"
-        with open(log, "a" if again else "w") as out:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "fleetmpc.cli", *spec.argv],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )
-        child = _Child(spec, proc, log, expected_exit=spec.role == "target")
-        self.children.append(child)
-        return child
-
-    def get(self, name: str) -> _Child:
-        """The newest process called `name` (a restarted one replaces its first)."""
-        return [c for c in self.children if c.spec.name == name][-1]
-
-    def restart(self, name: str) -> _Child:
-        """Start the process called `name` again (its old one's exit is then handled)."""
-        old = self.get(name)
-        old.exit_handled = True
-        return self.start(old.spec, again=True)
-
-    def wait_for_text(self, child: _Child, text: str, *, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while text not in child.log.read_text(errors="replace"):
-            if child.proc.poll() is not None:
-                raise _ProcessFailed(child)
-            if time.monotonic() > deadline:
-                raise _ProcessFailed(child, f"did not print {text!r} within {timeout_s:g} s")
-            time.sleep(0.05)
-
-    def failed(self) -> _Child | None:
-        """The first child that exited when it should not have."""
-        for c in self.children:
-            rc = c.proc.poll()
-            if c.exit_handled or rc is None or c.spec.role == "gcs":
-                continue
-            if rc != 0 or not c.expected_exit:
-                return c
-        return None
-
-    def stop(self) -> dict[str, int | None]:
-        """Stop every child (SIGTERM by role order, then SIGKILL); return the exit codes.
-
-        `stage_s` keeps each stage's wall time (the first role of the stage names it).
-        """
-        for roles in _STOP_ORDER:
-            t0 = time.monotonic()
-            group = [c for c in self.children if c.spec.role in roles and c.proc.poll() is None]
-            for c in group:
-                c.proc.send_signal(signal.SIGTERM)
-            deadline = time.monotonic() + _GRACE_S
-            for c in group:
-                try:
-                    c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    c.proc.kill()
-                    c.proc.wait(timeout=5.0)
-            self.stage_s[roles[0]] = time.monotonic() - t0
-        return {c.spec.name: c.proc.returncode for c in self.children}
-
-
-class _ProcessFailed(Exception):
-    def __init__(self, child: _Child, why: str | None = None) -> None:
-        self.child = child
-        rc = child.proc.poll()
-        self.why = why or f"exited with status {rc}"
-        super().__init__(f"{child.spec.name} {self.why}")
-
-
 def _default_viewer() -> str:
     if (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and shutil.which("rerun"):
         return "spawn"
@@ -357,7 +249,7 @@ def _epoch_of(status_file: Path) -> int | None:
         return None
 
 
-def _process_faults(schedule: FaultSchedule, fleet: Fleet, *, speed: float) -> ProcessFaults:
+def _process_faults(schedule: FaultSchedule, fleet: ProcessGroup, *, speed: float) -> ProcessFaults:
     """The driver of the schedule's process faults on `fleet`: a killed process's exit is
     handled (not a failure), a restart starts its spec again."""
 
@@ -390,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
         metrics=args.metrics or run_dir / "metrics.json",
         status=run_dir / "status.json",
     )
-    fleet = Fleet(run_dir)
+    fleet = ProcessGroup(run_dir)
     outputs.status.unlink(missing_ok=True)  # (a run dir used again: not the last run's epoch)
     if args.keys is not None:
         check_keys(scenario, args.keys)
@@ -411,7 +303,7 @@ def run(args: argparse.Namespace) -> int:
         f"x{args.speed:g}; logs in {fleet.logs}",
         flush=True,
     )
-    failure: _ProcessFailed | None = None
+    failure: ProcessFailed | None = None
     seen = _Watch()
     try:
         for spec in specs:
@@ -420,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
                 fleet.wait_for_text(child, "listening", timeout_s=15.0)
         wall_limit = time.monotonic() + _fleet_wait_s(args) + duration / args.speed + 60.0
         _supervise(fleet, seen, faults, outputs.status, view, interrupted, duration, wall_limit)
-    except _ProcessFailed as e:
+    except ProcessFailed as e:
         failure = e
     finally:
         view.close()
@@ -489,7 +381,7 @@ def _specs(args, scenario, duration, outputs: _Outputs, run_dir, secrets, gcs_op
     ]
 
 
-def _with_faults(args, scenario, specs, fleet: Fleet):
+def _with_faults(args, scenario, specs, fleet: ProcessGroup):
     """The processes with the fault file's options (network and link faults to the agents, a
     clock offset to its process at launch), and the faults the launcher itself injects."""
     schedule = load_faults(
@@ -509,7 +401,7 @@ def _with_faults(args, scenario, specs, fleet: Fleet):
 
 
 def _supervise(
-    fleet: Fleet,
+    fleet: ProcessGroup,
     seen: _Watch,
     faults: ProcessFaults | None,
     status_file: Path,
@@ -520,7 +412,7 @@ def _supervise(
 ) -> None:
     """Watch the fleet until the ground station exits (or, once a fault has taken it, the
     flight's time is up) or the run is interrupted: inject the launcher's faults when due,
-    restart the Zenoh router if it exits, redraw the status; raise _ProcessFailed when a
+    restart the Zenoh router if it exits, redraw the status; raise ProcessFailed when a
     process fails or the run overruns `wall_limit` (monotonic seconds)."""
     while not interrupted.is_set():
         if faults is not None:
@@ -545,18 +437,18 @@ def _supervise(
             fleet.restart("zenoh-router")
         bad = fleet.failed()
         if bad is not None:
-            raise _ProcessFailed(bad)
+            raise ProcessFailed(bad)
         if time.monotonic() > wall_limit:
-            raise _ProcessFailed(gcs, "did not finish in time")
+            raise ProcessFailed(gcs, "did not finish in time")
         view.update()
         interrupted.wait(0.1 if faults is not None and faults.pending else 0.5)
 
 
 def _report(
-    fleet: Fleet,
+    fleet: ProcessGroup,
     faults: ProcessFaults | None,
     seen: _Watch,
-    failure: _ProcessFailed | None,
+    failure: ProcessFailed | None,
     interrupted_s: float | None,
     outputs: _Outputs,
     codes: dict[str, int | None],
@@ -569,7 +461,7 @@ def _report(
         print(f"fleetmpc up: zenoh-router restarted {seen.router_restarts} time(s) after it exited")
     if failure is not None:
         print(f"fleetmpc up: FAILED: {failure}; the tail of its log:", file=sys.stderr)
-        print(_tail(failure.child.log), file=sys.stderr)
+        print(log_tail(failure.child.log), file=sys.stderr)
     if interrupted_s is not None:
         stages = ", ".join(f"{role} {t:.1f} s" for role, t in fleet.stage_s.items())
         print(
@@ -583,9 +475,9 @@ def _report(
 
 
 def _exit_status(
-    fleet: Fleet,
+    fleet: ProcessGroup,
     seen: _Watch,
-    failure: _ProcessFailed | None,
+    failure: ProcessFailed | None,
     interrupted: bool,
     codes: dict[str, int | None],
 ) -> int:
@@ -600,6 +492,6 @@ def _exit_status(
         return 0
     if codes.get("gcs") != 0:
         log = fleet.get("gcs").log
-        print(f"fleetmpc up: ground station reported a broken gate:\n{_tail(log, 5)}")
+        print(f"fleetmpc up: ground station reported a broken gate:\n{log_tail(log, 5)}")
         return 1
     return 0
