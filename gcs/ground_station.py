@@ -61,7 +61,7 @@ from fleetmpc.gcs.telemetry import (
 from fleetmpc.protocol.messages import (
     GROUND_STATION_ID,
 )
-from fleetmpc.scenario import Scenario, flight_time, load_scenario
+from fleetmpc.scenario import flight_time, load_scenario
 from fleetmpc.security.mavlink_signing import KeyRing, read_key_options
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -268,7 +268,7 @@ def run(args: argparse.Namespace) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
         gs.close_sinks()
-    return _conclude(gs, args, scenario, completed)
+    return _conclude(gs, args, completed)
 
 
 def _sinks(args: argparse.Namespace, spawn: bool, viewer_url: str | None) -> list[TelemetrySink]:
@@ -361,9 +361,7 @@ def _keep_current(gs: GroundStation, station: _Station, args: argparse.Namespace
         _write_json(args.status_file, gs.status_snapshot(phase))
 
 
-def _conclude(
-    gs: GroundStation, args: argparse.Namespace, scenario: Scenario, completed: bool
-) -> int:
+def _conclude(gs: GroundStation, args: argparse.Namespace, completed: bool) -> int:
     """The run's metrics printed and written, and its gates judged: 0 when every gate held."""
     metrics = gs.metrics()
     if args.status_file is not None:
@@ -377,7 +375,7 @@ def _conclude(
         print(f"metrics: {args.metrics}", flush=True)
     if args.rrd is not None:
         print(f"recording: {args.rrd}", flush=True)
-    broken = gate_failures(metrics, scenario, formation_m=args.gate_formation_m)
+    broken = gate_failures(metrics, gs.scenario, formation_m=args.gate_formation_m)
     if not completed:
         broken.append("interrupted before the end of the run")
     for b in broken:

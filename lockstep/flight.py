@@ -78,7 +78,8 @@ class _Plants:
     """The fleet's truth plants in one wind field per wind (`WindField`), and their closest
     approach so far, checked at every plant tick."""
 
-    def __init__(self, sc: Scenario, seed: int) -> None:
+    def __init__(self, sc: Scenario, seed: int, rngs: Sequence[np.random.Generator]) -> None:
+        """`rngs`: each vehicle's measurement noise stream, in the fleet's order."""
         winds = {v.truth.wind: WindField(v.truth.wind, seed=seed) for v in sc.vehicles}
         self.plants = [
             TruthPlant(
@@ -90,9 +91,14 @@ class _Plants:
             )
             for v in sc.vehicles
         ]
+        self._rngs = rngs
         self.tick_ns, self.ticks = sc.tick_ns, sc.plant_steps_per_period
         self.min_separation_m = np.inf
         self._upper = np.triu_indices(len(self.plants), 1)
+
+    def measure(self) -> list[np.ndarray]:
+        """Each vehicle's noisy measurement now (`TruthPlant.measure`)."""
+        return [plant.measure(rng) for plant, rng in zip(self.plants, self._rngs, strict=True)]
 
     def truths(self) -> np.ndarray:
         """Each vehicle's true beta now (N, 4) (`_truth`)."""
@@ -169,7 +175,7 @@ def _fly(
     period_ns = sc.controller.period_ns
     periods = int(round(duration_s * 1e9 / period_ns)) + 1
     rngs = np.random.default_rng(seed).spawn(len(sc.vehicles) + 1)
-    plants = _Plants(sc, seed)
+    plants = _Plants(sc, seed, rngs[:-1])
     target = _Target(sc, rngs[-1], MemoryHub(sc.name, deliver_immediately=False), sinks)
     judge = _Judge(sc)
     constants = RunConstants.of_scenario(sc, judge.formation.desired_distances())
@@ -182,9 +188,8 @@ def _fly(
     for k in range(periods):
         t_ns = k * period_ns
         target.observe(t_ns, pool)
-        measurements = [plant.measure(rngs[i]) for i, plant in enumerate(plants.plants)]
         truths = plants.truths()
-        outs, published = pool.step(t_ns, measurements, list(truths) if known_model else None)
+        outs, published = pool.step(t_ns, plants.measure(), list(truths) if known_model else None)
         _log_target_states(sinks, t_ns, sc.vehicle_ids, [o for o, _ in outs], target_states)
         sample = judge.sample(t_ns, outs, plants, truths, target.predicted_path(t_ns, period_ns))
         samples.append(sample)

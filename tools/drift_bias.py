@@ -45,9 +45,10 @@ def main() -> None:
     with open(args.scenario, "rb") as f:
         doc = tomllib.load(f)
     if args.mean_wind:  # (parsed again, so that the learner's forecast has no sinusoid either)
-        wind = doc["truth"]["wind"]
-        for key in ("gust_amplitude_m_s", "gust_period_s", "gust_phase_rad"):
-            wind.pop(key, None)
+        tables = [doc.get("truth", {}), *(v.get("truth", {}) for v in doc.get("vehicles", []))]
+        for wind in (t.get("wind", {}) for t in tables):
+            for key in ("gust_amplitude_m_s", "gust_period_s", "gust_phase_rad"):
+                wind.pop(key, None)
     sc = parse_scenario(doc, source=args.scenario)
     record = run_lockstep(sc, seed=args.seed)
     bias, offset = _along(record)
