@@ -83,12 +83,24 @@ def _vehicle_views() -> list[rrb.TimeSeriesView]:
 
 
 def fleet_blueprint(
-    *, vehicle_ids: tuple[int, ...], trail_window_s: float = TRAIL_WINDOW_S
+    *,
+    vehicle_ids: tuple[int, ...],
+    trail_window_s: float = TRAIL_WINDOW_S,
+    map_bounds: tuple[tuple[float, float], tuple[float, float]] | None = None,
 ) -> rrb.Blueprint:
     """The viewer layout: the map on the left, the time series on the right (the fleet's
     shown, the per-vehicle ones a tab away); the map shows `map/trails` and the target's raw
     observations over the last `trail_window_s` [s] before the time cursor; the side panels
-    collapsed."""
+    collapsed.
+
+    `map_bounds` ((x min, x max), (y min, y max)) [m, map frame] fixes what the map shows;
+    without it the viewer fits the map to what it shows at the time cursor, and eases the
+    camera to each new fit over several frames (most of a second each with software
+    rendering) whenever the cursor jumps."""
+    bounds = {}
+    if map_bounds is not None:
+        x_range, y_range = map_bounds
+        bounds["visual_bounds"] = rrb.VisualBounds2D(x_range=x_range, y_range=y_range)
     trail = rrb.VisibleTimeRanges(
         timeline=TIMELINE,
         start=rrb.TimeRangeBoundary.cursor_relative(seconds=-trail_window_s),
@@ -101,6 +113,7 @@ def fleet_blueprint(
                     origin="map",
                     name=f"map ({len(vehicle_ids)} UAVs)",
                     overrides={"/map/trails": trail, "/map/target_observations": trail},
+                    **bounds,
                 ),
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],

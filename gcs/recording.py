@@ -71,6 +71,8 @@ __all__ = [
     "log_events",
     "log_target_observations",
     "log_run_end",
+    "MapExtent",
+    "show_whole_flight",
     "log_map",
     "log_series",
     "log_meta",
@@ -420,6 +422,46 @@ def log_series(
     _series(columns, rec, live, plan_stale_s=plan_stale_s)
     _live_series(columns, live)
     log_events(stream, _qp_events(rec, t_ns=t_ns, run_start=run_start))
+
+
+class MapExtent:
+    """The box [m, map frame] that holds every vehicle, slot and target position logged on
+    the map, with a margin for what is drawn around them (headings, plans, the target's
+    prediction)."""
+
+    MARGIN_M = 5.0
+
+    def __init__(self) -> None:
+        self.low = np.full(2, np.inf)
+        self.high = np.full(2, -np.inf)
+
+    def add(self, rec: FlightRecord) -> None:
+        """Widen the box to the positions of `rec`'s periods."""
+        ned = [rec.truth[..., :2].reshape(-1, 2), rec.slots.reshape(-1, 2), rec.target[:, :2]]
+        points = map_from_ned(np.concatenate(ned))
+        self.low = np.minimum(self.low, points.min(axis=0))
+        self.high = np.maximum(self.high, points.max(axis=0))
+
+    def bounds(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """((x min, x max), (y min, y max)) with the margin; None before any position."""
+        if not np.all(np.isfinite(self.low)):
+            return None
+        margin = max(self.MARGIN_M, 0.05 * float(np.max(self.high - self.low)))
+        low, high = self.low - margin, self.high + margin
+        return (float(low[0]), float(high[0])), (float(low[1]), float(high[1]))
+
+
+def show_whole_flight(
+    stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], extent: MapExtent
+) -> None:
+    """Send the blueprint again, its map fixed on everything flown (`MapExtent`), and make
+    it the one a viewer shows: the recording then opens on the whole flight, and a jump of
+    the time cursor redraws the map in one frame instead of easing the camera to a new fit.
+    A viewer watching the run live switches to it when the run ends."""
+    bounds = extent.bounds()
+    if bounds is not None:
+        view = fleet_blueprint(vehicle_ids=vehicle_ids, map_bounds=bounds)
+        stream.send_blueprint(view, make_active=True, make_default=True)
 
 
 def log_run_end(stream: rr.RecordingStream, facts: dict) -> None:

@@ -267,6 +267,7 @@ class RerunSink:
         self._flushes = 0
         self._events: list[tuple[int, str, str]] = []
         self._observations: list[TargetFix] = []
+        self._extent = recording.MapExtent()
 
     def open(self, constants: RunConstants, run_info: dict) -> None:
         self._constants = constants
@@ -295,6 +296,7 @@ class RerunSink:
             head = [self._last] if self._last is not None else []
             rec = record_of(self._constants, head + self._map)
             recording.log_map(self.stream, rec, live_rows_of(self._map), head=bool(head))
+            self._extent.add(rec)
             self._last, self._map = self._map[-1], []
         if series and self._series:
             rec = record_of(self._constants, self._series)
@@ -324,6 +326,7 @@ class RerunSink:
         if self.stream is None:
             return
         self._send(series=True)
+        recording.show_whole_flight(self.stream, self._constants.vehicle_ids, self._extent)
         self.stream.flush()
         self.stream.disconnect()
         self.stream = None

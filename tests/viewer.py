@@ -178,14 +178,15 @@ class Container:
 
 
 def blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
-    """The blueprint stored in `rrd`: entity path (no leading /) -> component field -> the
-    value its last row logged (a list: Rerun components are batches)."""
+    """The blueprint stored in `rrd` that the viewer opens with (the last sent): entity path
+    (no leading /) -> component field -> the value its last row logged (a list: Rerun
+    components are batches)."""
     reader = rr.chunk.RrdReader(Path(rrd))
     stores = reader.blueprints()
     if not stores:
         raise ViewerError(f"{rrd} holds no blueprint")
     fields: dict[str, dict[str, list]] = {}
-    for chunk in reader.stream(store=stores[-1]):
+    for chunk in reader.stream(store=max(stores, key=lambda s: _logged_at(reader, s))):
         batch = chunk.to_record_batch()
         entity = fields.setdefault(chunk.entity_path.strip("/"), {})
         for column in batch.schema.names:
@@ -194,6 +195,16 @@ def blueprint_fields(rrd: Path) -> dict[str, dict[str, list]]:
                 if values:
                     entity[column.split(":", 1)[1]] = values[-1]
     return fields
+
+
+def _logged_at(reader: rr.chunk.RrdReader, store) -> int:
+    """When a blueprint store was made (its chunks' newest `log_time`): a recording that holds
+    several opens on the one sent last (each is sent to be the active one)."""
+    times = [
+        max(chunk.to_record_batch().column("log_time").cast("int64").to_pylist())
+        for chunk in reader.stream(store=store)
+    ]
+    return max(times)
 
 
 def recorded_blueprint(rrd: Path) -> Container:
@@ -379,34 +390,63 @@ def panel_ink(image: np.ndarray, rect: Rect) -> Ink:
 
 FRAME_PROBE = r"""
 (() => {
-  const frames = [];  // [start, end, draw calls] of every animation-frame callback [ms]
-  let draws = 0;
+  // frames: [start, end, draw calls, picture] of every animation-frame callback [ms];
+  // inputs: [type, timeStamp] of every pointer press and key press; read: hash the pictures.
+  let draws = 0, gl = null, pixels = null;
+  const probe = {frames: [], inputs: [], read: false};
   for (const cls of [window.WebGL2RenderingContext, window.WebGLRenderingContext]) {
     if (!cls) continue;
     for (const name of ["drawArrays", "drawElements", "drawArraysInstanced",
                         "drawElementsInstanced", "drawRangeElements"]) {
       const draw = cls.prototype[name];
       if (!draw) continue;
-      cls.prototype[name] = function (...args) { draws += 1; return draw.apply(this, args); };
+      cls.prototype[name] = function (...args) {
+        draws += 1; gl = this; return draw.apply(this, args);
+      };
     }
   }
+  // What a drawn frame left on the canvas, as a number: a hash of its pixels, read back from
+  // the drawing buffer before the browser shows it (the GL state the read needs is restored).
+  const picture = () => {
+    if (!gl || !(gl instanceof WebGL2RenderingContext)) return null;
+    const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
+    if (!pixels || pixels.length !== w * h * 4) pixels = new Uint8Array(w * h * 4);
+    const read = gl.getParameter(gl.READ_FRAMEBUFFER_BINDING);
+    const pack = gl.getParameter(gl.PIXEL_PACK_BUFFER_BINDING);
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
+    gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, pixels);
+    gl.bindBuffer(gl.PIXEL_PACK_BUFFER, pack);
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, read);
+    const words = new Uint32Array(pixels.buffer);
+    let hash = 2166136261;
+    for (let i = 0; i < words.length; i++) hash = Math.imul(hash ^ words[i], 16777619);
+    return hash >>> 0;
+  };
   const request = window.requestAnimationFrame.bind(window);
   window.requestAnimationFrame = (callback) => request((t) => {
     const start = performance.now();
     draws = 0;
-    try { callback(t); } finally { frames.push([start, performance.now(), draws]); }
+    try { callback(t); } finally {
+      let seen = null;
+      try { seen = draws && probe.read ? picture() : null; } catch (e) { seen = null; }
+      probe.frames.push([start, performance.now(), draws, seen]);
+    }
   });
-  const inputs = [];  // [type, timeStamp] of every pointer press and key press
   for (const type of ["pointerdown", "keydown"])
-    window.addEventListener(type, (e) => inputs.push([type, e.timeStamp]), true);
-  window.__redrawProbe = {frames, inputs};
+    window.addEventListener(type, (e) => probe.inputs.push([type, e.timeStamp]), true);
+  window.__redrawProbe = probe;
 })();
 """
 """Page script (`open_viewer(on_new_document=FRAME_PROBE)`) that times the viewer's frames.
 
 The viewer asks for an animation frame every display frame, drawn or not, and draws (WebGL draw
-calls) only in those where something changed; the probe notes each frame's start and end on the
-page's clock and its draw calls, and the time of every pointer and key press."""
+calls) only in those where something changed, and sometimes draws again what it drew; the probe
+notes each frame's start and end on the page's clock, its draw calls, and the time of every
+pointer and key press. With ``__redrawProbe.read = true`` (`Viewer.read_pictures`) it also
+notes a hash of the picture each drawn frame left, its pixels read back: that waits for the
+software renderer to finish the frame, and slows the frames some threefold, so a redraw is
+timed with it off."""
 
 QUIET_S = 1.5
 """The viewer has redrawn what an input asked for when its frames have drawn nothing for this
@@ -433,20 +473,48 @@ def scrub_points(count: int) -> list[tuple[int, int]]:
 
 @dataclass(frozen=True)
 class Redraw:
-    """What the viewer drew after one input [ms from the input's press, on the page's clock]:
-    the frames that drew; `done_ms`, the redraw time: the start of the second frame after the
-    last that drew; and `first_ms`, the same for the first that drew (when the input's effect
-    is first on the screen). The browser keeps one frame in flight: it may begin the next
-    frame while the last drawn one is still being drawn, but not the one after (with software
-    rendering a frame of the viewer takes most of a second, and that one begins that much
-    later), so by then the last drawn frame is on the screen."""
+    """What the viewer drew after one input: for each frame that drew, when it was on the
+    screen [ms from the input's press, on the page's clock: the start of the second frame
+    after it]; and, when the probe read the pictures (`Viewer.read_pictures`), whether each
+    changed the picture (its hash differs from the frame drawn before it). The browser keeps
+    one frame in flight: it may begin the next frame while the last drawn one is still being
+    drawn, but not the one after (with software rendering a frame of the viewer takes most of
+    a second, and that one begins that much later), so by then the frame is on the screen."""
 
-    drawn: int
-    done_ms: float
-    first_ms: float = 0.0
+    shown_ms: tuple[float, ...]
+    changed: tuple[bool, ...] | None = None
+
+    @property
+    def drawn(self) -> int:
+        return len(self.shown_ms)
+
+    @property
+    def first_ms(self) -> float:
+        """When the input's effect is first on the screen."""
+        return self.shown_ms[0] if self.shown_ms else 0.0
+
+    @property
+    def done_ms(self) -> float:
+        """When the last frame that drew is on the screen."""
+        return self.shown_ms[-1] if self.shown_ms else 0.0
+
+    def final_ms(self, changed: tuple[bool, ...] | None = None) -> float:
+        """The redraw time: when the last frame that changed the picture is on the screen
+        (from then on the screen shows what the redraw settles on), its frames' changes
+        as this redraw read them, or as `changed` (another redraw of the same input, read
+        while this one was timed) says; without either, `done_ms`."""
+        changed = self.changed if changed is None else changed
+        if not self.shown_ms or changed is None:
+            return self.done_ms
+        last = max((i for i, c in enumerate(changed) if c), default=0)
+        return self.shown_ms[min(last, len(self.shown_ms) - 1)]
 
     def __str__(self) -> str:
-        return f"{self.done_ms:.0f} ms, first {self.first_ms:.0f} ms ({self.drawn} frames drawn)"
+        changes = "" if self.changed is None else f", {sum(self.changed)} changed the picture"
+        return (
+            f"{self.done_ms:.0f} ms, first {self.first_ms:.0f} ms"
+            f" ({self.drawn} frames drawn{changes})"
+        )
 
 
 # --- Chromium over the DevTools protocol -----------------------------------------------------
@@ -689,13 +757,19 @@ class Viewer:
             raise ViewerError("the page saw no input")
         t0 = presses[0][1]
         self.idle(after_ms=t0, timeout_s=timeout_s)
-        frames = [f for f in self._frames(since) if f[1] >= t0]
+        frames = self._frames(max(0, since - 600))
+        before = [f[3] for f in frames if f[2] and f[1] < t0]
+        frames = [f for f in frames if f[1] >= t0]
         drew = [i for i, f in enumerate(frames) if f[2]]
-        if not drew:
-            return Redraw(0, 0.0)
-        after = frames[drew[-1] + 1 : drew[-1] + 3]  # (the quiet frames: at least two)
-        shown = frames[drew[0] + 1 : drew[0] + 3]
-        return Redraw(len(drew), after[-1][0] - t0, shown[-1][0] - t0)
+        shown = tuple(frames[i + 1 : i + 3][-1][0] - t0 for i in drew)  # (quiet frames: 2+)
+        pictures = [before[-1] if before else None] + [frames[i][3] for i in drew]
+        if None in pictures[1:]:
+            return Redraw(shown)
+        return Redraw(shown, tuple(a != b for a, b in zip(pictures, pictures[1:], strict=False)))
+
+    def read_pictures(self, on: bool) -> None:
+        """Have `FRAME_PROBE` hash each drawn frame's picture (slow), or stop."""
+        self.evaluate(f"__redrawProbe.read = {'true' if on else 'false'}")
 
     def save(self, image: np.ndarray, name: str) -> Path:
         """Write `image` as ``<shots>/<name>.png``; its path."""

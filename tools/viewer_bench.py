@@ -84,34 +84,51 @@ def vehicles_of(rrd: Path) -> int:
     raise SystemExit(f"{rrd}: no map view")
 
 
-def redraws(rrd: Path, workdir: Path, env: dict[str, str], inputs: int) -> list[viewer.Redraw]:
-    """The redraws of `inputs` clicks on the time slider, the viewer paused."""
+def redraws(rrd: Path, workdir: Path, env: dict[str, str], inputs: int) -> list[dict]:
+    """The redraws of `inputs` clicks on the time slider, the viewer paused: each timed, then
+    each again with the pictures read (`viewer.Viewer.read_pictures`), which says when the
+    timed one's picture was final."""
     blueprint = viewer.recorded_blueprint(rrd)
     with viewer.open_viewer(rrd, workdir, env, on_new_document=viewer.FRAME_PROBE) as page:
         settled, _ = page.settle(blueprint, timeout_s=300.0)
         page.redraw_after(lambda: page.press(" ", "Space", 32, " "))  # pause the playback
-        times = []
-        for x, y in viewer.scrub_points(inputs):
-            redraw = page.redraw_after(lambda x=x, y=y: page.click(x, y))
-            if redraw.drawn == 0:
-                raise SystemExit(f"{rrd}: the viewer drew nothing after a click at {x}, {y}")
-            times.append(redraw)
+        passes = []
+        for read in (False, True):
+            page.read_pictures(read)
+            passes.append([_click(page, rrd, x, y) for x, y in viewer.scrub_points(inputs)])
         moved = page.screenshot()
         if np.array_equal(moved, settled):
             raise SystemExit(f"{rrd}: the clicks on the time slider changed nothing")
-    return times
+    return [
+        {
+            "timed": timed,
+            "final_ms": timed.final_ms(read.changed),
+            "changed": sum(read.changed or ()),
+        }
+        for timed, read in zip(*passes, strict=True)
+    ]
 
 
-def _summary(redraws: list[viewer.Redraw]) -> dict:
-    times = [r.done_ms for r in redraws]
+def _click(page, rrd: Path, x: int, y: int) -> viewer.Redraw:
+    redraw = page.redraw_after(lambda: page.click(x, y))
+    if redraw.drawn == 0:
+        raise SystemExit(f"{rrd}: the viewer drew nothing after a click at {x}, {y}")
+    return redraw
+
+
+def _summary(redraws: list[dict]) -> dict:
+    times = [r["final_ms"] for r in redraws]
+    timed = [r["timed"] for r in redraws]
     return {
-        "frames_drawn_median": float(np.median([r.drawn for r in redraws])),
+        "frames_drawn_median": float(np.median([r.drawn for r in timed])),
+        "frames_changed_median": float(np.median([r["changed"] for r in redraws])),
+        "last_drawn_median_ms": float(np.median([r.done_ms for r in timed])),
         "redraw_median_ms": float(np.median(times)),
         "redraw_p99_ms": float(np.percentile(times, 99)),
         "redraw_max_ms": float(np.max(times)),
         "redraw_ms": [round(t, 1) for t in times],
-        "first_frame_median_ms": float(np.median([r.first_ms for r in redraws])),
-        "first_frame_max_ms": float(np.max([r.first_ms for r in redraws])),
+        "first_frame_median_ms": float(np.median([r.first_ms for r in timed])),
+        "first_frame_max_ms": float(np.max([r.first_ms for r in timed])),
     }
 
 
@@ -141,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             rrds[label] = work / f"{scenario.stem}-{label.replace(' ', '-')}.rrd"
             record(tree, scenario, rrds[label], args.duration)
-        times: dict[str, list[viewer.Redraw]] = {label: [] for label in trees}
+        times: dict[str, list[dict]] = {label: [] for label in trees}
         for r in range(args.rounds):
             order = list(trees) if r % 2 == 0 else list(reversed(trees))
             for label in order:
@@ -163,8 +180,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"median {row['redraw_median_ms']:5.0f} ms, p99 {row['redraw_p99_ms']:5.0f} ms,"
                 f" max {row['redraw_max_ms']:5.0f} ms; first frame median"
                 f" {row['first_frame_median_ms']:5.0f} ms, max {row['first_frame_max_ms']:5.0f} ms"
+                f"; last drawn median {row['last_drawn_median_ms']:5.0f} ms"
                 f" ({len(times[label])} inputs, median {row['frames_drawn_median']:g} frames"
-                " drawn each)",
+                f" drawn each, {row['frames_changed_median']:g} of them changed the picture)",
                 flush=True,
             )
     load = [round(x, 2) for x in os.getloadavg()]

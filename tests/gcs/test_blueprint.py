@@ -157,3 +157,17 @@ def test_no_legend_covers_a_plot_and_the_side_panels_start_collapsed(fleets):
         assert fields[f"{view.path}/PlotLegend"]["visible"] == [False], view.name
     for panel in ("blueprint_panel", "selection_panel", "time_panel"):
         assert fields[panel]["state"] == [2], panel  # rerun's PanelState.Collapsed
+
+
+def test_the_map_is_fixed_on_the_whole_flight(fleets):
+    """The blueprint the recording opens with fixes the map on every vehicle, slot and target
+    position flown (with a margin), so a jump of the time cursor does not ease the camera."""
+    rec, path = fleets[50]
+    fields = blueprint_fields(path)
+    (view,) = [v for v in recorded_blueprint(path).views() if v.origin == "map"]
+    (bounds,) = fields[f"{view.path}/VisualBounds2D"]["range"]
+    east = np.concatenate([rec.truth[..., 1].ravel(), rec.target[:, 1]])
+    south = -np.concatenate([rec.truth[..., 0].ravel(), rec.target[:, 0]])
+    for (low, high), values in ((bounds["x_range"], east), (bounds["y_range"], south)):
+        assert low <= values.min() - 5.0 and high >= values.max() + 5.0
+        assert high - low <= np.ptp(values) + 2 * 5.0 + 1e-9  # (a 5 m margin at this size)

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import pytest
 import rerun as rr
+from viewer import blueprint_fields
 
 from fleetmpc.bench.telemetry import receive_period
 from fleetmpc.cli import main
@@ -161,17 +162,15 @@ def test_trails_are_steps_the_blueprint_shows_over_the_trail_window(run, rrd):
             north_now, east_now = rec.truth[k, i, :2]
             want = [[east, -north], [east_now, -north_now]]
             assert strips[k][i] == [pytest.approx(p, abs=1e-4) for p in want], (k, i)
-    reader = rr.chunk.RrdReader(path)
-    (blueprint,) = reader.blueprints()
-    ranges = [
-        b.column(b.schema.names.index("VisibleTimeRanges:ranges")).to_pylist()
-        for c in reader.stream(store=blueprint)
-        if c.entity_path.endswith("/ViewContents/overrides/map/trails/visualizers")
-        for b in [c.to_record_batch()]
+    overrides = blueprint_fields(path)
+    (ranges,) = [
+        fields["ranges"]
+        for entity, fields in overrides.items()
+        if entity.endswith("/ViewContents/overrides/map/trails/visualizers")
     ]
     window_ns = round(TRAIL_WINDOW_S * 1e9)
     want = {"timeline": TIMELINE, "range": {"start": -window_ns, "end": 0}}
-    assert ranges == [[[want]]]
+    assert ranges == [want]
 
 
 def test_qp_fallback_becomes_a_warning_event(run, tmp_path, strict_rerun):
