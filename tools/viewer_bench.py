@@ -16,9 +16,12 @@ rendering (SwiftShader), at 1600 x 1000, through the tests' viewer driver
 the page has loaded and settled, playback is paused (Space), then `--inputs` clicks on the time
 slider move the time cursor back and forth (`scrub_points`). Each is timed on the page's clock
 from the press (the event's timeStamp) until the viewer, having drawn the input's effect, has
-drawn nothing more for 1.5 s: the redraw time is the start of the first frame after the last
-frame that drew (WebGL draw calls), when the browser has put that one on the screen
-(`viewer.Redraw`). Per fleet: the median, p99 and max over the inputs of every round.
+drawn nothing more for 1.5 s (`viewer.Redraw`: when each frame that drew was on the screen).
+The same clicks are then made again with the page hashing each drawn frame's picture, which
+slows the frames too much to time them, and says which of the frames changed the picture: the
+redraw time is when the timed redraw's last such frame was on the screen (the viewer often
+draws the same picture again for several frames after it). Per fleet: the median, p99 and max
+over the inputs of every round; also the first frame's time and the last drawn frame's.
 
 With `--baseline DIR` (another checkout, e.g. `git worktree add /tmp/base <commit>`), each
 fleet is also recorded by that tree's code, and each round measures both recordings, the two
