@@ -17,12 +17,14 @@ stdout, exit 0.
 """
 
 import argparse
+import contextlib
 import json
 import math
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from fleetmpc.bus.faults import LINK_KINDS, FaultLayer, LinkFaults, load_faults
@@ -145,15 +147,13 @@ def run(args: argparse.Namespace) -> int:
     # interval lets the control loop keep it that long past a send's due time: 20 ms of fleet
     # time at x4 on a 50 ms stream period. With 1 ms the stream keeps close to its period.
     sys.setswitchinterval(0.001)
-    stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    if args.record:
-        args.record.parent.mkdir(parents=True, exist_ok=True)
-    record_file = open(args.record, "w") if args.record else None  # noqa: SIM115
+    with _stop_on_signals() as stop, _json_lines(args.record) as record:
+        return _fly(args, scenario, spec, agent, clock, faults=faults, stop=stop, record=record)
 
-    def record(row: dict) -> None:
-        record_file.write(json.dumps(row) + "\n")
-        record_file.flush()
+
+def _fly(args, scenario, spec, agent, clock, *, faults, stop, record) -> int:
+    """Open the plan bus and the autopilot link, fly until `stop` (or the runner ends the run),
+    then wind the link down, close both and print the runner's summary; the exit status."""
 
     def fleet_now() -> int | None:
         return clock.fleet_ns(time.time_ns())  # (None before the epoch: no fault applies)
@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
             settings=_runner_settings(args, scenario),
             clock=clock,
             log=_log,
-            record=record if record_file else None,
+            record=record,
         )
         streamer.start()
         runner.run(stop, streamer)
@@ -194,10 +194,35 @@ def run(args: argparse.Namespace) -> int:
             bus.close()
         if runner is not None:
             print(json.dumps(runner.summary(streamer)), flush=True)
-        if record_file is not None:
-            record_file.close()
+
+
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT or SIGTERM while the block runs (their handlers restored after)."""
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def _json_lines(path: Path | None) -> Iterator[Callable[[dict], None] | None]:
+    """A function that writes a row to `path` as a JSON line, flushed (the file closed after
+    the block); None without a path."""
+    if path is None:
+        yield None
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as file:
+
+        def write(row: dict) -> None:
+            file.write(json.dumps(row) + "\n")
+            file.flush()
+
+        yield write
 
 
 def _check_options(args: argparse.Namespace) -> None:
