@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmpc.check.track_report import track_lines
-from fleetmpc.check.wind_report import wind_lines
+from fleetmpc.check.wind_report import learner_noise_lines, wind_lines
 from fleetmpc.errors import InfeasibleError
 from fleetmpc.gcs.metrics import corner_indices
 from fleetmpc.onboard.core.agent import reference_course_limit, vehicle_mpc
@@ -266,6 +266,7 @@ def check_scenario(sc: Scenario) -> FeasibilityReport:
     )
     lines.append(f"target speed: up to {t_speed:.3f} m/s")
     lines += wind_lines(sc)
+    lines += learner_noise_lines(sc)
     course_limit = reference_course_limit(sc.controller, sc.formation)
     if isinstance(sc.target, RecordedTrack):
         more, trouble = track_lines(

@@ -15,6 +15,7 @@ __all__ = [
     "DriftFilter",
     "cross_track_time_s",
     "drift_filter",
+    "learner_noise_lines",
     "wind_lines",
     "wind_share_m",
 ]
@@ -188,3 +189,33 @@ def _nearest_slot_spacing_m(sc: Scenario) -> float | None:
     if len(sc.formation.slots_m) < 2:
         return None
     return Formation(sc.formation).closest_slots()[2]
+
+
+def learner_noise_lines(sc: Scenario) -> list[str]:
+    """A line where the learner takes the ground velocity's noise as other than the simulated
+    vehicles' (by more than a tenth): its filter then weighs each measurement wrongly."""
+    if not sc.learning.enabled:
+        return []
+    assumed = sc.learning.measurement_velocity_std_m_s
+    noises = sorted({v.truth.velocity_noise_m_s for v in sc.vehicles})
+    lines = []
+    for noise in noises:
+        if abs(noise - assumed) <= 0.1 * max(noise, assumed):
+            continue
+        ids = [str(v.id) for v in sc.vehicles if v.truth.velocity_noise_m_s == noise]
+        who = (
+            f"vehicle {ids[0]} measures" if len(ids) == 1 else f"vehicles {', '.join(ids)} measure"
+        )
+        effect = (
+            "it trusts each measurement less than it could, so its drift follows the wind "
+            "more slowly than the sensor allows"
+            if noise < assumed
+            else "it trusts each measurement more than it should, so its drift carries more "
+            "of the sensor's noise"
+        )
+        lines.append(
+            f"learner: takes the ground velocity's noise as {assumed:.3f} m/s "
+            f"([learning] measurement_velocity_std_m_s), {who} it with "
+            f"{noise:.3f} m/s ([truth] velocity_noise_m_s): {effect}"
+        )
+    return lines

@@ -235,8 +235,9 @@ class RerunSink:
     """A Rerun recording (a `.rrd` file, a viewer, or both): samples are kept until `flush`,
     which logs the map of the new periods, each at its own time; the time series, the
     flight_record rows and the QP events go out every `series_every` flushes that had new
-    periods, and at `close`. A logging call costs per entity, not per row, so bigger slices
-    cost less per period."""
+    periods, and at `close`, which also sends the blueprint again with the map fixed on the
+    whole flight (`recording.show_whole_flight`). A logging call costs per entity, not per row,
+    so bigger slices cost less per period."""
 
     def __init__(
         self,

@@ -233,3 +233,24 @@ def test_check_says_how_well_the_learned_drift_can_follow_the_wind():
     bandwidth, error = -math.log(phi * (1 - gain)) / tau, math.sqrt(a * R / (a + R))
     assert "gust part is 0.150 m/s over 3.7 s" in text
     assert f"a bandwidth of {bandwidth:.2f} rad/s and an error of about {error:.3f} m/s" in text
+
+
+def test_check_says_when_the_learner_weighs_the_velocity_sensor_wrongly(paper):
+    from fleetmpc.check.feasibility import check_scenario
+
+    def text(noise_m_s):
+        vehicles = tuple(
+            dataclasses.replace(v, truth=dataclasses.replace(v.truth, velocity_noise_m_s=n))
+            for v, n in zip(paper.vehicles, noise_m_s, strict=True)
+        )
+        return check_scenario(dataclasses.replace(paper, vehicles=vehicles)).render()
+
+    assumed = paper.learning.measurement_velocity_std_m_s
+    assert "learner:" not in text([assumed * 1.05] * len(paper.vehicles))
+    quieter = text([assumed / 2] + [assumed] * (len(paper.vehicles) - 1))
+    assert (
+        f"takes the ground velocity's noise as {assumed:.3f} m/s ([learning] "
+        f"measurement_velocity_std_m_s), vehicle 1 measures it with {assumed / 2:.3f} m/s"
+    ) in quieter
+    assert "follows the wind more slowly than the sensor allows" in quieter
+    assert "carries more of the sensor's noise" in text([assumed * 2] * len(paper.vehicles))
