@@ -76,13 +76,14 @@ def wind_lines(sc: Scenario) -> list[str]:
     winds = {v.truth.wind for v in sc.vehicles}
     lines = []
     for wind in sorted(winds, key=repr):
-        whose = "" if len(winds) == 1 else f" (vehicles {_ids_with(sc, wind)})"
+        whose = "" if len(winds) == 1 else f" (vehicles {', '.join(_ids_with(sc, 'wind', wind))})"
         lines += _lines_of(wind, sc, whose)
     return lines
 
 
-def _ids_with(sc: Scenario, wind: Wind) -> str:
-    return ", ".join(str(v.id) for v in sc.vehicles if v.truth.wind == wind)
+def _ids_with(sc: Scenario, field: str, value: object) -> list[str]:
+    """The ids of the vehicles whose truth's `field` is `value`."""
+    return [str(v.id) for v in sc.vehicles if getattr(v.truth, field) == value]
 
 
 def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
@@ -202,7 +203,7 @@ def learner_noise_lines(sc: Scenario) -> list[str]:
     for noise in noises:
         if abs(noise - assumed) <= 0.1 * max(noise, assumed):
             continue
-        ids = [str(v.id) for v in sc.vehicles if v.truth.velocity_noise_m_s == noise]
+        ids = _ids_with(sc, "velocity_noise_m_s", noise)
         who = (
             f"vehicle {ids[0]} measures" if len(ids) == 1 else f"vehicles {', '.join(ids)} measure"
         )
