@@ -452,15 +452,22 @@ class MapExtent:
 
 
 def show_whole_flight(
-    stream: rr.RecordingStream, vehicle_ids: tuple[int, ...], extent: MapExtent
+    stream: rr.RecordingStream,
+    vehicle_ids: tuple[int, ...],
+    extent: MapExtent,
+    *,
+    trail_window_s: float = TRAIL_WINDOW_S,
 ) -> None:
     """Send the blueprint again, its map fixed on everything flown (`MapExtent`), and make
     it the one a viewer shows: the recording then opens on the whole flight, and a jump of
     the time cursor redraws the map in one frame instead of easing the camera to a new fit.
-    A viewer watching the run live switches to it when the run ends."""
+    A viewer watching the run live switches to it when the run ends. `trail_window_s`: as
+    `open_recording` was given it."""
     bounds = extent.bounds()
     if bounds is not None:
-        view = fleet_blueprint(vehicle_ids=vehicle_ids, map_bounds=bounds)
+        view = fleet_blueprint(
+            vehicle_ids=vehicle_ids, trail_window_s=trail_window_s, map_bounds=bounds
+        )
         stream.send_blueprint(view, make_active=True, make_default=True)
 
 
