@@ -498,12 +498,11 @@ class Redraw:
         """When the last frame that drew is on the screen."""
         return self.shown_ms[-1] if self.shown_ms else 0.0
 
-    def final_ms(self, changed: tuple[bool, ...] | None = None) -> float:
+    def final_ms(self, changed: tuple[bool, ...] | None) -> float:
         """The redraw time: when the last frame that changed the picture is on the screen
-        (from then on the screen shows what the redraw settles on), its frames' changes
-        as this redraw read them, or as `changed` (another redraw of the same input, read
-        while this one was timed) says; without either, `done_ms`."""
-        changed = self.changed if changed is None else changed
+        (from then on the screen shows what the redraw settles on), as `changed` says (the
+        `changed` of another redraw of the same input, whose pictures were read while this
+        one was timed); without it, `done_ms`."""
         if not self.shown_ms or changed is None:
             return self.done_ms
         last = max((i for i, c in enumerate(changed) if c), default=0)
