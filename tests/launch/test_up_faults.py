@@ -14,6 +14,8 @@ import pytest
 from helpers import live_processes_naming, scenario_on_free_ports
 from test_up import Up
 
+pytestmark = pytest.mark.slow  # (about two minutes of two cores: seven live fleets)
+
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "scenarios" / "paper.toml"
 FAULTS = ROOT / "faults" / "live"
@@ -58,7 +60,7 @@ def test_a_frozen_agent_takes_its_vehicle_back(fly):
     _formation_back(m)
 
 
-@pytest.mark.parametrize("speed", [pytest.param(1, marks=pytest.mark.slow), 4])
+@pytest.mark.parametrize("speed", [1, 4])
 def test_a_restarted_router_is_rejoined(fly, speed):
     """The router is down for 3 s of fleet time and its restart takes some wall time more (at
     x4 four times as much fleet time); the vehicles fly the silence on their slots (each keeps

@@ -69,6 +69,7 @@ def _wedge_circle(wind: dict):
     return parse_scenario(doc)
 
 
+@pytest.mark.slow  # (about 50 s of two cores: two 110 s flights of five vehicles)
 @pytest.mark.parametrize(("known", "expected_m"), [(True, 0.061), (False, 0.078)])
 def test_checks_wind_share_is_what_a_run_loses_to_the_wind(known, expected_m):
     """docs/design.md, "What the controller leaves of the wind": a case that did not fix the
