@@ -32,6 +32,7 @@ the period gates in fleet time without any fault of the code.
 
 import contextlib
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -311,7 +312,7 @@ def skipped_periods(flight: Flight) -> dict[int, list[float]]:
         stamps = [r["stamp_ns"] * 1e-9 for r in rows if r["stamp_ns"] * 1e-9 < flight.kill_s]
         out[vid] = [
             a + k * period
-            for a, b in zip(stamps, stamps[1:])
+            for a, b in itertools.pairwise(stamps)
             for k in range(1, round((b - a) / period))
         ]
     return out
