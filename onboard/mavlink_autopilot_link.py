@@ -36,10 +36,13 @@ from fleetmpc.onboard.telemetry_streams import (
     ODOMETRY_INTERVAL_US,
     ODOMETRY_WAIT_S,
     STREAM_INTERVALS_US,
+    attitude_yaw,
     finite,
+    global_fix,
+    landed_state,
+    local_position,
     odometry_pose,
 )
-from fleetmpc.protocol.local_frame import ned_from_geodetic
 from fleetmpc.protocol.mavlink_map import (
     Autopilot,
     FlightMode,
@@ -152,73 +155,59 @@ class MavlinkAutopilotLink(AutopilotLink):
     def _handle(self, msg) -> None:
         if self.faults is not None and self.faults.cut():
             return  # (an injected link fault: the message never came)
-        if msg.get_type() == "BAD_DATA":
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
             return  # (a frame pymavlink could not decode: nothing to act on)
         if self.signing is not None and not self.signing.admit(msg):
             self._update(rejected=self.state().rejected + 1)
-            return
-        kind = msg.get_type()
-        src = msg.get_srcSystem()
-        st = self.state()
-        if kind == "HEARTBEAT":
-            self._on_heartbeat(msg, src)
-            return
-        if st.system_id == 0 or src != st.system_id or msg.get_srcComponent() != 1:
-            return
-        if kind == "ODOMETRY":
-            pose = odometry_pose(msg)
+        elif kind == "HEARTBEAT":
+            self._on_heartbeat(msg, msg.get_srcSystem())
+        elif self._from_autopilot(msg) and not self._read(kind, msg, self.state()):
+            self._update(rejected=self.state().rejected + 1)
+
+    def _from_autopilot(self, msg) -> bool:
+        """Whether `msg` comes from the autopilot the link engaged (its system, component 1)."""
+        system = self.state().system_id
+        return system != 0 and msg.get_srcSystem() == system and msg.get_srcComponent() == 1
+
+    def _read(self, kind: str, msg, st: LinkState) -> bool:
+        """Take one message of the engaged autopilot's (`st`: the state before it); False: an
+        invalid one (its values are in `fleetmpc.onboard.telemetry_streams`' readers)."""
+        if kind in ("ODOMETRY", "LOCAL_POSITION_NED"):
+            pose = odometry_pose(msg) if kind == "ODOMETRY" else local_position(msg)
             if pose is None:
-                self._update(rejected=st.rejected + 1)
-                return
-            self._odometry_seen.set()
+                return False
+            if kind == "ODOMETRY":
+                self._odometry_seen.set()
             self._pose(st, *pose)
-        elif kind == "LOCAL_POSITION_NED":
-            if not (
-                finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, bound=MAX_POSITION_M)
-                and 0 <= msg.time_boot_ms <= MAX_BOOT_MS
-            ):
-                self._update(rejected=st.rejected + 1)
-                return
-            t_ns = int(msg.time_boot_ms) * 1_000_000
-            self._pose(st, t_ns, msg.x, msg.y, msg.z, msg.vx, msg.vy)
         elif kind == "ATTITUDE":
-            if not (
-                finite(msg.yaw, bound=2 * math.pi + 1e-3) and 0 <= msg.time_boot_ms <= MAX_BOOT_MS
-            ):
-                self._update(rejected=st.rejected + 1)
-                return
-            t_ns = int(msg.time_boot_ms) * 1_000_000
-            self._update(
-                yaw_rad=float(msg.yaw),
-                time_boot_ns=max(t_ns, st.time_boot_ns),
-                received_ns=self._now_ns(),
-            )
-        elif kind == "COMMAND_ACK":
-            if msg.result in {int(r) for r in MavResult}:
-                with self._cond:
-                    self._acks[int(msg.command)] = int(msg.result)
-                    self._cond.notify_all()
+            if (yaw := attitude_yaw(msg)) is None:
+                return False
+            t_ns, yaw_rad = yaw
+            boot_ns = max(t_ns, st.time_boot_ns)
+            self._update(yaw_rad=yaw_rad, time_boot_ns=boot_ns, received_ns=self._now_ns())
         elif kind == "GLOBAL_POSITION_INT" and self._home_deg is not None:
-            lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
-            if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and msg.lat != 0):
-                self._update(rejected=st.rejected + 1)
-                return
-            north, east = ned_from_geodetic(
-                lat, lon, home_lat_deg=self._home_deg[0], home_lon_deg=self._home_deg[1]
-            )
-            self._origin.global_fix(int(msg.time_boot_ms) * 1_000_000, north, east)
+            if (fix := global_fix(msg, self._home_deg)) is None:
+                return False
+            self._origin.global_fix(*fix)
         elif kind == "EXTENDED_SYS_STATE":
-            try:
-                self._update(landed_state=LandedState(msg.landed_state))
-            except ValueError:
-                self._update(rejected=st.rejected + 1)
-        elif kind == "STATUSTEXT":
-            text = str(getattr(msg, "text", ""))[:50]
+            if (landed := landed_state(msg)) is None:
+                return False
+            self._update(landed_state=landed)
+        elif kind == "COMMAND_ACK" and msg.result in {int(r) for r in MavResult}:
             with self._cond:
-                self._texts = [*self._texts[-(_KEPT_TEXTS - 1) :], text]
-                self._texts_seen += 1
-            self._update(last_text=text)
-            self._log(f"autopilot: {text}")
+                self._acks[int(msg.command)] = int(msg.result)
+                self._cond.notify_all()
+        elif kind == "STATUSTEXT":
+            self._on_text(str(getattr(msg, "text", ""))[:50])
+        return True
+
+    def _on_text(self, text: str) -> None:
+        with self._cond:
+            self._texts = [*self._texts[-(_KEPT_TEXTS - 1) :], text]
+            self._texts_seen += 1
+        self._update(last_text=text)
+        self._log(f"autopilot: {text}")
 
     def _pose(
         self,

@@ -1,4 +1,4 @@
-"""What the agent asks its autopilot to stream, and how it reads a pose from it.
+"""What the agent asks its autopilot to stream, and how it reads each message it streams.
 
 On connecting, the link sets the intervals of the messages it reads and stops the others it is
 sent (`STREAM_INTERVALS_US`): every message costs the agent a wake-up of its reader and the
@@ -9,7 +9,8 @@ the autopilot streams it (PX4), else from LOCAL_POSITION_NED and ATTITUDE (docs/
 
 import math
 
-from fleetmpc.protocol.local_frame import quaternion_yaw
+from fleetmpc.protocol.local_frame import ned_from_geodetic, quaternion_yaw
+from fleetmpc.protocol.mavlink_map import LandedState
 
 __all__ = [
     "GLOBAL_FIX_INTERVAL_US",
@@ -19,7 +20,11 @@ __all__ = [
     "ODOMETRY_INTERVAL_US",
     "ODOMETRY_WAIT_S",
     "STREAM_INTERVALS_US",
+    "attitude_yaw",
     "finite",
+    "global_fix",
+    "landed_state",
+    "local_position",
     "odometry_pose",
 ]
 
@@ -84,3 +89,38 @@ MAX_BOOT_MS = 2**32 - 1
 def finite(*values: float, bound: float) -> bool:
     """True if every value is a finite number within +-`bound`."""
     return all(isinstance(v, float | int) and math.isfinite(v) and abs(v) <= bound for v in values)
+
+
+def local_position(msg) -> tuple[int, float, float, float, float, float] | None:
+    """(boot time [ns], x, y, z, v_north, v_east) of a valid LOCAL_POSITION_NED, or None."""
+    if not (
+        finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, bound=MAX_POSITION_M)
+        and 0 <= msg.time_boot_ms <= MAX_BOOT_MS
+    ):
+        return None
+    return int(msg.time_boot_ms) * 1_000_000, msg.x, msg.y, msg.z, msg.vx, msg.vy
+
+
+def attitude_yaw(msg) -> tuple[int, float] | None:
+    """(boot time [ns], yaw [rad]) of a valid ATTITUDE, or None."""
+    if not (finite(msg.yaw, bound=2 * math.pi + 1e-3) and 0 <= msg.time_boot_ms <= MAX_BOOT_MS):
+        return None
+    return int(msg.time_boot_ms) * 1_000_000, float(msg.yaw)
+
+
+def global_fix(msg, home_deg: tuple[float, float]) -> tuple[int, float, float] | None:
+    """(boot time [ns], north, east [m from `home_deg`, (lat, lon)]) of a valid
+    GLOBAL_POSITION_INT, or None (latitude 0 is a fix not yet made)."""
+    lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+    if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and msg.lat != 0):
+        return None
+    north, east = ned_from_geodetic(lat, lon, home_lat_deg=home_deg[0], home_lon_deg=home_deg[1])
+    return int(msg.time_boot_ms) * 1_000_000, north, east
+
+
+def landed_state(msg) -> LandedState | None:
+    """The landed state of an EXTENDED_SYS_STATE, or None: a value MAVLink does not define."""
+    try:
+        return LandedState(msg.landed_state)
+    except ValueError:
+        return None
