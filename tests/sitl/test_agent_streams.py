@@ -85,3 +85,31 @@ def test_odometry_gives_the_heading_and_the_velocity_in_ned(child_frame, velocit
     assert (vn, ve) == pytest.approx(expected, abs=1e-12)
     assert odometry_pose(odometry(frame=20)) is None  # LOCAL_FRD: not north-aligned
     assert odometry_pose(odometry(quaternion=[0.5, 0.0, 0.0, 0.5])) is None  # not a rotation
+
+
+def test_each_reader_takes_a_valid_message_and_refuses_a_bad_one():
+    """The link's readers of LOCAL_POSITION_NED, ATTITUDE, GLOBAL_POSITION_INT and
+    EXTENDED_SYS_STATE: the values of a valid message, None for one out of its bounds."""
+    from types import SimpleNamespace as Msg
+
+    from fleetmpc.onboard.telemetry_streams import (
+        attitude_yaw,
+        global_fix,
+        landed_state,
+        local_position,
+    )
+    from fleetmpc.protocol.mavlink_map import LandedState
+
+    position = {"x": 1.0, "y": -2.0, "z": -10.0, "vx": 0.5, "vy": 0.0, "time_boot_ms": 1500}
+    assert local_position(Msg(**position)) == (1_500_000_000, 1.0, -2.0, -10.0, 0.5, 0.0)
+    assert local_position(Msg(**{**position, "vy": math.nan})) is None
+    assert local_position(Msg(**{**position, "time_boot_ms": -1})) is None
+    assert attitude_yaw(Msg(yaw=-3.0, time_boot_ms=20)) == (20_000_000, -3.0)
+    assert attitude_yaw(Msg(yaw=7.0, time_boot_ms=20)) is None  # (beyond a turn)
+    home = (47.0, 8.0)
+    t_ns, north, east = global_fix(Msg(lat=470_000_900, lon=80_000_000, time_boot_ms=3), home)
+    assert t_ns == 3_000_000 and math.isclose(north, 10.0, rel_tol=0.01) and abs(east) < 1e-6
+    assert global_fix(Msg(lat=0, lon=80_000_000, time_boot_ms=3), home) is None  # (no fix yet)
+    assert global_fix(Msg(lat=950_000_000, lon=0, time_boot_ms=3), home) is None
+    assert landed_state(Msg(landed_state=2)) == LandedState.IN_AIR
+    assert landed_state(Msg(landed_state=9)) is None
