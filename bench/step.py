@@ -26,6 +26,7 @@ of another checkout, side by side in one run (`fleetmpc.bench.baseline`).
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import time
@@ -281,6 +282,8 @@ def load_average() -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """`fleetmpc bench`: one of the other benchmarks when a flag names it, else this module's
+    profile of the step (the module docstring)."""
     modes = (args.baseline, args.gcs_logging, args.scale, args.sweep, args.stages)
     if sum(map(bool, modes)) > 1:
         raise FleetMpcError(
@@ -306,38 +309,65 @@ def run(args: argparse.Namespace) -> int:
         from fleetmpc.bench import telemetry
 
         return telemetry.run(args)
+    return profile(args)
+
+
+def profile(args: argparse.Namespace) -> int:
+    """Steps 1 to 3 of the module docstring on `args.scenario`: printed, and written as JSON
+    to `args.json` if given."""
     sc = load_scenario(args.scenario)
     load_before = load_average()
-    # 1 and 2, alternately (so both see the same machine): uninstrumented runs for the real-time
-    # factor and the agent step; runs with timers for the split. The first timed run records
-    # each vehicle's QPs in flight order.
+    runs = _fly(sc, max(args.repeats, 1))
+    replays = _replay(sc, runs.captured, args.cvxpy_samples)
+    result = _result(sc, runs, replays, load_before, load_average())
+    _print(result, runs, replays)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+@dataclasses.dataclass
+class _Runs:
+    """What the lockstep runs of steps 1 and 2 measured."""
+
+    factors: list[float] = dataclasses.field(default_factory=list)
+    """Simulated seconds per wall second of each uninstrumented run."""
+    step_ms: list[np.ndarray] = dataclasses.field(default_factory=list)
+    """Each uninstrumented run's agent steps [ms]."""
+    steps: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    """(start, duration) [ns] of every timed `Agent.step`; then the calls inside them:"""
+    dekf: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    qp: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    filterpy: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    captured: dict[int, list[QpData]] = dataclasses.field(default_factory=dict)
+    """Each vehicle's QPs of the first timed run, in flight order."""
+
+
+def _fly(sc, repeats: int) -> _Runs:
+    """`repeats` times: an uninstrumented run, then one with timers (the first of which
+    records each vehicle's QPs), alternately, so that both see the same machine."""
     from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 
     from fleetmpc.onboard.core.agent import Agent
 
-    factors, step_ms = [], []
-    step_calls: list[tuple[int, int]] = []
-    dekf_calls: list[tuple[int, int]] = []
-    qp_calls: list[tuple[int, int]] = []
-    filterpy_calls: list[tuple[int, int]] = []
-    captured: dict[int, list[QpData]] = {}
+    runs = _Runs()
     original_solve = TubeLbmpc.solve
 
     def capturing(self: TubeLbmpc, d: QpData):
-        captured.setdefault(id(self), []).append(d)
+        runs.captured.setdefault(id(self), []).append(d)
         return original_solve(self, d)
 
-    for repeat in range(max(args.repeats, 1)):
+    for repeat in range(repeats):
         t0 = time.perf_counter()
         rec = run_lockstep(sc)
-        factors.append(sc.duration_s / (time.perf_counter() - t0))
-        step_ms.append(rec.step_time_ms.ravel())
+        runs.factors.append(sc.duration_s / (time.perf_counter() - t0))
+        runs.step_ms.append(rec.step_time_ms.ravel())
         with (
-            _timed(Agent, ("step",), step_calls),
-            _timed(DualEkf, ("step", "propagate"), dekf_calls),
-            _timed(FixedPatternQp, ("update", "solve"), qp_calls),
-            _timed(ExtendedKalmanFilter, ("predict", "update"), filterpy_calls),
-            _timed(KalmanFilter, ("predict", "update"), filterpy_calls),
+            _timed(Agent, ("step",), runs.steps),
+            _timed(DualEkf, ("step", "propagate"), runs.dekf),
+            _timed(FixedPatternQp, ("update", "solve"), runs.qp),
+            _timed(ExtendedKalmanFilter, ("predict", "update"), runs.filterpy),
+            _timed(KalmanFilter, ("predict", "update"), runs.filterpy),
         ):
             if repeat == 0:
                 TubeLbmpc.solve = capturing
@@ -345,37 +375,58 @@ def run(args: argparse.Namespace) -> int:
                 run_lockstep(sc)
             finally:
                 TubeLbmpc.solve = original_solve
-    steps_ns = np.concatenate(step_ms) * 1e6
-    split_steps = np.array([d for _, d in step_calls], dtype=float)
-    dekf = _per_step(dekf_calls, step_calls)
-    qp = _per_step(qp_calls, step_calls)
-    filterpy = _per_step(filterpy_calls, step_calls)
-    solved = qp > 0
-    build = (split_steps - dekf - qp)[solved]
-    # 3. Our QP path against a cvxpy rebuild, on the same recorded QPs.
-    ours_ns, cvx_ns, diffs, iterations = [], [], [], []
+    return runs
+
+
+@dataclasses.dataclass
+class _Replays:
+    """Step 3: the recorded QPs through our path and a sample of them through cvxpy."""
+
+    ours_ns: list[int] = dataclasses.field(default_factory=list)
+    cvx_ns: list[int] = dataclasses.field(default_factory=list)
+    """The sampled QPs' times, ours and cvxpy's, in the same order [ns]."""
+    diffs: list[float] = dataclasses.field(default_factory=list)
+    """Largest |c| difference of each sampled QP both solved."""
+    iterations: list[int] = dataclasses.field(default_factory=list)
+    """OSQP's iterations of each of our replays."""
+
+
+def _replay(sc, captured: dict[int, list[QpData]], samples: int) -> _Replays:
+    """Each vehicle's recorded QPs through a fresh MPC of ours, in flight order (warm start
+    as in flight), and every stride-th through a cvxpy rebuild (about `samples` in all)."""
+    out = _Replays()
     sequences = list(captured.values())
-    total = sum(len(q) for q in sequences)
-    stride = max(1, total // max(args.cvxpy_samples, 1))
+    stride = max(1, sum(len(q) for q in sequences) // max(samples, 1))
     for seq in sequences:
         mpc = vehicle_mpc(sc.controller, Formation(sc.formation))
         times, solutions = [], []
-        for d in seq:  # ours alone, in flight order (warm start as in flight)
+        for d in seq:
             t0 = time.perf_counter_ns()
             sol = mpc.solve(d)
             times.append(time.perf_counter_ns() - t0)
             solutions.append(sol)
-            iterations.append(sol.iterations)
+            out.iterations.append(sol.iterations)
         rebuild = _cvxpy_rebuild(vehicle_mpc(sc.controller, Formation(sc.formation)))
         for i in range(0, len(seq), stride):
             t0 = time.perf_counter_ns()
             c_ref = rebuild(_as_arrays(seq[i]))
-            cvx_ns.append(time.perf_counter_ns() - t0)
-            ours_ns.append(times[i])
+            out.cvx_ns.append(time.perf_counter_ns() - t0)
+            out.ours_ns.append(times[i])
             if solutions[i].ok and c_ref is not None:
-                diffs.append(float(np.max(np.abs(solutions[i].c.ravel() - c_ref))))
-    load_after = load_average()
-    step = _stats(steps_ns)
+                out.diffs.append(float(np.max(np.abs(solutions[i].c.ravel() - c_ref))))
+    return out
+
+
+def _result(sc, runs: _Runs, replays: _Replays, load_before: list, load_after: list) -> dict:
+    """The figures as `--json` writes them, with the targets and which were met."""
+    split_steps = np.array([d for _, d in runs.steps], dtype=float)
+    dekf = _per_step(runs.dekf, runs.steps)
+    qp = _per_step(runs.qp, runs.steps)
+    filterpy = _per_step(runs.filterpy, runs.steps)
+    solved = qp > 0
+    step = _stats(np.concatenate(runs.step_ms) * 1e6)
+    cvxpy_over_ours = float(np.median(replays.cvx_ns) / np.median(replays.ours_ns))
+    iterations = replays.iterations
     result = {
         "scenario": sc.name,
         "horizon": sc.controller.horizon,
@@ -383,20 +434,20 @@ def run(args: argparse.Namespace) -> int:
         "load_average_before": load_before,
         "load_average_after": load_after,
         "lockstep_realtime_factor": {
-            "median": float(np.median(factors)),
-            "runs": [float(f) for f in factors],
+            "median": float(np.median(runs.factors)),
+            "runs": [float(f) for f in runs.factors],
         },
         "agent_step": step,
         "split_run_agent_step": _stats(split_steps),
         "dekf": _stats(dekf),
-        "model_build": _stats(build),
+        "model_build": _stats((split_steps - dekf - qp)[solved]),
         "qp_osqp": _stats(qp[solved]),
         "filterpy_calls": _stats(filterpy[solved]),
         "library_calls": _stats((filterpy + qp)[solved]),
-        "qp_path_ours": _stats(ours_ns),
-        "qp_path_cvxpy_rebuild": _stats(cvx_ns),
-        "cvxpy_over_ours_median": float(np.median(cvx_ns) / np.median(ours_ns)),
-        "max_abs_c_difference": float(max(diffs)) if diffs else None,
+        "qp_path_ours": _stats(replays.ours_ns),
+        "qp_path_cvxpy_rebuild": _stats(replays.cvx_ns),
+        "cvxpy_over_ours_median": cvxpy_over_ours,
+        "max_abs_c_difference": float(max(replays.diffs)) if replays.diffs else None,
         "osqp_iterations": {
             "median": float(np.median(iterations)),
             "mean": float(np.mean(iterations)),
@@ -407,51 +458,51 @@ def run(args: argparse.Namespace) -> int:
     result["targets_met"] = {
         "agent_step_median_ms": step["median_ms"] <= TARGETS["agent_step_median_ms"],
         "agent_step_p99_ms": step["p99_ms"] <= TARGETS["agent_step_p99_ms"],
-        "cvxpy_over_ours_median": result["cvxpy_over_ours_median"]
-        >= TARGETS["cvxpy_over_ours_median"],
+        "cvxpy_over_ours_median": cvxpy_over_ours >= TARGETS["cvxpy_over_ours_median"],
         "lockstep_realtime_factor": result["lockstep_realtime_factor"]["median"]
         >= TARGETS["lockstep_realtime_factor"],
     }
+    return result
 
-    def row(name: str, key: str) -> tuple[str, str, str]:
-        return name, f"{result[key]['median_ms']:.3f}", f"{result[key]['p99_ms']:.3f}"
 
+_ROWS = (
+    ("agent step", "agent_step"),
+    ("  DEKF", "dekf"),
+    ("  model build", "model_build"),
+    ("  QP (OSQP update + solve)", "qp_osqp"),
+    ("  filterpy calls (DEKF, target)", "filterpy_calls"),
+    ("  filterpy + OSQP calls", "library_calls"),
+    ("QP path, ours", "qp_path_ours"),
+    ("QP path, cvxpy rebuild", "qp_path_cvxpy_rebuild"),
+)
+"""The table's timed rows: their names and `_result`'s keys."""
+
+
+def _print(result: dict, runs: _Runs, replays: _Replays) -> None:
+    """The table of `result`, with what it was measured on and the targets missed."""
+    step, factor = result["agent_step"], result["lockstep_realtime_factor"]["median"]
+    print(
+        f"fleetmpc bench: scenario {result['scenario']!r}, M = {result['horizon']}, "
+        f"{result['vehicles']} vehicles, {step['n']} agent steps over {len(runs.factors)} runs "
+        f"(load average {result['load_average_before']} before, "
+        f"{result['load_average_after']} after)"
+    )
+    print(f"  {'':32s} {'median ms':>10s} {'p99 ms':>10s}")
     rows = [
         (
             "lockstep real-time factor",
-            f"{result['lockstep_realtime_factor']['median']:.0f}x",
+            f"{factor:.0f}x",
             f"(target >= {TARGETS['lockstep_realtime_factor']:.0f}x)",
         ),
-        row("agent step", "agent_step"),
-        row("  DEKF", "dekf"),
-        row("  model build", "model_build"),
-        row("  QP (OSQP update + solve)", "qp_osqp"),
-        row("  filterpy calls (DEKF, target)", "filterpy_calls"),
-        row("  filterpy + OSQP calls", "library_calls"),
-        row("QP path, ours", "qp_path_ours"),
-        row("QP path, cvxpy rebuild", "qp_path_cvxpy_rebuild"),
+        *(
+            (name, f"{result[k]['median_ms']:.3f}", f"{result[k]['p99_ms']:.3f}")
+            for name, k in _ROWS
+        ),
         ("cvxpy rebuild / ours (medians)", f"{result['cvxpy_over_ours_median']:.0f}x", ""),
     ]
-    print(
-        f"fleetmpc bench: scenario {sc.name!r}, M = {sc.controller.horizon}, "
-        f"{len(sc.vehicles)} vehicles, {step['n']} agent steps over {len(factors)} runs "
-        f"(load average {load_before} before, {load_after} after)"
-    )
-    print(f"  {'':32s} {'median ms':>10s} {'p99 ms':>10s}")
     for name, med, p99 in rows:
         print(f"  {name:32s} {med:>10s} {p99:>10s}".rstrip())
-    print(
-        f"  (split from the timed runs: step median "
-        f"{result['split_run_agent_step']['median_ms']:.3f} ms; "
-        f"{len(cvx_ns)} QPs side by side"
-        + (
-            f", ours and cvxpy agree on c within {max(diffs):.1e} on the {len(diffs)} both solved"
-            if diffs
-            else ", none that both solved"
-        )
-        + f"; OSQP iterations per solve, median {result['osqp_iterations']['median']:.0f}, "
-        f"mean {result['osqp_iterations']['mean']:.1f}, p99 {result['osqp_iterations']['p99']:.0f})"
-    )
+    print(_footnote(result, replays))
     missed = [k for k, ok in result["targets_met"].items() if not ok]
     print(
         "  targets: "
@@ -461,6 +512,19 @@ def run(args: argparse.Namespace) -> int:
         f"{TARGETS['cvxpy_over_ours_median']:.0f}x, real time >= "
         f"{TARGETS['lockstep_realtime_factor']:.0f}x)"
     )
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
-    return 0
+
+
+def _footnote(result: dict, replays: _Replays) -> str:
+    """The split's own step median, how the two QP paths agreed, and OSQP's iterations."""
+    diffs, iterations = replays.diffs, result["osqp_iterations"]
+    agreed = (
+        f", ours and cvxpy agree on c within {max(diffs):.1e} on the {len(diffs)} both solved"
+        if diffs
+        else ", none that both solved"
+    )
+    return (
+        f"  (split from the timed runs: step median "
+        f"{result['split_run_agent_step']['median_ms']:.3f} ms; "
+        f"{len(replays.cvx_ns)} QPs side by side{agreed}; OSQP iterations per solve, median "
+        f"{iterations['median']:.0f}, mean {iterations['mean']:.1f}, p99 {iterations['p99']:.0f})"
+    )
