@@ -185,13 +185,7 @@ def _fault(
     kind = table.get("kind")
     if not isinstance(kind, str) or kind not in _KEYS:
         raise ConfigError(f"{field}.kind", f"must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
-    known = _COMMON | _KEYS[kind]
-    if kind == "partition" or kind in PROCESS_KINDS:
-        known = known - {"vehicles"}
-    if kind == "kill":
-        known = known - {"duration_s"}
-    if kind == "clock_offset":
-        known = known - {"duration_s", "start_s"}
+    known = _known_keys(kind)
     unknown = sorted(set(table) - known)
     if unknown:
         raise ConfigError(
@@ -204,6 +198,32 @@ def _fault(
         args["duration_s"] = positive(f"{field}.duration_s", table["duration_s"])
     if "vehicles" in table:
         args["vehicles"] = _vehicle_list(f"{field}.vehicles", table["vehicles"], fleet)
+    args |= _network_fields(kind, table, field, fleet)
+    if kind in LINK_KINDS and processes is None and not live_link:
+        raise ConfigError(
+            f"{field}.kind",
+            f"{kind} is an autopilot-link fault: only a live fleet (fleetmpc up) has it",
+        )
+    if kind in PROCESS_KINDS:
+        args |= _process_fields(kind, table, field, processes)
+    return Fault(**args)
+
+
+def _known_keys(kind: str) -> set[str]:
+    """The keys a fault table of `kind` may have."""
+    known = _COMMON | _KEYS[kind]
+    if kind == "partition" or kind in PROCESS_KINDS:
+        known = known - {"vehicles"}
+    if kind == "kill":
+        known = known - {"duration_s"}
+    if kind == "clock_offset":
+        known = known - {"duration_s", "start_s"}
+    return known
+
+
+def _network_fields(kind: str, table: dict, field: str, fleet: Sequence[int]) -> dict[str, Any]:
+    """A message fault's own fields: its probability, a delay's and a partition's groups."""
+    args: dict[str, Any] = {}
     if "probability" in _KEYS[kind]:
         if "probability" not in table:
             raise ConfigError(f"{field}.probability", f"a {kind} fault needs it (0 to 1)")
@@ -226,34 +246,34 @@ def _fault(
                 raise ConfigError(f"{field}.groups[{i}]", f"repeats vehicle {min(seen & set(g))}")
             seen |= set(g)
         args["groups"] = tuple(parsed)
-    if kind in LINK_KINDS and processes is None and not live_link:
+    return args
+
+
+def _process_fields(
+    kind: str, table: dict, field: str, processes: Sequence[str] | None
+) -> dict[str, Any]:
+    """A process fault's process (one of the live fleet's `processes`) and clock offset."""
+    if processes is None:
         raise ConfigError(
             f"{field}.kind",
-            f"{kind} is an autopilot-link fault: only a live fleet (fleetmpc up) has it",
+            f"{kind} is a process fault: only a live fleet (fleetmpc up) has it",
         )
-    if kind in PROCESS_KINDS:
-        if processes is None:
-            raise ConfigError(
-                f"{field}.kind",
-                f"{kind} is a process fault: only a live fleet (fleetmpc up) has it",
-            )
-        name = table.get("process")
-        if name not in processes:
-            raise ConfigError(
-                f"{field}.process",
-                f"must be one of the fleet's processes, got {name!r}"
-                f" (known: {', '.join(processes)})",
-            )
-        if kind in ("freeze", "restart") and "duration_s" not in table:
-            raise ConfigError(f"{field}.duration_s", f"a {kind} fault needs it (seconds > 0)")
-        if kind == "clock_offset":
-            if not name.startswith("agent-"):
-                raise ConfigError(f"{field}.process", f"a clock offset is an agent's, got {name!r}")
-            if "offset_s" not in table:
-                raise ConfigError(f"{field}.offset_s", "a clock_offset fault needs it (seconds)")
-            args["offset_s"] = in_range(f"{field}.offset_s", table["offset_s"], -60.0, 60.0)
-        args["process"] = name
-    return Fault(**args)
+    name = table.get("process")
+    if name not in processes:
+        raise ConfigError(
+            f"{field}.process",
+            f"must be one of the fleet's processes, got {name!r} (known: {', '.join(processes)})",
+        )
+    if kind in ("freeze", "restart") and "duration_s" not in table:
+        raise ConfigError(f"{field}.duration_s", f"a {kind} fault needs it (seconds > 0)")
+    args: dict[str, Any] = {"process": name}
+    if kind == "clock_offset":
+        if not name.startswith("agent-"):
+            raise ConfigError(f"{field}.process", f"a clock offset is an agent's, got {name!r}")
+        if "offset_s" not in table:
+            raise ConfigError(f"{field}.offset_s", "a clock_offset fault needs it (seconds)")
+        args["offset_s"] = in_range(f"{field}.offset_s", table["offset_s"], -60.0, 60.0)
+    return args
 
 
 def parse_faults(
