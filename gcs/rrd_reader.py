@@ -9,6 +9,7 @@ bus did comes from the static `run_end`. A recording made before `flight_record`
 agents' target prediction and plan ages reads back without them.
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -76,35 +77,61 @@ def read_recording(path: str | Path) -> RecordingRun:
         chunks = list(reader.stream())
     except Exception as e:  # the reader raises plain exceptions on a corrupt file
         raise RecordingError(f"{p}: not a readable Rerun recording ({e})") from e
-    meta: dict[str, pa.Array] = {}
-    run_end: dict[str, pa.Array] = {}
-    times: list[np.ndarray] = []
-    packed: list[pa.Array] = []
-    for chunk in chunks:
-        if chunk.entity_path == _META_ENTITY:
-            meta.update(_data_columns(chunk.to_record_batch()))
-        elif chunk.entity_path == _RUN_END_ENTITY:
-            run_end.update(_data_columns(chunk.to_record_batch()))
-        elif chunk.entity_path == _RECORD_ENTITY:
-            batch = chunk.to_record_batch()
-            data = _data_columns(batch)
-            if RECORD_COLUMN not in data:
-                raise RecordingError(f"{p}: a flight_record chunk has no {RECORD_COLUMN!r}")
-            t = batch.column(batch.schema.get_field_index(TIMELINE))
-            times.append(t.cast(pa.int64()).to_numpy())
-            packed.append(data[RECORD_COLUMN])
-    if not meta or not times:
-        raise RecordingError(f"{p}: no fleetmpc flight record (meta / flight_record) in it")
+    found = _Found.of(chunks, p)
+    t_ns, parts = _unpack(found, p)
+    facts = _json(found.run_end, "run_end_json")
+    record = _flight_record(found.meta, t_ns, parts, facts)
+    run_info = _json(found.meta, "run_info_json")
+    rid = recordings[0].recording_id if recordings else ""
+    return RecordingRun(record=record, run_info=run_info, recording_id=rid, run_end=facts)
 
-    t_ns = np.concatenate(times)
+
+def _json(columns: dict[str, pa.Array], name: str) -> dict:
+    """The JSON object of a one-row text column, {} where the recording has none."""
+    return json.loads(str(columns[name][0][0])) if name in columns else {}
+
+
+@dataclasses.dataclass
+class _Found:
+    """A recording's fleetmpc entities, as stored: the meta and run-end columns, and each
+    flight_record chunk's times [ns] and packed rows."""
+
+    meta: dict[str, pa.Array] = dataclasses.field(default_factory=dict)
+    run_end: dict[str, pa.Array] = dataclasses.field(default_factory=dict)
+    times: list[np.ndarray] = dataclasses.field(default_factory=list)
+    packed: list[pa.Array] = dataclasses.field(default_factory=list)
+
+    @classmethod
+    def of(cls, chunks: list, p: Path) -> "_Found":
+        found = cls()
+        for chunk in chunks:
+            if chunk.entity_path == _META_ENTITY:
+                found.meta.update(_data_columns(chunk.to_record_batch()))
+            elif chunk.entity_path == _RUN_END_ENTITY:
+                found.run_end.update(_data_columns(chunk.to_record_batch()))
+            elif chunk.entity_path == _RECORD_ENTITY:
+                batch = chunk.to_record_batch()
+                data = _data_columns(batch)
+                if RECORD_COLUMN not in data:
+                    raise RecordingError(f"{p}: a flight_record chunk has no {RECORD_COLUMN!r}")
+                t = batch.column(batch.schema.get_field_index(TIMELINE))
+                found.times.append(t.cast(pa.int64()).to_numpy())
+                found.packed.append(data[RECORD_COLUMN])
+        if not found.meta or not found.times:
+            raise RecordingError(f"{p}: no fleetmpc flight record (meta / flight_record) in it")
+        return found
+
+
+def _unpack(found: _Found, p: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The periods' times [ns] in order, and each record array (K, ...) by its name."""
+    t_ns = np.concatenate(found.times)
     order = np.argsort(t_ns, kind="stable")
     t_ns = t_ns[order]
-    ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
-    n, k = len(ids), len(t_ns)
-    legacy = "prediction_horizon_periods" not in meta
+    n, k = len(_rows(found.meta["vehicle_ids"])[0]), len(t_ns)
+    legacy = "prediction_horizon_periods" not in found.meta
     layout = record_layout(n, arrays=LEGACY_RECORD_ARRAYS) if legacy else record_layout(n)
     width = sum(int(np.prod(shape)) for _, shape in layout)
-    flat = np.concatenate([c.flatten().to_numpy(zero_copy_only=False) for c in packed])
+    flat = np.concatenate([c.flatten().to_numpy(zero_copy_only=False) for c in found.packed])
     if flat.size != k * width:
         raise RecordingError(f"{p}: flight_record rows are not {width} values for {n} vehicles")
     rows = flat.reshape(k, width)[order]
@@ -114,13 +141,21 @@ def read_recording(path: str | Path) -> RecordingRun:
         size = int(np.prod(shape))
         parts[name] = rows[:, at : at + size].reshape(k, *shape).copy()
         at += size
+    return t_ns, parts
+
+
+def _flight_record(
+    meta: dict[str, pa.Array], t_ns: np.ndarray, parts: dict[str, np.ndarray], facts: dict
+) -> FlightRecord:
+    """The FlightRecord of the unpacked arrays and the recording's meta (an older recording,
+    without the target's prediction and the plan ages, has None for them)."""
+    ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
+    legacy = "prediction_horizon_periods" not in meta
 
     def scalar(name: str) -> float:
         return float(_rows(meta[name])[0][0])
 
-    facts = json.loads(str(run_end["run_end_json"][0][0])) if "run_end_json" in run_end else {}
-
-    record = FlightRecord(
+    return FlightRecord(
         scenario=str(meta["scenario"][0][0]),
         vehicle_ids=ids,
         t_s=t_ns * 1e-9,
@@ -134,7 +169,7 @@ def read_recording(path: str | Path) -> RecordingRun:
         beta_truth=parts["beta_truth"],
         qp_ok=parts["qp_ok"].astype(bool),
         step_time_ms=parts["step_time_ms"],
-        desired_distance_m=_rows(meta["desired_distance_m"])[0].reshape(n, n),
+        desired_distance_m=_rows(meta["desired_distance_m"])[0].reshape(len(ids), len(ids)),
         trail_m=scalar("trail_m"),
         slot_offsets_world=parts["slot_offsets_world"],
         min_separation_m=float(parts[MIN_SEPARATION_COLUMN][-1, 0]),
@@ -148,6 +183,3 @@ def read_recording(path: str | Path) -> RecordingRun:
         plan_age_s=None if legacy else parts["plan_age_s"],
         network=facts.get("network"),
     )
-    run_info = json.loads(str(meta["run_info_json"][0][0])) if "run_info_json" in meta else {}
-    rid = recordings[0].recording_id if recordings else ""
-    return RecordingRun(record=record, run_info=run_info, recording_id=rid, run_end=facts)
