@@ -26,7 +26,7 @@ from pathlib import PurePath
 from fleetmpc.errors import ConfigError
 from fleetmpc.network import vehicle_host
 from fleetmpc.protocol.messages import GROUND_STATION_ID, TARGET_ID
-from fleetmpc.scenario import Scenario
+from fleetmpc.scenario import Scenario, VehicleSpec
 from fleetmpc.security.mavlink_signing import key_file_name
 from fleetmpc.security.zenoh_access import zenoh_user
 from fleetmpc.security.zenoh_security import ZenohSecurity
@@ -128,96 +128,117 @@ def _num(x: float) -> str:
 
 
 def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSpec]:
-    """The fleet's processes in start order."""
-    net = scenario.network
-    fleet = options.fleet or scenario.name
-    duration = scenario.duration_s if options.duration_s is None else options.duration_s
-    common = ("--scenario", options.scenario_path)
-    secrets = None if options.secrets_dir is None else PurePath(options.secrets_dir)
+    """The fleet's processes in start order: router, target, SITLs, agents, ground station."""
+    fleet = _FleetArgs(scenario, options)
+    agents = [fleet.agent(v) for v in scenario.vehicles]
+    return [fleet.router(), fleet.target(), *fleet.sitls(), *agents, fleet.gcs()]
 
-    def bus_of(sender_id: int) -> tuple[str, ...]:
-        if secrets is None:
-            connect = ("--zenoh-connect", f"{net.router_address}:{net.zenoh_port}")
+
+class _FleetArgs:
+    """Each process's argument list, from the scenario and the options of one fleet."""
+
+    def __init__(self, scenario: Scenario, options: FleetOptions) -> None:
+        self.scenario, self.options, self.net = scenario, options, scenario.network
+        self.fleet = options.fleet or scenario.name
+        self.duration_s = scenario.duration_s if options.duration_s is None else options.duration_s
+        self.common = ("--scenario", options.scenario_path)
+        self.speed = ("--speed", _num(options.speed))
+        self.secrets = None if options.secrets_dir is None else PurePath(options.secrets_dir)
+
+    def bus_of(self, sender_id: int) -> tuple[str, ...]:
+        """How the process of `sender_id` joins the fleet's Zenoh bus."""
+        if self.secrets is None:
+            connect = ("--zenoh-connect", f"{self.net.router_address}:{self.net.zenoh_port}")
         else:
             config = ZenohSecurity.client_config_name(zenoh_user(sender_id))
-            connect = ("--zenoh-config", str(secrets / config))
-        return (*connect, "--fleet", fleet)
+            connect = ("--zenoh-config", str(self.secrets / config))
+        return (*connect, "--fleet", self.fleet)
 
-    speed = ("--speed", _num(options.speed))
-    router = ("zenoh-router", "--host", net.router_address, "--port", str(net.zenoh_port))
-    if secrets is not None:
-        router += ("--security", str(secrets))
-    target = ("target", *common, *bus_of(TARGET_ID), *speed, "--wait-epoch")
-    if options.target_source != "script":
-        target += ("--source", options.target_source)
-    if options.target_sysid is not None:
-        target += ("--sysid", str(options.target_sysid))
-    procs = [
-        ProcessSpec("zenoh-router", router, "router", net.router_address),
-        ProcessSpec(
-            "target",
-            (*target, "--duration", _num(duration + 1.0)),
-            "target",
-            net.ground_station_address,
-        ),
-    ]
-    external = options.external_autopilots
-
-    def key_path(vid: int) -> PurePath | None:
+    def key_path(self, vid: int) -> PurePath | None:
         """Vehicle `vid`'s signing key file; None for an insecure fleet or an external autopilot."""
-        return None if secrets is None or vid in external else secrets / key_file_name(vid)
+        external = self.options.external_autopilots
+        return (
+            None if self.secrets is None or vid in external else self.secrets / key_file_name(vid)
+        )
 
-    def key(vid: int) -> tuple[str, ...]:
-        path = key_path(vid)
+    def key(self, vid: int) -> tuple[str, ...]:
+        path = self.key_path(vid)
         return () if path is None else ("--mavlink-key", str(path))
 
-    groups: list[tuple[str, list[int]]] = []  # (host, vehicle ids): one SITL process each
-    for v in scenario.vehicles:
-        if v.id in external:
-            continue
-        host = vehicle_host(net, v)
-        if groups and groups[-1][0] == host and len(groups[-1][1]) < options.vehicles_per_sitl:
-            groups[-1][1].append(v.id)
-        else:
-            groups.append((host, [v.id]))
-    for host, ids in groups:
-        argv = ["sitl", *common]
+    def router(self) -> ProcessSpec:
+        net = self.net
+        argv = ("zenoh-router", "--host", net.router_address, "--port", str(net.zenoh_port))
+        if self.secrets is not None:
+            argv += ("--security", str(self.secrets))
+        return ProcessSpec("zenoh-router", argv, "router", net.router_address)
+
+    def target(self) -> ProcessSpec:
+        o = self.options
+        argv = ("target", *self.common, *self.bus_of(TARGET_ID), *self.speed, "--wait-epoch")
+        if o.target_source != "script":
+            argv += ("--source", o.target_source)
+        if o.target_sysid is not None:
+            argv += ("--sysid", str(o.target_sysid))
+        argv += ("--duration", _num(self.duration_s + 1.0))
+        return ProcessSpec("target", argv, "target", self.net.ground_station_address)
+
+    def sitls(self) -> list[ProcessSpec]:
+        """One SITL process per run of up to `vehicles_per_sitl` simulated vehicles in a row
+        on one host."""
+        groups: list[tuple[str, list[int]]] = []  # (host, vehicle ids)
+        for v in self.scenario.vehicles:
+            if v.id in self.options.external_autopilots:
+                continue
+            host = vehicle_host(self.net, v)
+            last = groups[-1] if groups else None
+            if last and last[0] == host and len(last[1]) < self.options.vehicles_per_sitl:
+                last[1].append(v.id)
+            else:
+                groups.append((host, [v.id]))
+        return [self._sitl(host, ids) for host, ids in groups]
+
+    def _sitl(self, host: str, ids: list[int]) -> ProcessSpec:
+        argv = ["sitl", *self.common]
         for vid in ids:
             argv += ["--vehicle", str(vid)]
-        argv += speed
-        if options.wind_epoch_ns is not None:
-            argv += ["--wind-epoch-ns", str(options.wind_epoch_ns)]
+        argv += self.speed
+        if self.options.wind_epoch_ns is not None:
+            argv += ["--wind-epoch-ns", str(self.options.wind_epoch_ns)]
         for vid in ids:  # (paired with the vehicles in order)
-            argv += key(vid)
+            argv += self.key(vid)
         name = f"sitl-{ids[0]}" if len(ids) == 1 else f"sitl-{ids[0]}..{ids[-1]}"
-        procs.append(ProcessSpec(name, tuple(argv), "sitl", host))
-    for v in scenario.vehicles:
-        argv = ["agent", *common, "--vehicle", str(v.id), *bus_of(v.id), *speed, "--wait-epoch"]
-        argv += key(v.id)
+        return ProcessSpec(name, tuple(argv), "sitl", host)
+
+    def agent(self, v: VehicleSpec) -> ProcessSpec:
+        o = self.options
+        argv = ["agent", *self.common, "--vehicle", str(v.id), *self.bus_of(v.id), *self.speed]
+        argv += ["--wait-epoch", *self.key(v.id)]
         for flag, seconds in (
-            ("--connect-timeout", options.connect_timeout_s),
-            ("--engage-timeout", options.engage_timeout_s),
+            ("--connect-timeout", o.connect_timeout_s),
+            ("--engage-timeout", o.engage_timeout_s),
         ):
             if seconds is not None:
                 argv += [flag, _num(seconds)]
-        if v.id in external:
-            argv += ["--mavlink", external[v.id]]
-        if options.agent_records_dir is not None:
-            argv += ["--record", str(PurePath(options.agent_records_dir) / f"agent-{v.id}.jsonl")]
-        procs.append(ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(net, v)))
-    gcs = ["gcs", *common, *bus_of(GROUND_STATION_ID), *speed, "--duration", _num(duration)]
-    gcs += ["--viewer", options.viewer]
-    if options.target_source != "script":
-        gcs += ["--target-source", options.target_source]
-    for v in scenario.vehicles:
-        if key_path(v.id) is not None:
-            gcs += ["--mavlink-key", f"{v.id}={key_path(v.id)}"]
-    for flag, value in (
-        ("--rrd", options.rrd),
-        ("--metrics", options.metrics),
-        ("--status-file", options.status_file),
-    ):
-        if value is not None:
-            gcs += [flag, value]
-    procs.append(ProcessSpec("gcs", tuple(gcs), "gcs", net.ground_station_address))
-    return procs
+        if v.id in o.external_autopilots:
+            argv += ["--mavlink", o.external_autopilots[v.id]]
+        if o.agent_records_dir is not None:
+            argv += ["--record", str(PurePath(o.agent_records_dir) / f"agent-{v.id}.jsonl")]
+        return ProcessSpec(f"agent-{v.id}", tuple(argv), "agent", vehicle_host(self.net, v))
+
+    def gcs(self) -> ProcessSpec:
+        o = self.options
+        argv = ["gcs", *self.common, *self.bus_of(GROUND_STATION_ID), *self.speed]
+        argv += ["--duration", _num(self.duration_s), "--viewer", o.viewer]
+        if o.target_source != "script":
+            argv += ["--target-source", o.target_source]
+        for v in self.scenario.vehicles:
+            if self.key_path(v.id) is not None:
+                argv += ["--mavlink-key", f"{v.id}={self.key_path(v.id)}"]
+        for flag, value in (
+            ("--rrd", o.rrd),
+            ("--metrics", o.metrics),
+            ("--status-file", o.status_file),
+        ):
+            if value is not None:
+                argv += [flag, value]
+        return ProcessSpec("gcs", tuple(argv), "gcs", self.net.ground_station_address)
