@@ -31,7 +31,7 @@ from fleetmpc.onboard.core.lbmpc import TubeLbmpc
 from fleetmpc.onboard.core.neighbourhood import safety_radius, shared_margin_m
 from fleetmpc.onboard.core.target_path import CHORD_HALF_M
 from fleetmpc.onboard.core.unicycle import wrap
-from fleetmpc.scenario import Scenario, load_scenario
+from fleetmpc.scenario import Scenario, VehicleSpec, load_scenario
 from fleetmpc.targets.track import RecordedTrack
 
 __all__ = ["FeasibilityReport", "add_arguments", "check_scenario", "run"]
@@ -150,14 +150,36 @@ def _slot_requirements(
     centres, courses = true_reference(formation, course_limit, target, target_vel, dt_s)
     slots = formation.slots(centres, courses)  # (K, N, 2)
     vel = np.diff(slots, axis=0) / dt_s  # over each step (K - 1, N, 2)
-    # A corner of the target's (a change of course or speed at once) is a transient, not a
-    # steady need: its speed change reaches the slots at once (the centre moves along the path
-    # at the target's speed), and its turn while the formation's centre goes round it, that is
-    # while the centre's smoothing window (CHORD_HALF_M either side of it, d_s of path behind
-    # the target) lies across it; the slots turn faster there than elsewhere.
+    steady, windows = _transients(sc, target, target_vel, vel)
+    needs = [
+        _vehicle_needs(v, vel[:, i], t, steady, course_limit, dt_s)
+        for i, v in enumerate(sc.vehicles)
+    ]
+    airs = [air for air, *_ in needs]
+    corners = [_worst_corner(airs, window, t, course_limit, dt_s) for window in windows]
+    lag_rad, lag_for_s = 0.0, 0.0
+    if sc.formation.frame == "course":
+        lag_rad, lag_for_s = _course_lag(target_vel, steady, course_limit, dt_s)
+    speeds, rates, lags = (np.array([n[k] for n in needs]) for k in (1, 2, 3))
+    return _Requirements(speeds, rates, lags, corners, lag_rad, lag_for_s)
+
+
+def _transients(
+    sc: Scenario, target: np.ndarray, target_vel: np.ndarray, vel: np.ndarray
+) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """Which steps are steady (K - 1,), and each corner's (its step, the first and the last
+    step of its transient).
+
+    A corner of the target's (a change of course or speed at once) is a transient, not a
+    steady need: its speed change reaches the slots at once (the centre moves along the path
+    at the target's speed), and its turn while the formation's centre goes round it, that is
+    while the centre's smoothing window (CHORD_HALF_M either side of it, d_s of path behind
+    the target) lies across it; the slots turn faster there than elsewhere. So is a slot's
+    velocity that jumps (a sweep that ends: its turn rate stops at once)."""
+    k_steps = len(vel)
     arc = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(target, axis=0).T))))[:-1]
     behind = arc - sc.formation.trail_m
-    steady = np.ones(len(t) - 1, dtype=bool)
+    steady = np.ones(k_steps, dtype=bool)
     windows = []
     for k in corner_indices(target_vel):
         if k >= len(arc):
@@ -167,61 +189,68 @@ def _slot_requirements(
         across = across[across >= k] if sc.formation.trail_m >= 0 else across
         if across.size == 0:
             continue
-        first, last = int(across[0]), min(int(across[-1]), len(t) - 2)
+        first, last = int(across[0]), min(int(across[-1]), k_steps - 1)
         steady[first : last + 1] = False
         windows.append((k, first, last))
-    # So is a slot's velocity that jumps (a sweep that ends: its turn rate stops at once).
     jumps = np.max(np.hypot(*np.diff(vel, axis=0).transpose(2, 0, 1)), axis=1)
     for k in np.flatnonzero(jumps > SLOT_JUMP_M_S):
         steady[max(k - 1, 0) : k + 3] = False
-    speeds, rates, lags = [], [], []
-    air_all = []
-    for i, v in enumerate(sc.vehicles):
-        wind = np.array([v.truth.wind.at(ti) for ti in t[:-1]])
-        air = (vel[:, i] - wind) / v.truth.speed_effectiveness
-        air_all.append(air)
-        speed = np.hypot(air[:, 0], air[:, 1])
-        speeds.append(float(np.max(speed)))
-        heading = np.unwrap(np.arctan2(air[:, 1], air[:, 0]))
-        # The turn over a window: a vehicle lags a heading it cannot follow for a moment by a
-        # fraction of a degree, and what it must keep up with is the turn over the window.
-        half = max(1, round(0.5 * YAW_RATE_WINDOW_S / dt_s))
-        turn = np.zeros_like(heading)
-        turn[half:-half] = (heading[2 * half :] - heading[: -2 * half]) / (2 * half * dt_s)
-        rate = np.abs(turn) / v.truth.yaw_rate_effectiveness
-        judged = (speed > 0.1) & steady
-        for k in np.flatnonzero(~steady):  # no window reaching over a corner
-            judged[max(k - half, 0) : k + half + 1] = False
-        rates.append(float(np.max(rate[judged])) if judged.any() else 0.0)
-        excess = np.maximum(rate - course_limit.yaw_rate_bound_rad_s, 0.0)
-        lag = speed * excess * YAW_RATE_WINDOW_S**2 / 2.0
-        lags.append(float(np.max(lag[judged])) if judged.any() else 0.0)
-    corners = []
-    for k, first, last in windows:
-        worst = None
-        for air in air_all:
-            a, b = air[max(first - 1, 0)], air[min(last + 1, len(air) - 1)]
-            angle = abs(wrap(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])))
-            behind_m, back_s = _corner_lag(
-                air,
-                first,
-                last,
-                course_limit.yaw_rate_bound_rad_s,
-                course_limit.speed_bound_m_s,
-                dt_s,
+    return steady, windows
+
+
+def _vehicle_needs(
+    v: VehicleSpec,
+    vel: np.ndarray,
+    t: np.ndarray,
+    steady: np.ndarray,
+    course_limit: CourseRateLimit,
+    dt_s: float,
+) -> tuple[np.ndarray, float, float, float]:
+    """One vehicle's airspeed vector over each step (K - 1, 2) for its slot's velocity `vel`,
+    and its largest airspeed, steady yaw rate and lag behind a turn it cannot keep up with."""
+    wind = np.array([v.truth.wind.at(ti) for ti in t[:-1]])
+    air = (vel - wind) / v.truth.speed_effectiveness
+    speed = np.hypot(air[:, 0], air[:, 1])
+    heading = np.unwrap(np.arctan2(air[:, 1], air[:, 0]))
+    # The turn over a window: a vehicle lags a heading it cannot follow for a moment by a
+    # fraction of a degree, and what it must keep up with is the turn over the window.
+    half = max(1, round(0.5 * YAW_RATE_WINDOW_S / dt_s))
+    turn = np.zeros_like(heading)
+    turn[half:-half] = (heading[2 * half :] - heading[: -2 * half]) / (2 * half * dt_s)
+    rate = np.abs(turn) / v.truth.yaw_rate_effectiveness
+    judged = (speed > 0.1) & steady
+    for k in np.flatnonzero(~steady):  # no window reaching over a corner
+        judged[max(k - half, 0) : k + half + 1] = False
+    excess = np.maximum(rate - course_limit.yaw_rate_bound_rad_s, 0.0)
+    lag = speed * excess * YAW_RATE_WINDOW_S**2 / 2.0
+    if not judged.any():
+        return air, float(np.max(speed)), 0.0, 0.0
+    return air, float(np.max(speed)), float(np.max(rate[judged])), float(np.max(lag[judged]))
+
+
+def _worst_corner(
+    airs: list[np.ndarray],
+    window: tuple[int, int, int],
+    t: np.ndarray,
+    course_limit: CourseRateLimit,
+    dt_s: float,
+) -> "_Corner":
+    """How the vehicle furthest behind goes round one corner (its step, the first and the
+    last step of its transient), from each vehicle's airspeed vectors `airs`."""
+    k, first, last = window
+    worst = None
+    for air in airs:
+        a, b = air[max(first - 1, 0)], air[min(last + 1, len(air) - 1)]
+        angle = abs(wrap(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0])))
+        behind_m, back_s = _corner_lag(
+            air, first, last, course_limit.yaw_rate_bound_rad_s, course_limit.speed_bound_m_s, dt_s
+        )
+        lateness = (first - k) * dt_s + back_s
+        if worst is None or (behind_m, lateness) > (worst.behind_m, worst.back_s):
+            worst = _Corner(
+                float(t[k]), float(t[first]), (last - first) * dt_s, angle, behind_m, lateness
             )
-            lateness = (first - k) * dt_s + back_s
-            if worst is None or (behind_m, lateness) > (worst.behind_m, worst.back_s):
-                worst = _Corner(
-                    float(t[k]), float(t[first]), (last - first) * dt_s, angle, behind_m, lateness
-                )
-        corners.append(worst)
-    lag_rad, lag_for_s = 0.0, 0.0
-    if sc.formation.frame == "course":
-        lag_rad, lag_for_s = _course_lag(target_vel, steady, course_limit, dt_s)
-    return _Requirements(
-        np.array(speeds), np.array(rates), np.array(lags), corners, lag_rad, lag_for_s
-    )
+    return worst
 
 
 def _course_lag(
