@@ -335,10 +335,13 @@ class _Runs:
     step_ms: list[np.ndarray] = dataclasses.field(default_factory=list)
     """Each uninstrumented run's agent steps [ms]."""
     steps: list[tuple[int, int]] = dataclasses.field(default_factory=list)
-    """(start, duration) [ns] of every timed `Agent.step`; then the calls inside them:"""
+    """(start, duration) [ns] of every timed `Agent.step`."""
     dekf: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    """(start, duration) [ns] of the DEKF's calls in the timed runs."""
     qp: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    """(start, duration) [ns] of OSQP's update and solve in the timed runs."""
     filterpy: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    """(start, duration) [ns] of filterpy's predict and update in the timed runs."""
     captured: dict[int, list[QpData]] = dataclasses.field(default_factory=dict)
     """Each vehicle's QPs of the first timed run, in flight order."""
 
@@ -383,8 +386,9 @@ class _Replays:
     """Step 3: the recorded QPs through our path and a sample of them through cvxpy."""
 
     ours_ns: list[int] = dataclasses.field(default_factory=list)
+    """Our path's time of each sampled QP [ns]."""
     cvx_ns: list[int] = dataclasses.field(default_factory=list)
-    """The sampled QPs' times, ours and cvxpy's, in the same order [ns]."""
+    """The cvxpy rebuild's time of the same QPs, in the same order [ns]."""
     diffs: list[float] = dataclasses.field(default_factory=list)
     """Largest |c| difference of each sampled QP both solved."""
     iterations: list[int] = dataclasses.field(default_factory=list)

@@ -222,7 +222,8 @@ def _known_keys(kind: str) -> set[str]:
 
 
 def _network_fields(kind: str, table: dict, field: str, fleet: Sequence[int]) -> dict[str, Any]:
-    """A message fault's own fields: its probability, a delay's and a partition's groups."""
+    """The fields of a fault of messages or of the autopilot link: its probability (where its
+    kind has one), a delay's delay and jitter, a partition's groups."""
     args: dict[str, Any] = {}
     if "probability" in _KEYS[kind]:
         if "probability" not in table:

@@ -18,6 +18,7 @@ Checks, each reported with its numbers:
 import argparse
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -155,13 +156,26 @@ def _slot_requirements(
         _vehicle_needs(v, vel[:, i], t, steady, course_limit, dt_s)
         for i, v in enumerate(sc.vehicles)
     ]
-    airs = [air for air, *_ in needs]
+    airs = [n.air for n in needs]
     corners = [_worst_corner(airs, window, t, course_limit, dt_s) for window in windows]
     lag_rad, lag_for_s = 0.0, 0.0
     if sc.formation.frame == "course":
         lag_rad, lag_for_s = _course_lag(target_vel, steady, course_limit, dt_s)
-    speeds, rates, lags = (np.array([n[k] for n in needs]) for k in (1, 2, 3))
+    speeds, rates, lags = (np.array([getattr(n, k) for n in needs]) for k in _Needs._fields[1:])
     return _Requirements(speeds, rates, lags, corners, lag_rad, lag_for_s)
+
+
+class _Needs(NamedTuple):
+    """What one vehicle's slot asks of it over the run."""
+
+    air: np.ndarray
+    """Its airspeed vector over each step (K - 1, 2) [m/s]."""
+    speed_m_s: float
+    """Its largest airspeed."""
+    rate_rad_s: float
+    """Its largest yaw rate away from the corners."""
+    lag_m: float
+    """The furthest it lags behind a turn it cannot keep up with, away from the corners."""
 
 
 def _transients(
@@ -205,9 +219,8 @@ def _vehicle_needs(
     steady: np.ndarray,
     course_limit: CourseRateLimit,
     dt_s: float,
-) -> tuple[np.ndarray, float, float, float]:
-    """One vehicle's airspeed vector over each step (K - 1, 2) for its slot's velocity `vel`,
-    and its largest airspeed, steady yaw rate and lag behind a turn it cannot keep up with."""
+) -> "_Needs":
+    """What one vehicle's slot, of velocity `vel` (K - 1, 2), asks of it."""
     wind = np.array([v.truth.wind.at(ti) for ti in t[:-1]])
     air = (vel - wind) / v.truth.speed_effectiveness
     speed = np.hypot(air[:, 0], air[:, 1])
@@ -224,8 +237,10 @@ def _vehicle_needs(
     excess = np.maximum(rate - course_limit.yaw_rate_bound_rad_s, 0.0)
     lag = speed * excess * YAW_RATE_WINDOW_S**2 / 2.0
     if not judged.any():
-        return air, float(np.max(speed)), 0.0, 0.0
-    return air, float(np.max(speed)), float(np.max(rate[judged])), float(np.max(lag[judged]))
+        return _Needs(air, float(np.max(speed)), 0.0, 0.0)
+    return _Needs(
+        air, float(np.max(speed)), float(np.max(rate[judged])), float(np.max(lag[judged]))
+    )
 
 
 def _worst_corner(
@@ -234,7 +249,7 @@ def _worst_corner(
     t: np.ndarray,
     course_limit: CourseRateLimit,
     dt_s: float,
-) -> "_Corner":
+) -> "_Corner | None":
     """How the vehicle furthest behind goes round one corner (its step, the first and the
     last step of its transient), from each vehicle's airspeed vectors `airs`."""
     k, first, last = window

@@ -80,7 +80,7 @@ def read_recording(path: str | Path) -> RecordingRun:
     found = _Found.of(chunks, p)
     t_ns, parts = _unpack(found, p)
     facts = _json(found.run_end, "run_end_json")
-    record = _flight_record(found.meta, t_ns, parts, facts)
+    record = _flight_record(found, t_ns, parts, facts)
     run_info = _json(found.meta, "run_info_json")
     rid = recordings[0].recording_id if recordings else ""
     return RecordingRun(record=record, run_info=run_info, recording_id=rid, run_end=facts)
@@ -101,8 +101,14 @@ class _Found:
     times: list[np.ndarray] = dataclasses.field(default_factory=list)
     packed: list[pa.Array] = dataclasses.field(default_factory=list)
 
+    @property
+    def legacy(self) -> bool:
+        """A recording made before the target's prediction and the plan ages were recorded."""
+        return "prediction_horizon_periods" not in self.meta
+
     @classmethod
     def of(cls, chunks: list, p: Path) -> "_Found":
+        """The fleetmpc entities of a recording's chunks (`p`: its file, for errors)."""
         found = cls()
         for chunk in chunks:
             if chunk.entity_path == _META_ENTITY:
@@ -128,7 +134,7 @@ def _unpack(found: _Found, p: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     order = np.argsort(t_ns, kind="stable")
     t_ns = t_ns[order]
     n, k = len(_rows(found.meta["vehicle_ids"])[0]), len(t_ns)
-    legacy = "prediction_horizon_periods" not in found.meta
+    legacy = found.legacy
     layout = record_layout(n, arrays=LEGACY_RECORD_ARRAYS) if legacy else record_layout(n)
     width = sum(int(np.prod(shape)) for _, shape in layout)
     flat = np.concatenate([c.flatten().to_numpy(zero_copy_only=False) for c in found.packed])
@@ -145,12 +151,12 @@ def _unpack(found: _Found, p: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
 
 
 def _flight_record(
-    meta: dict[str, pa.Array], t_ns: np.ndarray, parts: dict[str, np.ndarray], facts: dict
+    found: _Found, t_ns: np.ndarray, parts: dict[str, np.ndarray], facts: dict
 ) -> FlightRecord:
     """The FlightRecord of the unpacked arrays and the recording's meta (an older recording,
     without the target's prediction and the plan ages, has None for them)."""
+    meta, legacy = found.meta, found.legacy
     ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
-    legacy = "prediction_horizon_periods" not in meta
 
     def scalar(name: str) -> float:
         return float(_rows(meta[name])[0][0])

@@ -130,8 +130,13 @@ def _num(x: float) -> str:
 def fleet_processes(scenario: Scenario, options: FleetOptions) -> list[ProcessSpec]:
     """The fleet's processes in start order: router, target, SITLs, agents, ground station."""
     fleet = _FleetArgs(scenario, options)
-    agents = [fleet.agent(v) for v in scenario.vehicles]
-    return [fleet.router(), fleet.target(), *fleet.sitls(), *agents, fleet.gcs()]
+    return [
+        fleet.router(),
+        fleet.target(),
+        *fleet.sitls(),
+        *(fleet.agent(v) for v in scenario.vehicles),
+        fleet.gcs(),
+    ]
 
 
 class _FleetArgs:

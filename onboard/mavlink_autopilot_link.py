@@ -162,17 +162,22 @@ class MavlinkAutopilotLink(AutopilotLink):
             self._update(rejected=self.state().rejected + 1)
         elif kind == "HEARTBEAT":
             self._on_heartbeat(msg, msg.get_srcSystem())
-        elif self._from_autopilot(msg) and not self._read(kind, msg, self.state()):
-            self._update(rejected=self.state().rejected + 1)
+        elif self._from_autopilot(msg):
+            st = self.state()
+            if not self._read(kind, msg, st):
+                self._update(rejected=st.rejected + 1)
 
     def _from_autopilot(self, msg) -> bool:
-        """Whether `msg` comes from the autopilot the link engaged (its system, component 1)."""
+        """Whether `msg` comes from the autopilot the link took from its HEARTBEAT (its system,
+        component 1)."""
         system = self.state().system_id
         return system != 0 and msg.get_srcSystem() == system and msg.get_srcComponent() == 1
 
     def _read(self, kind: str, msg, st: LinkState) -> bool:
-        """Take one message of the engaged autopilot's (`st`: the state before it); False: an
-        invalid one (its values are in `fleetmpc.onboard.telemetry_streams`' readers)."""
+        """Take one message of the autopilot's own (`st`: the state before it); False: an
+        invalid one (its values are checked by `fleetmpc.onboard.telemetry_streams`' readers;
+        a message not read here, or a COMMAND_ACK of a result MAVLink does not define, is
+        ignored, not counted)."""
         if kind in ("ODOMETRY", "LOCAL_POSITION_NED"):
             pose = odometry_pose(msg) if kind == "ODOMETRY" else local_position(msg)
             if pose is None:

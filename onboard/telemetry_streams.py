@@ -1,4 +1,6 @@
-"""What the agent asks its autopilot to stream, and how it reads each message it streams.
+"""What the agent asks its autopilot to stream, and the checked values of each telemetry
+message it reads (the pose, heading, global fix and landed state; the link reads HEARTBEAT,
+COMMAND_ACK and STATUSTEXT itself).
 
 On connecting, the link sets the intervals of the messages it reads and stops the others it is
 sent (`STREAM_INTERVALS_US`): every message costs the agent a wake-up of its reader and the

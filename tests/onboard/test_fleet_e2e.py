@@ -20,7 +20,8 @@ time: 0 the epoch; 10 s malformed payloads on vehicle 2's plan key; 30.5 s the g
 finishes and writes its metrics; then agent 3 is SIGKILLed and the fleet is watched for 3 s;
 then every process is stopped by PID (SIGTERM, then SIGKILL) and none may be left.
 
-One flight (a module fixture) serves every gate test; each test asserts one gate. The figures
+One flight (a module fixture; a second if the host stalled the first, see ``flight``) serves
+every gate test; each test asserts one gate. The figures
 (live against lockstep, setpoint gaps, reactions to the kill, and diagnostics such as how long
 each vehicle waited for the epoch) go to ``report.json`` in the flight's folder and are printed.
 
@@ -39,6 +40,7 @@ import os
 import socket
 import struct
 import time
+import warnings
 from collections import Counter, defaultdict
 from pathlib import Path
 
@@ -299,10 +301,6 @@ def _figures(flight: "Flight") -> dict:
     }
 
 
-FLIGHTS = 2
-"""Flights at most: one more when the host stopped an agent long enough to skip a period."""
-
-
 def skipped_periods(flight: Flight) -> dict[int, list[float]]:
     """Per agent, the fleet times of the periods it did not step before the kill, by its own
     records (the step after a gap runs at the newest boundary; the ones between are skipped)."""
@@ -318,15 +316,35 @@ def skipped_periods(flight: Flight) -> dict[int, list[float]]:
     return out
 
 
+def host_stalled(flight: Flight) -> bool:
+    """Whether the first flight's skipped periods are the host's doing: a surviving agent that
+    skipped any counted each as an overrun (it woke past the period's boundary) and no step of
+    either failed (a failed step leaves no row either), and no process was left behind."""
+    skipped = skipped_periods(flight)
+    if not any(skipped.values()) or flight.leftovers:
+        return False
+    return all(
+        flight.summaries[vid]["step_errors"] == 0
+        and flight.summaries[vid]["overruns"] >= len(skipped[vid])
+        for vid in SURVIVORS
+    )
+
+
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory) -> Flight:
-    """One flight, or a second when an agent skipped a period in the first: a machine that stops
-    a process for a fraction of a second is not a failure of a gate, and a fault of the code
-    (a payload that stalls an agent, say) repeats in the second flight and fails it."""
-    for _ in range(FLIGHTS):
+    """One flight, or a second, said in a warning, when the host stalled the first
+    (`host_stalled`): a machine that stops every process for a fraction of a second is not a
+    failure of a gate. A fault of the code that stalls an agent in every flight (a payload that
+    hangs the bus, say) fails the second; one that does so in one flight in two would pass in
+    three cases of four, a price of flying on a shared host."""
+    result = fly(tmp_path_factory.mktemp("fleet"))
+    if host_stalled(result):
+        warnings.warn(
+            "fleet e2e: flown again, the host stalled the first flight "
+            f"(skipped periods by agent: {skipped_periods(result)})",
+            stacklevel=1,
+        )
         result = fly(tmp_path_factory.mktemp("fleet"))
-        if not any(skipped_periods(result).values()):
-            break
     return result
 
 
