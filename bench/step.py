@@ -320,7 +320,7 @@ def profile(args: argparse.Namespace) -> int:
     runs = _fly(sc, max(args.repeats, 1))
     replays = _replay(sc, runs.captured, args.cvxpy_samples)
     result = _result(sc, runs, replays, load_before, load_average())
-    _print(result, runs, replays)
+    _print(result, replays)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     return 0
@@ -482,12 +482,13 @@ _ROWS = (
 """The table's timed rows: their names and `_result`'s keys."""
 
 
-def _print(result: dict, runs: _Runs, replays: _Replays) -> None:
+def _print(result: dict, replays: _Replays) -> None:
     """The table of `result`, with what it was measured on and the targets missed."""
-    step, factor = result["agent_step"], result["lockstep_realtime_factor"]["median"]
+    step, factors = result["agent_step"], result["lockstep_realtime_factor"]
+    factor = factors["median"]
     print(
         f"fleetmpc bench: scenario {result['scenario']!r}, M = {result['horizon']}, "
-        f"{result['vehicles']} vehicles, {step['n']} agent steps over {len(runs.factors)} runs "
+        f"{result['vehicles']} vehicles, {step['n']} agent steps over {len(factors['runs'])} runs "
         f"(load average {result['load_average_before']} before, "
         f"{result['load_average_after']} after)"
     )

@@ -161,8 +161,14 @@ def _slot_requirements(
     lag_rad, lag_for_s = 0.0, 0.0
     if sc.formation.frame == "course":
         lag_rad, lag_for_s = _course_lag(target_vel, steady, course_limit, dt_s)
-    speeds, rates, lags = (np.array([getattr(n, k) for n in needs]) for k in _Needs._fields[1:])
-    return _Requirements(speeds, rates, lags, corners, lag_rad, lag_for_s)
+    return _Requirements(
+        np.array([n.speed_m_s for n in needs]),
+        np.array([n.rate_rad_s for n in needs]),
+        np.array([n.lag_m for n in needs]),
+        corners,
+        lag_rad,
+        lag_for_s,
+    )
 
 
 class _Needs(NamedTuple):

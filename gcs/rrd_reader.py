@@ -102,6 +102,10 @@ class _Found:
     packed: list[pa.Array] = dataclasses.field(default_factory=list)
 
     @property
+    def vehicle_ids(self) -> tuple[int, ...]:
+        return tuple(int(v) for v in _rows(self.meta["vehicle_ids"])[0])
+
+    @property
     def legacy(self) -> bool:
         """A recording made before the target's prediction and the plan ages were recorded."""
         return "prediction_horizon_periods" not in self.meta
@@ -133,7 +137,7 @@ def _unpack(found: _Found, p: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     t_ns = np.concatenate(found.times)
     order = np.argsort(t_ns, kind="stable")
     t_ns = t_ns[order]
-    n, k = len(_rows(found.meta["vehicle_ids"])[0]), len(t_ns)
+    n, k = len(found.vehicle_ids), len(t_ns)
     legacy = found.legacy
     layout = record_layout(n, arrays=LEGACY_RECORD_ARRAYS) if legacy else record_layout(n)
     width = sum(int(np.prod(shape)) for _, shape in layout)
@@ -155,8 +159,7 @@ def _flight_record(
 ) -> FlightRecord:
     """The FlightRecord of the unpacked arrays and the recording's meta (an older recording,
     without the target's prediction and the plan ages, has None for them)."""
-    meta, legacy = found.meta, found.legacy
-    ids = tuple(int(v) for v in _rows(meta["vehicle_ids"])[0])
+    meta, legacy, ids = found.meta, found.legacy, found.vehicle_ids
 
     def scalar(name: str) -> float:
         return float(_rows(meta[name])[0][0])
