@@ -8,8 +8,8 @@
    .propagate), QP (OSQP's update + solve of the period's values, FixedPatternQp.update +
    .solve) and model build (the rest of the step: target estimate, slots, seeding,
    linearization, condensing, cost and constraint assembly, checks). Also the time spent inside
-   filterpy's predict and update calls (DEKF and target filter) and, with OSQP's, the part of
-   the step that is library calls.
+   filterpy's `predict` (the DEKF's parameter prediction, its one filterpy call; the target
+   filter is written on numpy) and, with OSQP's, the part of the step that is library calls.
 3. Side by side on the QPs recorded in the first timed run, vehicle by vehicle in flight order:
    our QP path (TubeLbmpc.solve: condense, assemble the values, update OSQP, solve with warm
    start, check) against the same QP re-built from scratch with cvxpy every step (condense with
@@ -58,27 +58,29 @@ TARGETS = {
 
 
 @contextlib.contextmanager
-def _timed(cls: type, names: tuple[str, ...], sink: list[tuple[int, int]]) -> Iterator[None]:
-    """Temporarily wrap methods of cls to append (start, duration) [ns] of each call to sink."""
-    originals = {name: getattr(cls, name) for name in names}
+def _timed(owner: object, names: tuple[str, ...], sink: list[tuple[int, int]]) -> Iterator[None]:
+    """Temporarily wrap the functions `names` of `owner` (a class's methods, or a module's
+    functions as the module calls them) to append (start, duration) [ns] of each call to
+    sink."""
+    originals = {name: getattr(owner, name) for name in names}
 
     def wrap(original: Callable) -> Callable:
-        def wrapper(self, *args, **kwargs):
+        def wrapper(*args, **kwargs):
             t0 = time.perf_counter_ns()
             try:
-                return original(self, *args, **kwargs)
+                return original(*args, **kwargs)
             finally:
                 sink.append((t0, time.perf_counter_ns() - t0))
 
         return wrapper
 
     for name, original in originals.items():
-        setattr(cls, name, wrap(original))
+        setattr(owner, name, wrap(original))
     try:
         yield
     finally:
         for name, original in originals.items():
-            setattr(cls, name, original)
+            setattr(owner, name, original)
 
 
 def _stats(ns: list[int] | np.ndarray) -> dict[str, float]:
@@ -341,7 +343,7 @@ class _Runs:
     qp: list[tuple[int, int]] = dataclasses.field(default_factory=list)
     """(start, duration) [ns] of OSQP's update and solve in the timed runs."""
     filterpy: list[tuple[int, int]] = dataclasses.field(default_factory=list)
-    """(start, duration) [ns] of filterpy's predict and update in the timed runs."""
+    """(start, duration) [ns] of the DEKF's calls of filterpy's `predict` in the timed runs."""
     captured: dict[int, list[QpData]] = dataclasses.field(default_factory=dict)
     """Each vehicle's QPs of the first timed run, in flight order."""
 
@@ -349,8 +351,7 @@ class _Runs:
 def _fly(sc, repeats: int) -> _Runs:
     """`repeats` times: an uninstrumented run, then one with timers (the first of which
     records each vehicle's QPs), alternately, so that both see the same machine."""
-    from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
-
+    from fleetmpc.onboard.core import dekf
     from fleetmpc.onboard.core.agent import Agent
 
     runs = _Runs()
@@ -369,8 +370,7 @@ def _fly(sc, repeats: int) -> _Runs:
             _timed(Agent, ("step",), runs.steps),
             _timed(DualEkf, ("step", "propagate"), runs.dekf),
             _timed(FixedPatternQp, ("update", "solve"), runs.qp),
-            _timed(ExtendedKalmanFilter, ("predict", "update"), runs.filterpy),
-            _timed(KalmanFilter, ("predict", "update"), runs.filterpy),
+            _timed(dekf, ("predict",), runs.filterpy),
         ):
             if repeat == 0:
                 TubeLbmpc.solve = capturing
@@ -474,7 +474,7 @@ _ROWS = (
     ("  DEKF", "dekf"),
     ("  model build", "model_build"),
     ("  QP (OSQP update + solve)", "qp_osqp"),
-    ("  filterpy calls (DEKF, target)", "filterpy_calls"),
+    ("  filterpy calls (DEKF's predict)", "filterpy_calls"),
     ("  filterpy + OSQP calls", "library_calls"),
     ("QP path, ours", "qp_path_ours"),
     ("QP path, cvxpy rebuild", "qp_path_cvxpy_rebuild"),

@@ -28,8 +28,9 @@ panel leaves the viewport the window's edge.
 How fast the viewer redraws after an input: `FRAME_PROBE`, put in the page before it loads,
 notes every animation frame (its start and end on the page's clock, and its WebGL draw calls)
 and every pointer and key press. The viewer asks for a frame every display frame but draws only
-in those where something changed; `Viewer.redraw_after` gives an idle viewer an input (a
-click, a key), waits until its frames have drawn nothing for `QUIET_S`, and times the redraw
+in those where something changed; `Viewer.redraw_after` gives an idle viewer (no frame drawn
+for `QUIET_S`, its frames at the display's rate again: `STEADY_FRAMES`) an input (a click, a
+key), waits until it is idle again, and times the redraw
 from the press to the start of the second frame after the last that drew (`Redraw`): the
 browser keeps one frame in flight, so then the last is shown.
 
@@ -451,6 +452,13 @@ timed with it off."""
 QUIET_S = 1.5
 """The viewer has redrawn what an input asked for when its frames have drawn nothing for this
 long [s]."""
+STEADY_FRAMES = 10
+"""... and its last this many frames came at the display's rate (`STEADY_GAP_MS` apart at
+most): the browser has shown every frame the viewer drew. Frames that draw nothing still wait
+for the frame before them to be shown (most of a second each with software rendering), so a
+page whose last drawn frame is 1.5 s old may still be showing it, and an input then waits."""
+STEADY_GAP_MS = 50.0
+"""Longest gap between two frames of a page at rest [ms] (a display frame is 16.7 ms)."""
 
 REDRAW_TIMEOUT_S = 60.0
 """Longest wait for the viewer to stop drawing after an input [s]."""
@@ -461,6 +469,13 @@ panel to one row at the window's foot)."""
 TIME_SLIDER_X = (400, 1300)
 """Columns of the time slider that are safe to click [px], between its controls and its time
 field."""
+
+
+def _steady(starts: list[float]) -> bool:
+    """Whether frames that began at `starts` [ms] came at the display's rate: `STEADY_FRAMES`
+    of them, each within `STEADY_GAP_MS` of the one before."""
+    gaps = np.diff(starts)
+    return len(starts) == STEADY_FRAMES and bool(np.all(gaps <= STEADY_GAP_MS))
 
 
 def scrub_points(count: int) -> list[tuple[int, int]]:
@@ -731,14 +746,16 @@ class Viewer:
     def idle(self, *, after_ms: float = 0.0, timeout_s: float = REDRAW_TIMEOUT_S) -> int:
         """Wait until the viewer has gone `QUIET_S` of frames without drawing, counted from
         `after_ms` on the page's clock at the earliest (frames, not the clock: while a frame
-        takes long to draw, the browser begins none); the probe's frame count then. Needs
-        `FRAME_PROBE` in the page."""
+        takes long to draw, the browser begins none), and its frames come at the display's
+        rate again (`STEADY_FRAMES`); the probe's frame count then. Needs `FRAME_PROBE` in the
+        page."""
         deadline = time.monotonic() + timeout_s
         while True:
             count = self.evaluate("__redrawProbe.frames.length")
             frames = self._frames(max(0, count - 600))  # the last 10 s
             drawn = [f[1] for f in frames if f[2]]
-            if frames and frames[-1][0] - max([after_ms, *drawn]) >= QUIET_S * 1000.0:
+            quiet = frames and frames[-1][0] - max([after_ms, *drawn]) >= QUIET_S * 1000.0
+            if quiet and _steady([f[0] for f in frames[-STEADY_FRAMES:]]):
                 return count
             if time.monotonic() > deadline:
                 raise ViewerError(f"the viewer kept drawing for {timeout_s:g} s")

@@ -16,7 +16,8 @@ rendering (SwiftShader), at 1600 x 1000, through the tests' viewer driver
 the page has loaded and settled, playback is paused (Space), then `--inputs` clicks on the time
 slider move the time cursor back and forth (`scrub_points`). Each is timed on the page's clock
 from the press (the event's timeStamp) until the viewer, having drawn the input's effect, has
-drawn nothing more for 1.5 s (`viewer.Redraw`: when each frame that drew was on the screen).
+drawn nothing more for 1.5 s and its frames come at the display's rate again (`viewer.Redraw`:
+when each frame that drew was on the screen); each click waits for the page to be at rest so.
 The same clicks are then made again with the page hashing each drawn frame's picture, which
 slows the frames too much to time them, and says which of the frames changed the picture: the
 redraw time is when the timed redraw's last such frame was on the screen (the viewer often
