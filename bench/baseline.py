@@ -4,8 +4,11 @@ Speed is quoted as a ratio measured in one run on one machine. DIR is another ch
 repository (e.g. `git worktree add /tmp/base <commit>`). For each of `--repeats` rounds, each tree
 flies the scenario in a process of its own (`sys.executable` with PYTHONPATH and the working
 directory at the tree), the two in turn and in alternating order, so that both see the same
-machine. A process flies a short warm-up, then the scenario with the tree's `run_lockstep`
-(`fleetmpc.lockstep.flight`, or `gcs.lockstep` in a checkout from before the `fleetmpc` package),
+machine. Each tree flies its own copy of the scenario file (the same path in that checkout), where
+it has one: the table says when the two differ. A process flies a short warm-up, then the
+scenario with the tree's `run_lockstep`
+(`fleetmpc.lockstep.flight`; `fleetmpc.sim.lockstep` in a checkout from before the lockstep's
+folder was named so, such as f3acd72; `gcs.lockstep` in one from before the `fleetmpc` package),
 and reports the agent step
 times its FlightRecord holds (`step_time_ms`, one per agent and period) and the wall time of the
 run. Per tree: the median and p99 of the agent steps of every round pooled, and the median of
@@ -39,7 +42,10 @@ import json, os, sys, time
 if os.path.exists("fleetmpc/__init__.py"):  # one package whose parts are top-level folders
     import fleetmpc
     fleetmpc.__path__.append(os.getcwd())  # as pyproject's package-dir maps them
-    from fleetmpc.lockstep.flight import run_lockstep
+    if os.path.exists("lockstep/flight.py"):
+        from fleetmpc.lockstep.flight import run_lockstep
+    else:  # (the lockstep was `sim/` before it was named for what it is)
+        from fleetmpc.sim.lockstep import run_lockstep
     from fleetmpc.scenario import load_scenario
 else:  # the layout before: one top-level package per part
     from gcs.lockstep import run_lockstep
@@ -99,12 +105,25 @@ def _tree(path: str | Path, *, role: str) -> Path:
     tree = Path(path).resolve()
     layouts = (
         ("lockstep/flight.py", "fleetmpc/scenario.py"),
+        ("sim/lockstep.py", "fleetmpc/scenario.py"),
         ("gcs/lockstep.py", "protocol/scenario.py"),
     )
     for names in layouts:
         if all((tree / name).is_file() for name in names):
             return tree
-    raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no lockstep/flight.py)")
+    raise FleetMpcError(
+        f"{role}: {tree} is not a checkout of fleetmpc"
+        " (no lockstep/flight.py, sim/lockstep.py or gcs/lockstep.py)"
+    )
+
+
+def _scenario_in(tree: Path, path: Path) -> Path:
+    """The scenario file `tree` flies: a file of this checkout at the same place in `tree`,
+    where that has one (a file changed since the other tree was written may use keys its code
+    does not know: each tree flies it as it wrote it), otherwise `path` itself."""
+    if path.is_relative_to(THIS_TREE) and (tree / path.relative_to(THIS_TREE)).is_file():
+        return tree / path.relative_to(THIS_TREE)
+    return path
 
 
 def _summary(reports: list[dict]) -> dict:
@@ -129,16 +148,21 @@ def compare(
     path = Path(scenario).resolve()
     if not path.is_file():
         raise FleetMpcError(f"scenario: no such file: {scenario}")
+    files = {name: _scenario_in(t, path) for name, t in trees.items()}
     reports: dict[str, list[dict]] = {name: [] for name in trees}
     for r in range(rounds):
         order = list(trees) if r % 2 == 0 else list(reversed(trees))
         for name in order:
-            reports[name].append(_fly(trees[name], path))
+            reports[name].append(_fly(trees[name], files[name]))
     this, base = _summary(reports["this"]), _summary(reports["baseline"])
     return {
         "scenario": str(path),
         "rounds": rounds,
-        "trees": {name: {"path": str(t), "commit": _describe(t)} for name, t in trees.items()},
+        "trees": {
+            name: {"path": str(t), "commit": _describe(t), "scenario": str(files[name])}
+            for name, t in trees.items()
+        },
+        "same_scenario_file": files["this"].read_bytes() == files["baseline"].read_bytes(),
         "this": this,
         "baseline": base,
         "this_over_baseline": {
@@ -178,8 +202,11 @@ def run(args: argparse.Namespace) -> int:
         f"{len(sc.vehicles)} vehicles; {result['rounds']} rounds, each tree in its own process, "
         f"in turn (load average {load_before} before, {load_after} after)"
     )
-    print(f"  this tree: {trees['this']['path']} ({trees['this']['commit']})")
-    print(f"  baseline:  {trees['baseline']['path']} ({trees['baseline']['commit']})")
+    for name, label in (("this", "this tree"), ("baseline", "baseline")):
+        tree = trees[name]
+        print(f"  {label + ':':10s} {tree['path']} ({tree['commit']}), flying {tree['scenario']}")
+    if not result["same_scenario_file"]:
+        print("  (the two trees' scenario files differ: each flies its own)")
     print(f"  {'':28s} {'this tree':>10s} {'baseline':>10s} {'this / baseline':>16s}")
     median_target = TARGETS["step_median_over_baseline"]
     rows = [

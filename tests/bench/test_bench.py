@@ -110,6 +110,18 @@ def test_each_tree_runs_its_own_code_and_the_ratios_are_of_the_two(tmp_path):
     assert len(result["this"]["round_realtime_factors"]) == 2
 
 
+def test_each_tree_flies_its_own_copy_of_a_scenario_file_of_this_checkout(tmp_path):
+    """A baseline written before a scenario key existed flies the file as it had it."""
+    this = _fake_tree(tmp_path / "this", step_ms=0.2)
+    old = _fake_tree(tmp_path / "old", step_ms=0.2)
+    (old / "scenarios").mkdir()
+    (old / "scenarios" / "paper.toml").write_text("# the file as the old tree had it\n")
+    result = compare(THIS_TREE / "scenarios" / "paper.toml", tree=this, baseline=old, rounds=1)
+    assert result["trees"]["baseline"]["scenario"] == str(old / "scenarios" / "paper.toml")
+    assert result["trees"]["this"]["scenario"] == str(THIS_TREE / "scenarios" / "paper.toml")
+    assert result["same_scenario_file"] is False
+
+
 def test_a_failing_tree_or_a_directory_that_is_no_checkout_is_an_error(tmp_path):
     good = _fake_tree(tmp_path / "good", step_ms=0.2)
     broken = _fake_tree(tmp_path / "broken", step_ms=0.2, fail=True)
