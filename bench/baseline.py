@@ -5,15 +5,12 @@ repository (e.g. `git worktree add /tmp/base <commit>`). For each of `--repeats`
 flies the scenario in a process of its own (`sys.executable` with PYTHONPATH and the working
 directory at the tree), the two in turn and in alternating order, so that both see the same
 machine. Each tree flies its own copy of the scenario file (the same path in that checkout), where
-it has one: the table says when the two differ. A process flies a short warm-up, then the
-scenario with the tree's `run_lockstep`
-(`fleetmpc.lockstep.flight`; `fleetmpc.sim.lockstep` in a checkout from before the lockstep's
-folder was named so, such as f3acd72; `gcs.lockstep` in one from before the `fleetmpc` package),
-and reports the agent step
-times its FlightRecord holds (`step_time_ms`, one per agent and period) and the wall time of the
-run. Per tree: the median and p99 of the agent steps of every round pooled, and the median of
-the rounds' real-time factors (simulated seconds per wall second); then this tree over the
-baseline for each. Wall-clock times; nothing is asserted.
+it has one: the table says when the two differ. A process flies a short warm-up, then the scenario
+with the tree's `run_lockstep` (`fleetmpc.lockstep.flight`, or where an older checkout has it:
+`_LAYOUTS`), and reports the agent step times its FlightRecord holds (`step_time_ms`, one per agent
+and period) and the wall time of the run. Per tree: the median and p99 of the agent steps of every
+round pooled, and the median of the rounds' real-time factors (simulated seconds per wall second);
+then this tree over the baseline for each. Wall-clock times; nothing is asserted.
 """
 
 import argparse
@@ -37,19 +34,22 @@ TARGETS = {"step_median_over_baseline": 1.5, "lockstep_realtime_factor": 100.0}
 """The issue's speed targets: this tree's agent step median at most 1.5x the baseline's, and its
 lockstep at least 100x real time."""
 
+_LAYOUTS = (
+    ("lockstep/flight.py", "fleetmpc/scenario.py", "fleetmpc.lockstep.flight", "fleetmpc.scenario"),
+    ("sim/lockstep.py", "fleetmpc/scenario.py", "fleetmpc.sim.lockstep", "fleetmpc.scenario"),
+    ("gcs/lockstep.py", "protocol/scenario.py", "gcs.lockstep", "protocol.scenario"),
+)
+"""The layouts a checkout may have, newest first: the two files that tell it, and the modules
+its `run_lockstep` and `load_scenario` are in. The lockstep was `sim/` before it was named for
+what it is (f3acd72); before the `fleetmpc` package each part was a top-level package."""
+
 _CHILD = """
-import json, os, sys, time
+import importlib, json, os, sys, time
 if os.path.exists("fleetmpc/__init__.py"):  # one package whose parts are top-level folders
     import fleetmpc
     fleetmpc.__path__.append(os.getcwd())  # as pyproject's package-dir maps them
-    if os.path.exists("lockstep/flight.py"):
-        from fleetmpc.lockstep.flight import run_lockstep
-    else:  # (the lockstep was `sim/` before it was named for what it is)
-        from fleetmpc.sim.lockstep import run_lockstep
-    from fleetmpc.scenario import load_scenario
-else:  # the layout before: one top-level package per part
-    from gcs.lockstep import run_lockstep
-    from protocol.scenario import load_scenario
+run_lockstep = importlib.import_module(sys.argv[2]).run_lockstep
+load_scenario = importlib.import_module(sys.argv[3]).load_scenario
 
 scenario = load_scenario(sys.argv[1])
 run_lockstep(scenario, duration_s=2.0)  # warm-up: a process's first steps pay for first calls
@@ -66,14 +66,15 @@ result = {
 }
 print(json.dumps(result))
 """
-"""One tree's measurement, run as `python -c _CHILD SCENARIO` in that tree."""
+"""One tree's measurement, run as `python -c _CHILD SCENARIO LOCKSTEP_MODULE SCENARIO_MODULE` in
+that tree."""
 
 
 def _fly(tree: Path, scenario: Path) -> dict:
     """Fly the scenario once in a process running the tree's code; the child's report."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     done = subprocess.run(
-        [sys.executable, "-c", _CHILD, str(scenario)],
+        [sys.executable, "-c", _CHILD, str(scenario), *_modules(tree)],
         cwd=tree,
         env=env,
         capture_output=True,
@@ -101,20 +102,21 @@ def _describe(tree: Path) -> str:
     return done.stdout.strip() if done.returncode == 0 else "not a git checkout"
 
 
+def _modules(tree: Path) -> tuple[str, str] | None:
+    """The modules of `tree`'s `run_lockstep` and `load_scenario` (`_LAYOUTS`), None when it is
+    no checkout of fleetmpc."""
+    for lockstep, scenario, *modules in _LAYOUTS:
+        if (tree / lockstep).is_file() and (tree / scenario).is_file():
+            return tuple(modules)
+    return None
+
+
 def _tree(path: str | Path, *, role: str) -> Path:
     tree = Path(path).resolve()
-    layouts = (
-        ("lockstep/flight.py", "fleetmpc/scenario.py"),
-        ("sim/lockstep.py", "fleetmpc/scenario.py"),
-        ("gcs/lockstep.py", "protocol/scenario.py"),
-    )
-    for names in layouts:
-        if all((tree / name).is_file() for name in names):
-            return tree
-    raise FleetMpcError(
-        f"{role}: {tree} is not a checkout of fleetmpc"
-        " (no lockstep/flight.py, sim/lockstep.py or gcs/lockstep.py)"
-    )
+    if _modules(tree) is None:
+        files = ", ".join(lockstep for lockstep, *_ in _LAYOUTS)
+        raise FleetMpcError(f"{role}: {tree} is not a checkout of fleetmpc (no {files})")
+    return tree
 
 
 def _scenario_in(tree: Path, path: Path) -> Path:
