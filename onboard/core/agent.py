@@ -320,8 +320,9 @@ class Agent:
         None when it does not listen to them or none came."""
         if not self.learning.fleet_wind:
             return None
-        position = (y.item(0), y.item(1))
-        return self.wind_pool.pool(inp.neighbour_plans.values(), position, inp.stamp_ns)
+        pose = (y.item(0), y.item(1), y.item(2))
+        drift = tuple(self.dekf.beta[2:].tolist())
+        return self.wind_pool.pool(inp.neighbour_plans.values(), pose, drift, inp.stamp_ns)
 
     def observe_target(self, inp: AgentInput) -> bool:
         """Fuse a target observation, if one came; True once the target is known."""

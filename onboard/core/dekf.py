@@ -364,11 +364,12 @@ class DualEkf:
             v_m, H_v, R_v = _velocity_model(self.theta, speed, heading, heading_var, n)
             rows.append((velocity - v_m, H_v, R_v))
             self.wind_sample = self._wind_sample(velocity, R_v)
-        if shared is not None:
-            drift = beta_of(self.theta)[2:]
-            e = shared.directions
-            rows.append((shared.values - e.dot(drift), e.dot(_H_DRIFT), np.diag(shared.variances)))
         theta, P_p = _consider_update(self.theta, self.P_p, *_stack(rows), hold)
+        if shared is not None:  # (the neighbours' wind says nothing of this vehicle's a_V, a_w)
+            across = np.array(shared.direction)
+            innovation = np.array((shared.across_m_s - across.dot(beta_of(theta)[2:]),))
+            H, R = across.dot(_H_DRIFT)[None, :], np.array(((shared.variance,),))
+            theta, P_p = _consider_update(theta, P_p, innovation, H, R, [0, 1])
         self.theta, self.P_p = _bound(theta, P_p, n)
 
     def _wind_sample(self, velocity: np.ndarray, R_v: np.ndarray) -> WindSample:

@@ -17,21 +17,25 @@ variance of
 wind is the same everywhere). That difference is no sensor noise: it stays for seconds, while
 the drift's filter takes each period's sample as new and averages about 1 / K of them (K its
 steady-state gain on a sample of the gust, `memory_periods`). D is counted that many times, so
-that the samples together carry no more than the difference allows. Each sample is then a
-measurement n_j'd of the drift d = m + g with the variance v_j = std_j^2 + D / K. Taken as
-independent, k of them carry the information A = sum n_j n_j' / v_j, b = sum n_j s_j / v_j, and
-as many measurements as A has non-zero eigenvalues (one while the fleet flies parallel, two
-when headings differ) carry exactly as much: e_i'd = e_i'b / l_i with variance 1 / l_i for each
-eigenpair (l_i, e_i) of A. `WindPool.pool` returns those.
+that the samples together carry no more than the difference allows.
+
+The samples tell this vehicle its wind across its own heading n_i only. Across it, the wind is
+what a unicycle answers slowest (by turning, docs/design.md, "What the controller leaves of the
+wind"); along it, the wind and a_V share one measurement, and any bias there from a neighbour
+would be learned as a_V. A neighbour heading within `MAX_HEADING_OFF` of this vehicle's
+measures s_j = n_j'w; its wind across n_i is s_j less (n_j - n_i)'d^ (this vehicle's own drift
+estimate d^ makes up the small part along its track). Each is then a measurement of n_i'd, of
+the drift d = m + g, with the variance v_j = std_j^2 + D / K; taken as independent, k of them
+carry exactly the information of their variance-weighted mean with the variance
+1 / sum(1 / v_j), which is what `WindPool.pool` returns.
 """
 
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-import numpy as np
-
 from fleetmpc.onboard.core.config import LearningSettings
+from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.protocol.plan import Plan
 
 __all__ = ["PooledWind", "WindPool", "memory_periods"]
@@ -39,16 +43,20 @@ __all__ = ["PooledWind", "WindPool", "memory_periods"]
 
 @dataclass(frozen=True)
 class PooledWind:
-    """The neighbours' samples as one or two measurements of this vehicle's drift."""
+    """The neighbours' samples as one measurement of this vehicle's drift across its heading."""
 
-    directions: np.ndarray
-    """Unit vectors (k, 2) (North, East) along which the drift is measured."""
-    values: np.ndarray
-    """The drift along each [m/s] (k,)."""
-    variances: np.ndarray
-    """Their error variances [m^2/s^2] (k,)."""
+    direction: tuple[float, float]
+    """n_i = (-sin heading, cos heading) of this vehicle (North, East)."""
+    across_m_s: float
+    """The drift along n_i [m/s]."""
+    variance: float
+    """Its error variance [m^2/s^2]."""
     samples: int
     """How many neighbours' samples went in."""
+
+
+MAX_HEADING_OFF = math.radians(30.0)
+"""A neighbour heading farther from this vehicle's measures too little of its cross wind."""
 
 
 def memory_periods(settings: LearningSettings, tau: float) -> float:
@@ -76,35 +84,34 @@ class WindPool:
         """2 sigma^2 / K: D's scale, counted over the filter's memory."""
 
     def pool(
-        self, plans: Iterable[Plan], position: tuple[float, float], stamp_ns: int
+        self,
+        plans: Iterable[Plan],
+        pose: tuple[float, float, float],
+        drift: tuple[float, float],
+        stamp_ns: int,
     ) -> PooledWind | None:
-        """The wind samples that the plans carry, each weighed by its own error and by how far
-        (from `position` [m]) and how long ago (before `stamp_ns`) it was taken, as the
-        measurements along the eigenvectors of their information; None without any sample."""
-        x, y = position
-        A, b = np.zeros((2, 2)), np.zeros(2)
+        """This vehicle's wind across its heading from the samples that the plans carry, each
+        weighed by its own error and by how far (from `pose`, x, y, heading) and how long ago
+        (before `stamp_ns`) it was taken; `drift` is this vehicle's own estimate (North, East).
+        None without any sample from a vehicle heading close enough."""
+        x, y, heading = pose
+        n_i = (-math.sin(heading), math.cos(heading))
+        info = total = 0.0
         count = 0
         for plan in plans:
             w = plan.wind
-            if w is None:
+            if w is None or abs(wrap(w.heading_rad - heading)) > MAX_HEADING_OFF:
                 continue
             px, py, _ = plan.states[0].tolist()
             age_s = max(0.0, (stamp_ns - plan.stamp_ns) * 1e-9)
             apart = math.hypot(px - x, py - y) / self.length_m
             kept = math.exp(-apart - age_s / self.time_constant_s)
             weight = 1.0 / (w.std_m_s**2 + self.spread * (1.0 - kept))
-            n = np.array((-math.sin(w.heading_rad), math.cos(w.heading_rad)))
-            A += weight * np.outer(n, n)
-            b += weight * w.across_m_s * n
+            n_j = (-math.sin(w.heading_rad), math.cos(w.heading_rad))
+            along_part = (n_j[0] - n_i[0]) * drift[0] + (n_j[1] - n_i[1]) * drift[1]
+            info += weight
+            total += weight * (w.across_m_s - along_part)
             count += 1
         if count == 0:
             return None
-        info, vectors = np.linalg.eigh(A)
-        keep = info > _RANK * info[-1]
-        e, info = vectors[:, keep].T, info[keep]
-        return PooledWind(e, e.dot(b) / info, 1.0 / info, count)
-
-
-_RANK = 1e-6
-"""Eigenvalues of the samples' information below this share of the largest carry nothing (a
-fleet that flies parallel measures the wind across its heading only)."""
+        return PooledWind(n_i, total / info, 1.0 / info, count)

@@ -21,45 +21,44 @@ def _plan(x: float, y: float, stamp_ns: int, wind: WindSample | None) -> Plan:
     return Plan(1, stamp_ns, PERIOD_NS, np.array([[x, y, 0.0]] * 2), np.zeros((1, 2)), wind)
 
 
-def test_samples_across_two_headings_pool_to_the_whole_wind():
+def _across(heading: float, wind: tuple[float, float]) -> float:
+    return -math.sin(heading) * wind[0] + math.cos(heading) * wind[1]
+
+
+def test_samples_taken_here_and_now_pool_to_their_mean_and_its_variance():
     pool = WindPool(LearningSettings(), tau=TAU)  # (no gust: the samples differ by noise alone)
-    east = WindSample(0.0, 0.2, 0.1)  # heading North: across is East
-    north = WindSample(math.pi / 2, -0.3, 0.1)  # heading East: across is South
-    pooled = pool.pool([_plan(0, 0, 0, east), _plan(5, 0, 0, north)], (0.0, 0.0), 0)
-    wind = pooled.directions.T.dot(pooled.values)  # (orthonormal directions)
-    assert wind == pytest.approx((0.3, 0.2))
-    assert pooled.variances == pytest.approx([0.01, 0.01]) and pooled.samples == 2
-
-
-def test_a_fleet_flying_parallel_measures_across_its_heading_only():
-    pool = WindPool(LearningSettings(), tau=TAU)
     samples = [WindSample(0.0, 0.2, 0.1), WindSample(0.0, 0.4, 0.1)]
-    pooled = pool.pool([_plan(0, 0, 0, w) for w in samples], (0.0, 0.0), 0)
-    assert abs(pooled.directions[0]) == pytest.approx([0.0, 1.0])
-    assert pooled.directions[0].dot([0.0, 0.3]) == pytest.approx(pooled.values[0])
-    assert pooled.variances == pytest.approx([0.01 / 2])
+    pooled = pool.pool([_plan(5.0 * i, 0, 0, w) for i, w in enumerate(samples)], (0, 0, 0), (0, 0), 0)
+    assert pooled.direction == pytest.approx((0.0, 1.0))  # (heading North: across is East)
+    assert pooled.across_m_s == pytest.approx(0.3)
+    assert pooled.variance == pytest.approx(0.01 / 2) and pooled.samples == 2
+
+
+def test_a_neighbour_heading_a_little_off_is_told_apart_by_the_own_drift():
+    wind, off = (0.3, 0.2), math.radians(20.0)
+    pool = WindPool(LearningSettings(), tau=TAU)
+    sample = WindSample(off, _across(off, wind), 0.05)
+    pooled = pool.pool([_plan(0, 0, 0, sample)], (0, 0, 0), wind, 0)
+    assert pooled.across_m_s == pytest.approx(_across(0.0, wind))
+    turned = WindSample(math.radians(90.0), 0.3, 0.05)
+    assert pool.pool([_plan(0, 0, 0, turned)], (0, 0, 0), wind, 0) is None
 
 
 def test_a_sample_from_farther_or_longer_ago_weighs_less():
     settings = LearningSettings(gust_std_m_s=0.1, gust_time_constant_s=5.0, wind_length_m=20.0)
     pool = WindPool(settings, tau=TAU)
     near, far = WindSample(0.0, 0.0, 0.05), WindSample(0.0, 1.0, 0.05)
-
-    def across(plans, stamp_ns):
-        pooled = pool.pool(plans, (0.0, 0.0), stamp_ns)
-        return pooled.directions[0].dot([0.0, 1.0]) * pooled.values[0]
-
-    assert 0.0 < across([_plan(0, 0, 0, near), _plan(20, 0, 0, far)], 0) < 0.2
-    assert 0.0 < across([_plan(0, 0, 10**9, near), _plan(0, 0, 0, far)], 10**9) < 0.5
-    assert pool.pool([_plan(0, 0, 0, None)], (0.0, 0.0), 0) is None
+    apart = pool.pool([_plan(0, 0, 0, near), _plan(20, 0, 0, far)], (0, 0, 0), (0, 0), 0)
+    later = pool.pool([_plan(0, 0, 10**9, near), _plan(0, 0, 0, far)], (0, 0, 0), (0, 0), 10**9)
+    assert 0.0 < apart.across_m_s < 0.2 and 0.0 < later.across_m_s < 0.5
+    assert pool.pool([_plan(0, 0, 0, None)], (0, 0, 0), (0, 0), 0) is None
 
 
 def test_a_uniform_wind_weighs_distance_not_at_all():
     settings = LearningSettings(gust_std_m_s=0.1, wind_length_m=math.inf)
     pool = WindPool(settings, tau=TAU)
     plans = [_plan(0, 0, 0, WindSample(0, 0.0, 0.05)), _plan(500, 0, 0, WindSample(0, 1.0, 0.05))]
-    pooled = pool.pool(plans, (0.0, 0.0), 0)
-    assert abs(pooled.values[0]) == pytest.approx(0.5)
+    assert pool.pool(plans, (0, 0, 0), (0, 0), 0).across_m_s == pytest.approx(0.5)
 
 
 @pytest.mark.parametrize("sigma, T, noise", [(0.08, 5.8, 0.05), (0.15, 3.7, 0.05), (0.03, 12, 0.02)])
@@ -101,7 +100,8 @@ def _fly_fleet(share: bool, seed: int) -> tuple[float, list[float]]:
         for i, (plant, f) in enumerate(zip(plants, filters, strict=True)):
             y = plant.measure(rng)
             others = [p for j, p in enumerate(plans) if j != i]
-            f.step(y, u, shared=pool.pool(others, (y[0], y[1]), stamp) if share else None)
+            pose, drift = (y[0], y[1], y[2]), (f.beta[2], f.beta[3])
+            f.step(y, u, shared=pool.pool(others, pose, drift, stamp) if share else None)
             heard.append(_plan(y[0], y[1], stamp, f.wind_sample))
             if k * TAU >= 60:
                 across = np.array((-np.sin(f.z[2]), np.cos(f.z[2])))
