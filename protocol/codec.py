@@ -63,8 +63,8 @@ their field checks, are `fleetmpc.protocol.messages`.
 """
 
 import struct
-from dataclasses import astuple
 from collections.abc import MutableMapping
+from dataclasses import astuple
 
 import numpy as np
 
