@@ -241,7 +241,9 @@ class LearningSettings:
                 "learning.wind_length_m", f"must be > 0 (inf allowed), got {self.wind_length_m!r}"
             )
         if not isinstance(self.fleet_wind, bool):
-            raise ConfigError("learning.fleet_wind", f"must be true or false, got {self.fleet_wind!r}")
+            raise ConfigError(
+                "learning.fleet_wind", f"must be true or false, got {self.fleet_wind!r}"
+            )
         for name in ("input_lag_s", "speed_excitation_m_s", "gust_std_m_s"):
             positive(f"learning.{name}", getattr(self, name), allow_zero=True)
 

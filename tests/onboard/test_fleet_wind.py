@@ -28,7 +28,8 @@ def _across(heading: float, wind: tuple[float, float]) -> float:
 def test_samples_taken_here_and_now_pool_to_their_mean_and_its_variance():
     pool = WindPool(LearningSettings(), tau=TAU)  # (no gust: the samples differ by noise alone)
     samples = [WindSample(0.0, 0.2, 0.1), WindSample(0.0, 0.4, 0.1)]
-    pooled = pool.pool([_plan(5.0 * i, 0, 0, w) for i, w in enumerate(samples)], (0, 0, 0), (0, 0), 0)
+    plans = [_plan(5.0 * i, 0, 0, w) for i, w in enumerate(samples)]
+    pooled = pool.pool(plans, (0, 0, 0), (0, 0), 0)
     assert pooled.direction == pytest.approx((0.0, 1.0))  # (heading North: across is East)
     assert pooled.across_m_s == pytest.approx(0.3)
     assert pooled.variance == pytest.approx(0.01 / 2) and pooled.samples == 2
@@ -61,7 +62,9 @@ def test_a_uniform_wind_weighs_distance_not_at_all():
     assert pool.pool(plans, (0, 0, 0), (0, 0), 0).across_m_s == pytest.approx(0.5)
 
 
-@pytest.mark.parametrize("sigma, T, noise", [(0.08, 5.8, 0.05), (0.15, 3.7, 0.05), (0.03, 12, 0.02)])
+@pytest.mark.parametrize(
+    "sigma, T, noise", [(0.08, 5.8, 0.05), (0.15, 3.7, 0.05), (0.03, 12.0, 0.02)]
+)
 def test_memory_is_one_over_the_steady_gain_of_the_iterated_riccati_recursion(sigma, T, noise):
     F2 = math.exp(-2 * TAU / T)
     Q, R, P = sigma**2 * (1 - F2), noise**2, sigma**2

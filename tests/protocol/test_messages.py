@@ -156,8 +156,11 @@ def make_plan(
     )
 
 
-def plan_bytes(m: int = 5, wind: WindSample | None = WindSample(0.3, -0.2, 0.05)) -> bytes:
-    """(heading 0.3 rad, 0.2 m/s across it to the left, 5 cm/s of error)"""
+SAMPLE = WindSample(0.3, -0.2, 0.05)
+"""Heading 0.3 rad, 0.2 m/s across it to the left, 5 cm/s of error."""
+
+
+def plan_bytes(m: int = 5, wind: WindSample | None = SAMPLE) -> bytes:
     status = PlanStatus(
         mode=VehicleMode.OFFBOARD,
         qp_fallback=True,
