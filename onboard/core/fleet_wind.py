@@ -25,9 +25,11 @@ wind"); along it, the wind and a_V share one measurement, and any bias there fro
 would be learned as a_V. A neighbour heading within `MAX_HEADING_OFF` of this vehicle's
 measures s_j = n_j'w; its wind across n_i is s_j less (n_j - n_i)'d^ (this vehicle's own drift
 estimate d^ makes up the small part along its track). Each is then a measurement of n_i'd, of
-the drift d = m + g, with the variance v_j = std_j^2 + D / K; taken as independent, k of them
-carry exactly the information of their variance-weighted mean with the variance
-1 / sum(1 / v_j), which is what `WindPool.pool` returns.
+the drift d = m + g, with the variance std_j^2 + D_j / K. `WindPool.pool` returns their mean
+weighed by those variances, a_j the weights (summing to 1), with the variance
+sum a_j^2 std_j^2 + (sum a_j sqrt(D_j / K))^2: the sensors' errors are independent and average
+out, the differences are not (neighbours close to each other differ from this vehicle's wind
+alike, and all their samples are a period old) and are taken as fully correlated.
 """
 
 import math
@@ -96,8 +98,7 @@ class WindPool:
         None without any sample from a vehicle heading close enough."""
         x, y, heading = pose
         n_i = (-math.sin(heading), math.cos(heading))
-        info = total = 0.0
-        count = 0
+        heard = []  # (value, sensor variance, difference variance)
         for plan in plans:
             w = plan.wind
             if w is None or abs(wrap(w.heading_rad - heading)) > MAX_HEADING_OFF:
@@ -105,13 +106,15 @@ class WindPool:
             px, py, _ = plan.states[0].tolist()
             age_s = max(0.0, (stamp_ns - plan.stamp_ns) * 1e-9)
             apart = math.hypot(px - x, py - y) / self.length_m
-            kept = math.exp(-apart - age_s / self.time_constant_s)
-            weight = 1.0 / (w.std_m_s**2 + self.spread * (1.0 - kept))
+            difference = self.spread * (1.0 - math.exp(-apart - age_s / self.time_constant_s))
             n_j = (-math.sin(w.heading_rad), math.cos(w.heading_rad))
             along_part = (n_j[0] - n_i[0]) * drift[0] + (n_j[1] - n_i[1]) * drift[1]
-            info += weight
-            total += weight * (w.across_m_s - along_part)
-            count += 1
-        if count == 0:
+            heard.append((w.across_m_s - along_part, w.std_m_s**2, difference))
+        if not heard:
             return None
-        return PooledWind(n_i, total / info, 1.0 / info, count)
+        weights = [1.0 / (noise + difference) for _, noise, difference in heard]
+        share = [wt / sum(weights) for wt in weights]
+        value = sum(a * v for a, (v, _, _) in zip(share, heard, strict=True))
+        noise = sum(a * a * n for a, (_, n, _) in zip(share, heard, strict=True))
+        difference = sum(a * math.sqrt(d) for a, (_, _, d) in zip(share, heard, strict=True))
+        return PooledWind(n_i, value, noise + difference**2, len(heard))
