@@ -236,7 +236,8 @@ class LearningSettings:
         ):
             positive(f"learning.{name}", getattr(self, name))
         positive("learning.gust_time_constant_s", self.gust_time_constant_s)
-        if not (isinstance(self.wind_length_m, int | float) and self.wind_length_m > 0.0):
+        length = self.wind_length_m
+        if isinstance(length, bool) or not (isinstance(length, int | float) and length > 0.0):
             raise ConfigError(
                 "learning.wind_length_m", f"must be > 0 (inf allowed), got {self.wind_length_m!r}"
             )

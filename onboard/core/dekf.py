@@ -20,6 +20,11 @@ constant T (F = e^(-tau/T) on it, Q = sigma^2 (1 - e^(-2 tau/T))). A gust is exp
 a change of a_V is not: a change of the velocity that lasts through many gust time constants, in a
 direction that turns with the heading, is learned as a_V; the gust takes the rest.
 
+The fleet's wind (docs/design.md, "The fleet's wind"): each period the filter keeps the wind its
+ground velocity measured across its heading (`wind_sample`, which the agent puts on its plan),
+and takes the neighbours' samples, pooled (`fleet_wind.WindPool`), as one more measurement of
+the drift across its own heading, in an update that holds a_V and a_w.
+
 Excitation: a parameter whose Jacobian column is (nearly) zero gets no information from this
 measurement, yet a plain update would still move it through its correlation with the others; such
 parameters get a zero gain row (a Schmidt "consider" update, Joseph form keeps P consistent), so

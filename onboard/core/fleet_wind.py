@@ -40,7 +40,7 @@ from fleetmpc.onboard.core.config import LearningSettings
 from fleetmpc.onboard.core.unicycle import wrap
 from fleetmpc.protocol.plan import Plan
 
-__all__ = ["PooledWind", "WindPool", "memory_periods"]
+__all__ = ["PooledWind", "WindPool", "gust_filter", "memory_periods"]
 
 
 @dataclass(frozen=True)
@@ -61,19 +61,27 @@ MAX_HEADING_OFF = math.radians(30.0)
 """A neighbour heading farther from this vehicle's measures too little of its cross wind."""
 
 
-def memory_periods(settings: LearningSettings, tau: float) -> float:
-    """How many periods' samples the drift's filter averages, 1 / K: K is the steady-state
-    Kalman gain of a Gauss-Markov gust (sigma, T) sampled every tau with the velocity sensor's
-    noise, from the scalar Riccati equation P = F^2 P R / (P + R) + Q solved for the prior P."""
+def gust_filter(settings: LearningSettings, tau: float) -> tuple[float, float] | None:
+    """The drift's filter of the gust from the ground velocity in steady state: the prior
+    variance P and the gain K = P / (P + R) of a Gauss-Markov gust (sigma, T) sampled every tau
+    with the velocity sensor's noise R, from the scalar Riccati equation
+    P = F^2 P R / (P + R) + Q solved for P; None without a gust part."""
     sigma, T = settings.gust_std_m_s, settings.gust_time_constant_s
     R = settings.measurement_velocity_std_m_s**2
     if sigma == 0.0:
-        return 1.0
+        return None
     F2 = math.exp(-2.0 * tau / T)
     Q = sigma * sigma * (1.0 - F2)
     b = R * (1.0 - F2) - Q
     prior = 0.5 * (-b + math.sqrt(b * b + 4.0 * Q * R))
-    return (prior + R) / prior
+    return prior, prior / (prior + R)
+
+
+def memory_periods(settings: LearningSettings, tau: float) -> float:
+    """How many periods' samples the drift's filter averages, 1 / K (`gust_filter`); 1 without
+    a gust part."""
+    steady = gust_filter(settings, tau)
+    return 1.0 if steady is None else 1.0 / steady[1]
 
 
 class WindPool:

@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from fleetmpc.errors import ConfigError
 from fleetmpc.onboard.core.config import LearningSettings
 from fleetmpc.onboard.core.dekf import DualEkf
 from fleetmpc.onboard.core.fleet_wind import WindPool, memory_periods
@@ -132,3 +133,13 @@ def test_a_plan_carries_the_sample_its_filter_measured():
     assert w is not None and w.std_m_s >= 0.05
     across = np.array((-np.sin(w.heading_rad), np.cos(w.heading_rad))).dot((1.0, 0.1))
     assert w.across_m_s == pytest.approx(across)  # (the ground velocity across the heading)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("wind_length_m", 0.0), ("wind_length_m", math.nan), ("wind_length_m", True),
+     ("fleet_wind", "yes")],
+)  # fmt: skip
+def test_a_bad_fleet_wind_setting_is_refused_naming_it(field, value):
+    with pytest.raises(ConfigError, match=f"learning.{field}"):
+        LearningSettings(**{field: value})
