@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetmpc.onboard.core.fleet_wind import gust_filter
 from fleetmpc.onboard.core.formation import Formation
 from fleetmpc.scenario import Scenario
 from fleetmpc.sitl.wind import Gust, Wind, von_karman_correlation
@@ -58,17 +59,15 @@ def drift_filter(sc: Scenario) -> DriftFilter | None:
     """The learned drift's filter (docs/design.md, "The wind's two parts"); None without a gust
     part (the drift is then a slow random walk only)."""
     s, tau = sc.learning, sc.controller.period_s
-    sigma, T, R = s.gust_std_m_s, s.gust_time_constant_s, s.measurement_velocity_std_m_s**2
-    if sigma == 0.0:
+    steady = gust_filter(s, tau)
+    if steady is None:
         return None
-    phi = math.exp(-tau / T)
-    P = sigma * sigma  # (iterate the Riccati recursion to its fixed point)
-    for _ in range(1000):
-        prior = phi * phi * P + sigma * sigma * (1.0 - phi * phi)
-        P = prior * R / (prior + R)
-    gain = prior / (prior + R)
+    prior, gain = steady
+    phi = math.exp(-tau / s.gust_time_constant_s)
     bandwidth = -math.log(phi * (1.0 - gain)) / tau
-    return DriftFilter(sigma, T, math.sqrt(R), bandwidth, math.sqrt(P))
+    noise = s.measurement_velocity_std_m_s
+    error = math.sqrt(prior * (1.0 - gain))
+    return DriftFilter(s.gust_std_m_s, s.gust_time_constant_s, noise, bandwidth, error)
 
 
 def wind_lines(sc: Scenario) -> list[str]:
@@ -105,7 +104,24 @@ def _lines_of(wind: Wind, sc: Scenario, whose: str) -> list[str]:
         lines += _limit_lines(wind, sc, whose)
         if sc.learning.enabled:
             lines.append(_learner_line(sc, whose))
+            lines += _fleet_wind_lines(sc, whose)
     return lines
+
+
+def _fleet_wind_lines(sc: Scenario, whose: str) -> list[str]:
+    """Whether the vehicles hear each other's wind (docs/design.md, "The fleet's wind")."""
+    s = sc.learning
+    if not s.fleet_wind or len(sc.vehicles) < 2:
+        return []
+    apart = (
+        "alike everywhere"
+        if math.isinf(s.wind_length_m)
+        else f"to decorrelate over {s.wind_length_m:g} m"
+    )
+    return [
+        f"wind{whose}: each vehicle also pools the wind its neighbours measure across their "
+        f"headings, their gusts taken {apart} (learning.wind_length_m)"
+    ]
 
 
 def _learner_line(sc: Scenario, whose: str) -> str:

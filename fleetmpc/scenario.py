@@ -185,19 +185,34 @@ def _wind(table: Any, prefix: str) -> Wind:
 
 
 def _drift_for_the_wind(
-    learning: LearningSettings, wind_table: Any, controller: ControllerSettings
+    learning: LearningSettings, wind_table: Any, controller: ControllerSettings, given: Any
 ) -> LearningSettings:
-    """The learned drift's gust as the site's wind: its intensity (`Wind.gust_std_m_s`) and the
+    """The learned drift's gust as the site's wind: its intensity (`Wind.gust_std_m_s`), the
     time constant of a Gauss-Markov process that changes as fast (`Wind.rate_m_s` at the cruise
-    airspeed, sigma sqrt(2 / T)): what a forecast of the site's turbulence tells the agents
-    (docs/design.md, "The wind's two parts")."""
+    airspeed, sigma sqrt(2 / T)) and the distance over which it decorrelates (`wind_length_m`):
+    what a forecast of the site's turbulence tells the agents (docs/design.md, "The wind's two
+    parts", "The fleet's wind"). Settings the scenario's [learning] gives stay."""
     wind = _wind(wind_table, "truth.wind")
     sigma, rate = wind.gust_std_m_s(), wind.rate_m_s(controller.reference_speed_m_s)
     if sigma == 0.0 or rate == 0.0:
         return learning
-    return dataclasses.replace(
-        learning, gust_std_m_s=sigma, gust_time_constant_s=2.0 * sigma * sigma / (rate * rate)
-    )
+    given = given if isinstance(given, dict) else {}
+    forecast: dict[str, float] = {}
+    if "gust_std_m_s" not in given:  # (the gust's time constant goes with its intensity)
+        forecast["gust_std_m_s"] = sigma
+        forecast["gust_time_constant_s"] = 2.0 * sigma * sigma / (rate * rate)
+    if "wind_length_m" not in given:
+        forecast["wind_length_m"] = _wind_length_m(wind)
+    return dataclasses.replace(learning, **forecast)
+
+
+def _wind_length_m(wind: Wind) -> float:
+    """How far apart two vehicles feel different gusts [m]: the turbulence's length scale, else
+    the shortest discrete gust's length; inf when the changing part (a sinusoid) blows the same
+    everywhere."""
+    if wind.turbulence.sigma_m_s > 0.0:
+        return wind.turbulence.length_scale_m
+    return min((g.length_m for g in wind.gusts), default=math.inf)
 
 
 def _refuse_own_turbulence(truth: Any, prefix: str) -> None:
@@ -376,8 +391,9 @@ def parse_scenario(
     truth_default = doc.get("truth", {})
     if not isinstance(truth_default, dict):
         raise ConfigError("truth", "must be a table")
-    if "gust_std_m_s" not in doc.get("learning", {}):
-        learning = _drift_for_the_wind(learning, truth_default.get("wind", {}), controller)
+    learning = _drift_for_the_wind(
+        learning, truth_default.get("wind", {}), controller, doc.get("learning", {})
+    )
     formation_table = dict(doc.get("formation", {}))
     pattern = formation_table.pop("pattern", None)
     raw_vehicles = doc.get("vehicles")

@@ -1,4 +1,4 @@
-"""Binary wire schema of the Zenoh messages (schema version 2), packed with `struct`.
+"""Binary wire schema of the Zenoh messages (schema version 3), packed with `struct`.
 
 All integers and floats are little-endian; floats are IEEE-754 float64 and round-trip bit-exactly.
 
@@ -6,22 +6,24 @@ Header, 18 bytes, common to every message::
 
     offset size type  field
     0      2    2s    magic, b"FM"
-    2      1    u8    schema version (2)
+    2      1    u8    schema version (3)
     3      1    u8    message kind: 1 plan, 2 status, 3 target observation, 4 fleet epoch
     4      1    u8    sender id, the vehicle's MAVLink system id (1..250)
     5      1    u8    reserved, 0
     6      4    u32   sequence number, per sender and kind, increasing
     10     8    i64   simulated timestamp [ns] (>= 0); for a plan, the time of states[0]
 
-PlanMessage (kind 1), 18 + 24 + 40 M + 24 bytes (266 bytes at M = 5)::
+PlanMessage (kind 1), 18 + 48 + 40 M + 24 bytes (290 bytes at M = 5)::
 
     18     8    i64   period_ns, time between plan states (1 .. 60e9)
     26     2    u16   horizon M (1..100)
     28     1    u8    mode (VehicleMode)
-    29     1    u8    flags: bit 0 qp_fallback, bit 1 learning_on; other bits 0
+    29     1    u8    flags: bit 0 qp_fallback, bit 1 learning_on, bit 2 has_wind; other bits 0
     30     8    f64   first_c_norm, Euclidean norm of the first input correction c_0
     38     4    u32   solve_time_us, QP solve time [us]
-    42     24(M+1) f64 states, row-major (x North m, y East m, yaw rad) for j = 0..M
+    42     24   3 f64 wind sample: heading rad, wind across it m/s, its 1-sigma error m/s
+                      (all 0 without)
+    66     24(M+1) f64 states, row-major (x North m, y East m, yaw rad) for j = 0..M
     ..     16M  f64   inputs, row-major (speed m/s, yaw rate rad/s) for j = 0..M-1
 
 StatusMessage (kind 2), 149 bytes::
@@ -62,6 +64,7 @@ their field checks, are `fleetmpc.protocol.messages`.
 
 import struct
 from collections.abc import MutableMapping
+from dataclasses import astuple
 
 import numpy as np
 
@@ -86,7 +89,7 @@ from fleetmpc.protocol.messages import (
     VehicleStatus,
     vehicle_mode,
 )
-from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.plan import Plan, WindSample
 
 __all__ = [
     "MAGIC",
@@ -99,10 +102,12 @@ __all__ = [
 ]
 
 MAGIC = b"FM"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _HEADER = struct.Struct("<2sBBBBIq")
-_PLAN_FIXED = struct.Struct("<qHBBdI")
+_PLAN_FIXED = struct.Struct("<qHBBdI3d")
+_WIND = struct.Struct("<3d")
+"""The wind sample, the plan's fixed part's last field."""
 _STATUS_FIXED = struct.Struct("<BBB4ddIId")
 _NEIGHBOUR = struct.Struct("<Bq")
 _TARGET = struct.Struct("<B5d")
@@ -131,13 +136,14 @@ def encode(message: Message) -> bytes:
     """Serialize a message (already validated at construction) to its wire bytes."""
     if isinstance(message, PlanMessage):
         p, s = message.plan, message.status
-        flags = int(s.qp_fallback) | int(s.learning_on) << 1
+        flags = int(s.qp_fallback) | int(s.learning_on) << 1 | int(p.wind is not None) << 2
+        wind = (0.0, 0.0, 0.0) if p.wind is None else astuple(p.wind)
         m = int(np.shape(p.inputs)[0])
         return b"".join(
             (
                 _header(MessageKind.PLAN, p.vehicle_id, message.seq, p.stamp_ns),
                 _PLAN_FIXED.pack(
-                    int(p.period_ns), m, s.mode, flags, s.first_c_norm, s.solve_time_us
+                    int(p.period_ns), m, s.mode, flags, s.first_c_norm, s.solve_time_us, *wind
                 ),
                 np.ascontiguousarray(p.states, dtype="<f8").tobytes(),
                 np.ascontiguousarray(p.inputs, dtype="<f8").tobytes(),
@@ -204,14 +210,17 @@ def _decode_plan(data: bytes, sender: int, seq: int, stamp: int) -> PlanMessage:
     base = _HEADER.size + _PLAN_FIXED.size
     if len(data) < base:
         raise _reject(RejectReason.SIZE, f"plan needs at least {base} bytes, got {len(data)}")
-    period, m, mode, flags, c_norm, solve_us = _PLAN_FIXED.unpack_from(data, _HEADER.size)
+    period, m, mode, flags, c_norm, solve_us, *wind = _PLAN_FIXED.unpack_from(data, _HEADER.size)
     if not 1 <= m <= MAX_HORIZON:
         raise _reject(RejectReason.RANGE, f"horizon must be in [1, {MAX_HORIZON}], got {m}")
     size = _plan_size(m)
     if len(data) != size:
         raise _reject(RejectReason.SIZE, f"plan of horizon {m} is {size} bytes, got {len(data)}")
-    if flags & ~0b11:
+    if flags & ~0b111:
         raise _reject(RejectReason.RANGE, f"reserved plan flag bits set: {flags:#04x}")
+    wind_at = _HEADER.size + _PLAN_FIXED.size - _WIND.size
+    if not flags & 4 and data[wind_at : wind_at + _WIND.size] != bytes(_WIND.size):
+        raise _reject(RejectReason.RANGE, "wind bytes must be 0 when has_wind is clear")
     states = _read_f64(data, base, m + 1, 3)
     inputs = _read_f64(data, base + 24 * (m + 1), m, 2)
     status = PlanStatus(
@@ -221,7 +230,14 @@ def _decode_plan(data: bytes, sender: int, seq: int, stamp: int) -> PlanMessage:
         first_c_norm=c_norm,
         solve_time_us=solve_us,
     )
-    plan = Plan(vehicle_id=sender, stamp_ns=stamp, period_ns=period, states=states, inputs=inputs)
+    plan = Plan(
+        vehicle_id=sender,
+        stamp_ns=stamp,
+        period_ns=period,
+        states=states,
+        inputs=inputs,
+        wind=WindSample(*wind) if flags & 4 else None,
+    )
     return PlanMessage(seq=seq, plan=plan, status=status)
 
 

@@ -15,7 +15,7 @@ from enum import IntEnum, StrEnum
 import numpy as np
 
 from fleetmpc.errors import ConfigError
-from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.plan import Plan, WindSample
 
 __all__ = [
     "MAX_HORIZON",
@@ -148,6 +148,16 @@ def _float(name: str, value: object, bound: float, *, lo: float | None = None) -
     return x
 
 
+def _wind_sample(w: object) -> None:
+    if not isinstance(w, WindSample):
+        raise FieldError("plan.wind", RejectReason.RANGE, f"must be a WindSample, got {w!r}")
+    _float("plan.wind.heading_rad", w.heading_rad, MAX_ABS_YAW_RAD)
+    _float("plan.wind.across_m_s", w.across_m_s, MAX_ABS_SPEED_M_S)
+    _float("plan.wind.std_m_s", w.std_m_s, MAX_ABS_SPEED_M_S, lo=0.0)
+    if w.std_m_s == 0.0:
+        raise FieldError("plan.wind.std_m_s", RejectReason.RANGE, "must be > 0, got 0.0")
+
+
 def _bool(name: str, value: object) -> bool:
     if not isinstance(value, bool | np.bool_):
         raise FieldError(name, RejectReason.RANGE, f"must be a bool, got {value!r}")
@@ -228,6 +238,8 @@ class PlanMessage:
         pos, yaw = MAX_ABS_POSITION_M, MAX_ABS_YAW_RAD
         _array("plan.states", p.states, m + 1, (pos, pos, yaw))
         _array("plan.inputs", p.inputs, m, (MAX_ABS_SPEED_M_S, MAX_ABS_YAW_RATE_RAD_S))
+        if p.wind is not None:
+            _wind_sample(p.wind)
 
     kind = MessageKind.PLAN
 

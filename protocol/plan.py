@@ -5,7 +5,22 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["Plan"]
+__all__ = ["Plan", "WindSample"]
+
+
+@dataclass(frozen=True)
+class WindSample:
+    """The wind a vehicle measured across its heading as it made its plan, where the plan
+    starts: its ground velocity's component along (-sin heading, cos heading), where its own
+    speed adds nothing, so that no learned effectiveness enters it (docs/design.md, "The
+    fleet's wind"). The neighbours fuse it into their own drift."""
+
+    heading_rad: float
+    """The vehicle's estimated heading when it measured."""
+    across_m_s: float
+    """The wind across that heading [m/s], positive to the vehicle's right (East heading North)."""
+    std_m_s: float
+    """Its 1-sigma error: the sensor's and the heading's (> 0)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,6 +41,8 @@ class Plan:
     """Planned states, shape (M + 1, 3): x North [m], y East [m], yaw [rad]."""
     inputs: np.ndarray
     """Planned inputs, shape (M, 2): forward speed [m/s], yaw rate [rad/s]."""
+    wind: WindSample | None = None
+    """The wind its vehicle measured this period, if it measured one."""
 
     @property
     def horizon(self) -> int:

@@ -31,6 +31,7 @@ import numpy as np
 from fleetmpc.onboard.core.condensed_qp import QpData
 from fleetmpc.onboard.core.config import ControllerSettings, FormationSettings, LearningSettings
 from fleetmpc.onboard.core.dekf import DualEkf
+from fleetmpc.onboard.core.fleet_wind import PooledWind, WindPool
 from fleetmpc.onboard.core.formation import (
     CourseRateLimit,
     Formation,
@@ -171,6 +172,7 @@ class Agent:
         self.settings = controller
         self.learning = learning
         self.dekf = DualEkf(learning, tau=controller.period_s)
+        self.wind_pool = WindPool(learning, tau=controller.period_s)
         self.target = TargetEstimator(observation_std_m=target_observation_std_m)
         self.target_watch = TargetWatch(
             lost_s=controller.target_lost_s,
@@ -296,7 +298,8 @@ class Agent:
                 self._last_plan = None
                 self.resumes += 1
             else:
-                self.dekf.step(y, applied, known_beta=inp.known_beta)
+                shared = self._fleet_wind(inp, y)
+                self.dekf.step(y, applied, known_beta=inp.known_beta, shared=shared)
             self._resuming = False
         elif self.dekf.initialized:
             self.dekf.propagate(applied)
@@ -309,7 +312,17 @@ class Agent:
         for v, w in list(self._sent)[1:]:
             z0 = advance(*z0, v, w, beta, s.period_s)
         start_ns = inp.stamp_ns + self._delay_periods * s.period_ns
-        return Estimate(z_now=z_now, z0=z0, beta=beta, start_ns=start_ns)
+        wind = self.dekf.wind_sample
+        return Estimate(z_now=z_now, z0=z0, beta=beta, start_ns=start_ns, wind=wind)
+
+    def _fleet_wind(self, inp: AgentInput, y: np.ndarray) -> PooledWind | None:
+        """The neighbours' wind samples pooled where this vehicle is measured (`fleet_wind`);
+        None when it does not listen to them or none came."""
+        if not self.learning.fleet_wind:
+            return None
+        pose = (y.item(0), y.item(1), y.item(2))
+        drift = tuple(self.dekf.beta[2:].tolist())
+        return self.wind_pool.pool(inp.neighbour_plans.values(), pose, drift, inp.stamp_ns)
 
     def observe_target(self, inp: AgentInput) -> bool:
         """Fuse a target observation, if one came; True once the target is known."""
@@ -456,7 +469,12 @@ class Agent:
         the agent is waiting (no slot, no target prediction)."""
         s = self.settings
         plan = Plan(
-            self.vehicle_id, estimate.start_ns, s.period_ns, decision.states, decision.inputs
+            self.vehicle_id,
+            estimate.start_ns,
+            s.period_ns,
+            decision.states,
+            decision.inputs,
+            estimate.wind,
         )
         self._last_plan = None if decision.standing else plan
         self._sent.append(decision.inputs[0].copy())

@@ -163,6 +163,12 @@ class LearningSettings:
     (docs/design.md, "The wind's two parts"); 0: the drift is its mean alone."""
     gust_time_constant_s: float = 5.0
     """Time constant of that gust [s]."""
+    fleet_wind: bool = True
+    """Fuse the wind samples the neighbours broadcast with their plans into the drift
+    (docs/design.md, "The fleet's wind")."""
+    wind_length_m: float = 30.0
+    """Distance over which two vehicles' gusts decorrelate [m] (the turbulence's length scale;
+    a scenario's wind sets it); inf: the wind's changing part is the same everywhere."""
     beta_min: tuple[float, float, float, float] = (0.5, 0.5, -3.0, -3.0)
     """Lower bound of each parameter."""
     beta_max: tuple[float, float, float, float] = (1.5, 1.5, 3.0, 3.0)
@@ -230,6 +236,15 @@ class LearningSettings:
         ):
             positive(f"learning.{name}", getattr(self, name))
         positive("learning.gust_time_constant_s", self.gust_time_constant_s)
+        length = self.wind_length_m
+        if isinstance(length, bool) or not (isinstance(length, int | float) and length > 0.0):
+            raise ConfigError(
+                "learning.wind_length_m", f"must be > 0 (inf allowed), got {self.wind_length_m!r}"
+            )
+        if not isinstance(self.fleet_wind, bool):
+            raise ConfigError(
+                "learning.fleet_wind", f"must be true or false, got {self.fleet_wind!r}"
+            )
         for name in ("input_lag_s", "speed_excitation_m_s", "gust_std_m_s"):
             positive(f"learning.{name}", getattr(self, name), allow_zero=True)
 

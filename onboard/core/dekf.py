@@ -20,6 +20,11 @@ constant T (F = e^(-tau/T) on it, Q = sigma^2 (1 - e^(-2 tau/T))). A gust is exp
 a change of a_V is not: a change of the velocity that lasts through many gust time constants, in a
 direction that turns with the heading, is learned as a_V; the gust takes the rest.
 
+The fleet's wind (docs/design.md, "The fleet's wind"): each period the filter keeps the wind its
+ground velocity measured across its heading (`wind_sample`, which the agent puts on its plan),
+and takes the neighbours' samples, pooled (`fleet_wind.WindPool`), as one more measurement of
+the drift across its own heading, in an update that holds a_V and a_w.
+
 Excitation: a parameter whose Jacobian column is (nearly) zero gets no information from this
 measurement, yet a plain update would still move it through its correlation with the others; such
 parameters get a zero gain row (a Schmidt "consider" update, Joseph form keeps P consistent), so
@@ -42,7 +47,9 @@ import numpy as np
 from filterpy.kalman import predict
 
 from fleetmpc.onboard.core.config import LearningSettings
+from fleetmpc.onboard.core.fleet_wind import PooledWind
 from fleetmpc.onboard.core.unicycle import step_with_jacobians, wrap
+from fleetmpc.protocol.plan import WindSample
 
 __all__ = ["DualEkf", "flown_input"]
 
@@ -170,6 +177,27 @@ def _velocity_means(means: np.ndarray, velocity: np.ndarray, weights: np.ndarray
     return means + weights * (velocity - means)
 
 
+_H_DRIFT = np.array(((0.0, 0.0, 1.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0, 0.0, 1.0)))
+"""A measurement of the drift d = m + g w.r.t. theta."""
+
+
+def _stack(
+    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Independent measurements (innovation, Jacobian, noise covariance) as one: stacked, their
+    noise block-diagonal."""
+    if len(rows) == 1:
+        return rows[0]
+    sizes = [len(e) for e, _, _ in rows]
+    R = np.zeros((sum(sizes), sum(sizes)))
+    at = 0
+    for (_, _, R_i), size in zip(rows, sizes, strict=True):
+        R[at : at + size, at : at + size] = R_i
+        at += size
+    innovation = np.concatenate([e for e, _, _ in rows])
+    return innovation, np.concatenate([H for _, H, _ in rows]), R
+
+
 _EYE3 = np.eye(3)
 _EYE6 = np.eye(6)
 
@@ -243,6 +271,9 @@ class DualEkf:
         """Where the flown input stands (`flown_input`)."""
         self._velocity_means = np.zeros((2, 2))
         """The commanded velocity's recent and slow means (`_velocity_means`)."""
+        self.wind_sample: WindSample | None = None
+        """The wind this period's ground velocity measured, for the neighbours (None when none
+        was measured or nothing is learned)."""
 
     @property
     def initialized(self) -> bool:
@@ -262,12 +293,20 @@ class DualEkf:
             self.P_p = self._noise.P_p_initial.copy()
         self._initialized = True
 
-    def step(self, y: np.ndarray, u: np.ndarray, *, known_beta: np.ndarray | None = None) -> None:
+    def step(
+        self,
+        y: np.ndarray,
+        u: np.ndarray,
+        *,
+        known_beta: np.ndarray | None = None,
+        shared: PooledWind | None = None,
+    ) -> None:
         """Advance one period: input u was applied over the last tau; y is the new measurement,
         (x, y, yaw) or (x, y, yaw, v_North, v_East) with the ground velocity.
 
         `known_beta`: the true parameters (a known-model run): the state filter predicts with
-        them, and the parameter filter holds them instead of learning."""
+        them, and the parameter filter holds them instead of learning. `shared`: the
+        neighbours' wind samples pooled (`fleet_wind.pool`), a measurement of the drift."""
         y = np.asarray(y, float)
         u = self._fly(u)
         first = not self._initialized
@@ -293,7 +332,7 @@ class DualEkf:
         S_inv = _inverse_3x3(P_s_m + n.R_s)
         self._correct_state(z_m, P_s_m, innovation, S_inv)
         if learn:
-            self._learn(innovation, H_p, P_own + n.R_s, y[3:])
+            self._learn(innovation, H_p, P_own + n.R_s, y[3:], shared)
         nis = float(innovation.dot(S_inv).dot(innovation))
         if not (_finite(self.z, self.P_s) and nis <= n.gate**2):
             self.resets += 1
@@ -310,23 +349,42 @@ class DualEkf:
         self.P_s = I_K.dot(P_m).dot(I_K.T) + K.dot(self._noise.R_s).dot(K.T)
 
     def _learn(
-        self, innovation: np.ndarray, H_p: np.ndarray, R_p: np.ndarray, velocity: np.ndarray
+        self,
+        innovation: np.ndarray,
+        H_p: np.ndarray,
+        R_p: np.ndarray,
+        velocity: np.ndarray,
+        shared: PooledWind | None,
     ) -> None:
-        """The parameters' correction on the position innovation and, when measured, the
-        ground velocity, in one consider update that holds the unexcited parameters."""
+        """The parameters' correction on the position innovation, the ground velocity when
+        measured and the neighbours' pooled wind when heard, in one consider update that holds
+        the unexcited parameters."""
         n = self._noise
         hold = _unexcited(H_p, n, self._velocity_means)
-        H, R = H_p, R_p
+        rows = [(innovation, H_p, R_p)]
+        self.wind_sample = None
         if len(velocity) == 2:
             heading, heading_var = self.z.item(2), self.P_s.item(2, 2)
             speed = self._lag_end.item(0)
             v_m, H_v, R_v = _velocity_model(self.theta, speed, heading, heading_var, n)
-            H = np.concatenate((H_p, H_v))
-            R = np.zeros((5, 5))
-            R[:3, :3], R[3:, 3:] = R_p, R_v
-            innovation = np.concatenate((innovation, velocity - v_m))
-        theta, P_p = _consider_update(self.theta, self.P_p, innovation, H, R, hold)
+            rows.append((velocity - v_m, H_v, R_v))
+            self.wind_sample = self._wind_sample(velocity, R_v)
+        theta, P_p = _consider_update(self.theta, self.P_p, *_stack(rows), hold)
+        if shared is not None:  # (the neighbours' wind says nothing of this vehicle's a_V, a_w)
+            across = np.array(shared.direction)
+            innovation = np.array((shared.across_m_s - across.dot(beta_of(theta)[2:]),))
+            H, R = across.dot(_H_DRIFT)[None, :], np.array(((shared.variance,),))
+            theta, P_p = _consider_update(theta, P_p, innovation, H, R, [0, 1])
         self.theta, self.P_p = _bound(theta, P_p, n)
+
+    def _wind_sample(self, velocity: np.ndarray, R_v: np.ndarray) -> WindSample:
+        """The wind measured across the heading this period, for the neighbours: the ground
+        velocity along n = (-sin th, cos th), where a_V V adds nothing, with the sensor's and
+        the heading's error (n' R_v n)."""
+        heading = self.z.item(2)
+        n = np.array((-math.sin(heading), math.cos(heading)))
+        across = float(n.dot(velocity))
+        return WindSample(heading, across, math.sqrt(float(n.dot(R_v).dot(n))))
 
     def _fly(self, u: np.ndarray) -> np.ndarray:
         """The input flown over the last period for the command u (`flown_input`)."""

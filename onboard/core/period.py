@@ -17,7 +17,7 @@ import numpy as np
 from fleetmpc.onboard.core.separation import Plane, plane_slack
 from fleetmpc.onboard.core.tube import InputBox
 from fleetmpc.onboard.core.unicycle import advance
-from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.plan import Plan, WindSample
 
 __all__ = [
     "Decision",
@@ -44,6 +44,8 @@ class Estimate:
     """The learned (a_V, a_w, d_x, d_y)."""
     start_ns: int
     """When the plan's first input will be flown [ns]: everything downstream is placed then."""
+    wind: WindSample | None = None
+    """The wind measured this period, for the neighbours (`DualEkf.wind_sample`)."""
 
 
 @dataclass(frozen=True)

@@ -180,7 +180,7 @@ def malformed_plan_payloads() -> list[tuple[RejectReason, bytes]]:
     wrong_version = bytearray(valid)
     wrong_version[2] = SCHEMA_VERSION + 1
     nan_state = bytearray(valid)
-    struct.pack_into("<d", nan_state, 42, math.nan)  # states[0].x (protocol.codec layout)
+    struct.pack_into("<d", nan_state, 66, math.nan)  # states[0].x (protocol.codec layout)
     garbage = b"\x00\xff" + np.random.default_rng(5).bytes(len(valid) - 2)
     from_vehicle_1 = encode(PlanMessage(seq=0, plan=dataclasses.replace(plan, vehicle_id=1)))
     return [

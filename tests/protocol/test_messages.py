@@ -25,7 +25,7 @@ from fleetmpc.protocol.messages import (
     VehicleMode,
     VehicleStatus,
 )
-from fleetmpc.protocol.plan import Plan
+from fleetmpc.protocol.plan import Plan, WindSample
 
 U32 = st.integers(0, 2**32 - 1)
 STAMP = st.integers(0, 2**63 - 1)
@@ -48,6 +48,7 @@ def plans(draw: st.DrawFn) -> Plan:
         period_ns=draw(st.integers(1, 60_000_000_000)),
         states=np.hstack([xy, yaw]),
         inputs=inputs,
+        wind=draw(st.none() | st.builds(WindSample, f64(1e4), f64(1e3), f64(1e3, lo=1e-9))),
     )
 
 
@@ -114,8 +115,9 @@ def test_plan_round_trip_is_bit_exact(message: PlanMessage) -> None:
     assert q.states.shape == p.states.shape and q.inputs.shape == p.inputs.shape
     assert out.status == message.status
     assert bits(out.status.first_c_norm) == bits(message.status.first_c_norm)
+    assert q.wind == p.wind
     assert encode(out) == payload
-    assert len(payload) == 18 + 24 + 8 * (3 * (p.horizon + 1) + 2 * p.horizon)
+    assert len(payload) == 18 + 48 + 8 * (3 * (p.horizon + 1) + 2 * p.horizon)
 
 
 @given(message=status_messages)
@@ -136,7 +138,13 @@ def test_target_round_trip_is_bit_exact(message: TargetObservation) -> None:
     assert encode(out) == payload and len(payload) == 59
 
 
-def make_plan(m: int = 5, *, vehicle_id: int = 2, stamp_ns: int = 1_000_000_000) -> Plan:
+def make_plan(
+    m: int = 5,
+    *,
+    vehicle_id: int = 2,
+    stamp_ns: int = 1_000_000_000,
+    wind: WindSample | None = None,
+) -> Plan:
     states = np.column_stack([np.arange(m + 1.0), -np.arange(m + 1.0), np.full(m + 1, 0.5)])
     return Plan(
         vehicle_id=vehicle_id,
@@ -144,10 +152,15 @@ def make_plan(m: int = 5, *, vehicle_id: int = 2, stamp_ns: int = 1_000_000_000)
         period_ns=200_000_000,
         states=states,
         inputs=np.tile([1.0, -0.25], (m, 1)),
+        wind=wind,
     )
 
 
-def plan_bytes(m: int = 5) -> bytes:
+SAMPLE = WindSample(0.3, -0.2, 0.05)
+"""Heading 0.3 rad, 0.2 m/s across it to the left, 5 cm/s of error."""
+
+
+def plan_bytes(m: int = 5, wind: WindSample | None = SAMPLE) -> bytes:
     status = PlanStatus(
         mode=VehicleMode.OFFBOARD,
         qp_fallback=True,
@@ -155,7 +168,7 @@ def plan_bytes(m: int = 5) -> bytes:
         first_c_norm=0.125,
         solve_time_us=777,
     )
-    return encode(PlanMessage(seq=42, plan=make_plan(m), status=status))
+    return encode(PlanMessage(seq=42, plan=make_plan(m, wind=wind), status=status))
 
 
 def status_bytes() -> bytes:
@@ -200,20 +213,22 @@ def target_bytes(velocity: tuple[float, float] | None = (1.0, 1.0)) -> bytes:
 
 def test_byte_layout_matches_the_documentation() -> None:
     b = plan_bytes(5)
-    assert len(b) == 266
-    assert b[0:2] == b"FM" and b[2] == 2 and b[3] == MessageKind.PLAN and b[4] == 2 and b[5] == 0
+    assert len(b) == 290
+    assert b[0:2] == b"FM" and b[2] == 3 and b[3] == MessageKind.PLAN and b[4] == 2 and b[5] == 0
     assert struct.unpack_from("<Iq", b, 6) == (42, 1_000_000_000)
     assert struct.unpack_from("<qHBBdI", b, 18) == (
         200_000_000,
         5,
         VehicleMode.OFFBOARD,
-        1,
+        0b101,
         0.125,
         777,
     )
-    assert struct.unpack_from("<3d", b, 42) == (0.0, -0.0, 0.5)
-    assert struct.unpack_from("<3d", b, 42 + 24 * 5) == (5.0, -5.0, 0.5)
-    assert struct.unpack_from("<2d", b, 42 + 24 * 6) == (1.0, -0.25)
+    assert struct.unpack_from("<3d", b, 42) == (0.3, -0.2, 0.05)
+    assert struct.unpack_from("<3d", b, 66) == (0.0, -0.0, 0.5)
+    assert struct.unpack_from("<3d", b, 66 + 24 * 5) == (5.0, -5.0, 0.5)
+    assert struct.unpack_from("<2d", b, 66 + 24 * 6) == (1.0, -0.25)
+    assert plan_bytes(wind=None)[29] == 1 and plan_bytes(wind=None)[42:66] == bytes(24)
     s = status_bytes()
     assert s[3] == MessageKind.STATUS and s[18:21] == bytes([VehicleMode.HOLD, 0b101, 2])
     assert struct.unpack_from("<4ddIId", s, 21) == (0.8, 1.1, 0.3, -0.2, 1.5, 4, 9, 20.5)
@@ -248,7 +263,8 @@ REJECTIONS = {
     "truncated target": (target_bytes()[:-1], RejectReason.SIZE),
     "wrong magic": (b"XX" + plan_bytes()[2:], RejectReason.MAGIC),
     "wrong version": (patched(plan_bytes(), 2, "<B", 1), RejectReason.VERSION),
-    "future version": (patched(plan_bytes(), 2, "<B", 3), RejectReason.VERSION),
+    "future version": (patched(plan_bytes(), 2, "<B", 4), RejectReason.VERSION),
+    "the version before the wind sample": (patched(plan_bytes(), 2, "<B", 2), RejectReason.VERSION),
     "unknown kind": (patched(plan_bytes(), 3, "<B", 9), RejectReason.KIND),
     "kind zero": (patched(plan_bytes(), 3, "<B", 0), RejectReason.KIND),
     "sender zero": (patched(plan_bytes(), 4, "<B", 0), RejectReason.SENDER),
@@ -267,8 +283,11 @@ REJECTIONS = {
     "horizon disagrees with size": (patched(plan_bytes(), 26, "<H", 4), RejectReason.SIZE),
     "period zero": (patched(plan_bytes(), 18, "<q", 0), RejectReason.RANGE),
     "negative period": (patched(plan_bytes(), 18, "<q", -200_000_000), RejectReason.RANGE),
-    "position beyond 1e6 m": (patched(plan_bytes(), 42 + 24, "<d", 1.000001e6), RejectReason.RANGE),
-    "speed beyond 1e3 m/s": (patched(plan_bytes(), 42 + 24 * 6, "<d", 2e3), RejectReason.RANGE),
+    "position beyond 1e6 m": (patched(plan_bytes(), 66 + 24, "<d", 1.000001e6), RejectReason.RANGE),
+    "speed beyond 1e3 m/s": (patched(plan_bytes(), 66 + 24 * 6, "<d", 2e3), RejectReason.RANGE),
+    "wind without flag": (patched(plan_bytes(wind=None), 42, "<d", -0.0), RejectReason.RANGE),
+    "NaN wind": (patched(plan_bytes(), 50, "<d", NAN), RejectReason.NON_FINITE),
+    "wind std zero": (patched(plan_bytes(), 58, "<d", 0.0), RejectReason.RANGE),
     "unknown plan mode": (patched(plan_bytes(), 28, "<B", 99), RejectReason.RANGE),
     "reserved plan flags": (patched(plan_bytes(), 29, "<B", 0x80), RejectReason.RANGE),
     "negative c norm": (patched(plan_bytes(), 30, "<d", -1.0), RejectReason.RANGE),

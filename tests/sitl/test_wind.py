@@ -254,3 +254,24 @@ def test_check_says_when_the_learner_weighs_the_velocity_sensor_wrongly(paper):
     ) in quieter
     assert "follows the wind more slowly than the sensor allows" in quieter
     assert "carries more of the sensor's noise" in text([assumed * 2] * len(paper.vehicles))
+
+
+def test_the_learners_wind_length_is_the_sites_unless_the_scenario_gives_one():
+    turbulent = _doc(turbulence={"sigma_m_s": 0.1, "length_scale_m": 15.0})
+    assert parse_scenario(turbulent).learning.wind_length_m == 15.0
+    swinging = _doc(mean_m_s=[0.2, 0.0], gust_amplitude_m_s=0.1, gust_period_s=30.0)
+    assert math.isinf(parse_scenario(swinging).learning.wind_length_m)  # (alike everywhere)
+    gusty = _doc(gusts=[{"onset_s": 20.0, "amplitude_m_s": [0.0, 0.2], "length_m": 30.0}])
+    assert parse_scenario(gusty).learning.wind_length_m == 30.0
+    given = parse_scenario(turbulent | {"learning": {"wind_length_m": 8.0}})
+    assert given.learning.wind_length_m == 8.0 and given.learning.gust_std_m_s == 0.1
+
+
+def test_check_says_the_vehicles_hear_each_others_wind():
+    from fleetmpc.check.feasibility import check_scenario
+
+    text = check_scenario(parse_scenario(_doc(turbulence={"sigma_m_s": 0.1}))).render()
+    assert "pools the wind its neighbours measure across their headings" in text
+    assert "decorrelate over 20 m" in text
+    alone = _doc(turbulence={"sigma_m_s": 0.1}) | {"learning": {"fleet_wind": False}}
+    assert "neighbours measure" not in check_scenario(parse_scenario(alone)).render()
