@@ -181,23 +181,6 @@ _H_DRIFT = np.array(((0.0, 0.0, 1.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0, 0.0, 1
 """A measurement of the drift d = m + g w.r.t. theta."""
 
 
-def _stack(
-    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Independent measurements (innovation, Jacobian, noise covariance) as one: stacked, their
-    noise block-diagonal."""
-    if len(rows) == 1:
-        return rows[0]
-    sizes = [len(e) for e, _, _ in rows]
-    R = np.zeros((sum(sizes), sum(sizes)))
-    at = 0
-    for (_, _, R_i), size in zip(rows, sizes, strict=True):
-        R[at : at + size, at : at + size] = R_i
-        at += size
-    innovation = np.concatenate([e for e, _, _ in rows])
-    return innovation, np.concatenate([H for _, H, _ in rows]), R
-
-
 _EYE3 = np.eye(3)
 _EYE6 = np.eye(6)
 
@@ -306,7 +289,7 @@ class DualEkf:
 
         `known_beta`: the true parameters (a known-model run): the state filter predicts with
         them, and the parameter filter holds them instead of learning. `shared`: the
-        neighbours' wind samples pooled (`fleet_wind.pool`), a measurement of the drift."""
+        neighbours' wind samples pooled (`fleet_wind.WindPool.pool`), a measurement of the drift."""
         y = np.asarray(y, float)
         u = self._fly(u)
         first = not self._initialized
@@ -356,20 +339,23 @@ class DualEkf:
         velocity: np.ndarray,
         shared: PooledWind | None,
     ) -> None:
-        """The parameters' correction on the position innovation, the ground velocity when
-        measured and the neighbours' pooled wind when heard, in one consider update that holds
-        the unexcited parameters."""
+        """The parameters' correction on the position innovation and, when measured, the
+        ground velocity, in one consider update that holds the unexcited parameters; then on the
+        neighbours' pooled wind when heard, in one that holds a_V and a_w."""
         n = self._noise
         hold = _unexcited(H_p, n, self._velocity_means)
-        rows = [(innovation, H_p, R_p)]
+        H, R = H_p, R_p
         self.wind_sample = None
         if len(velocity) == 2:
             heading, heading_var = self.z.item(2), self.P_s.item(2, 2)
             speed = self._lag_end.item(0)
             v_m, H_v, R_v = _velocity_model(self.theta, speed, heading, heading_var, n)
-            rows.append((velocity - v_m, H_v, R_v))
+            H = np.concatenate((H_p, H_v))
+            R = np.zeros((5, 5))
+            R[:3, :3], R[3:, 3:] = R_p, R_v
+            innovation = np.concatenate((innovation, velocity - v_m))
             self.wind_sample = self._wind_sample(velocity, R_v)
-        theta, P_p = _consider_update(self.theta, self.P_p, *_stack(rows), hold)
+        theta, P_p = _consider_update(self.theta, self.P_p, innovation, H, R, hold)
         if shared is not None:  # (the neighbours' wind says nothing of this vehicle's a_V, a_w)
             across = np.array(shared.direction)
             innovation = np.array((shared.across_m_s - across.dot(beta_of(theta)[2:]),))
